@@ -1,0 +1,9 @@
+"""Exceptions raised by greyid for bad models and bad data."""
+
+
+class ModelError(ValueError):
+    """A model specification that cannot be used (names the equation or parameter)."""
+
+
+class DataError(ValueError):
+    """Data that cannot be used with a model (names the column or the row)."""

@@ -1,0 +1,191 @@
+"""Public entry points: log-likelihood, filtering and smoothing of DataFrames.
+
+Data are checked, turned into arrays and padded to a length bucket (eight
+buckets per doubling) so that a compiled filter is reused across data sets of
+similar length; padded rows carry no observation and an interval of length 0,
+so they change nothing.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+
+from ..data.prepare import Series, as_frames, prepare_series
+from ..errors import DataError, ModelError
+from ..model.structure import Structure
+from .core import EKF, KALMAN, FilterInputs, FilterOptions, initial_state, make_filter
+from .result import FilterResult, SmootherResult
+from .smoother import rts_smooth
+
+HOLDS = {"zoh": 0.0, "foh": 1.0}
+
+
+def bucket(n: int, minimum: int = 16) -> int:
+    """Padded size for n: a multiple of 1/8 of the largest power of two below n."""
+    if n <= minimum:
+        return minimum
+    step = max(2 ** (int(math.floor(math.log2(n))) - 3), 1)
+    return int(math.ceil(n / step) * step)
+
+
+def _round_significant(values: np.ndarray, digits: int = 12) -> np.ndarray:
+    """Round to ``digits`` significant digits so equal sampling intervals share one discretization."""
+    out = np.zeros_like(values)
+    nz = values != 0
+    exponent = np.floor(np.log10(np.abs(values[nz])))
+    scale = 10.0 ** (exponent - digits + 1)
+    out[nz] = np.round(values[nz] / scale) * scale
+    return out
+
+
+def filter_inputs(series: Series, hold: str) -> FilterInputs:
+    """Arrays for the filter from a checked series (padded, see module doc)."""
+    if hold not in HOLDS:
+        raise DataError(f"unknown hold '{hold}'; use 'zoh' (inputs held) or 'foh' (inputs interpolated)")
+    n_rows = series.n_rows
+    size = bucket(n_rows)
+    pad = size - n_rows
+    t = np.concatenate([series.times, np.full(pad, series.times[-1])])
+    dt = np.concatenate([[0.0], np.diff(t)])
+    t_prev = np.concatenate([t[:1], t[:-1]])
+    u = np.concatenate([series.inputs, np.repeat(series.inputs[-1:], pad, axis=0)])
+    u_prev = np.concatenate([u[:1], u[:-1]])
+    y = np.concatenate([series.outputs, np.full((pad, series.outputs.shape[1]), np.nan)])
+    mask = ~np.isnan(y)
+    rounded = _round_significant(dt)
+    unique, index = np.unique(rounded, return_inverse=True)
+    unique = np.concatenate([unique, np.zeros(bucket(len(unique), 4) - len(unique))])
+    first = series.times[1] - series.times[0] if n_rows > 1 else 0.0
+    return FilterInputs(
+        t=jnp.asarray(t), t_prev=jnp.asarray(t_prev), dt=jnp.asarray(dt),
+        u_prev=jnp.asarray(u_prev), u_cur=jnp.asarray(u),
+        y=jnp.asarray(np.where(mask, y, 0.0)), mask=jnp.asarray(mask, dtype=jnp.float64),
+        dt_index=jnp.asarray(index.reshape(-1), dtype=jnp.int32), unique_dt=jnp.asarray(unique),
+        first_interval=jnp.asarray(first), foh=jnp.asarray(HOLDS[hold]),
+    )
+
+
+def filter_options(structure: Structure, method: str | None, **options) -> FilterOptions:
+    """Settings with the default method: exact Kalman for linear models, EKF otherwise."""
+    if method is None:
+        method = KALMAN if structure.is_linear else EKF
+    unknown = set(options) - {"form", "substeps", "iterations", "alpha", "beta", "kappa"}
+    if unknown:
+        raise ModelError(f"unknown filter option '{sorted(unknown)[0]}'")
+    return FilterOptions(method=method, **options)
+
+
+def compiled_filter(structure: Structure, options: FilterOptions, keep_outputs: bool):
+    """The jitted filter for these settings, compiled once per model structure."""
+    key = ("filter", options, keep_outputs)
+    if key not in structure.cache:
+        structure.cache[key] = make_filter(structure, options, keep_outputs)
+    return structure.cache[key]
+
+
+def _check_at_parameters(model, structure: Structure, theta: np.ndarray, series: Series, data: FilterInputs) -> None:
+    """Errors that depend on parameter values: negative variances, a bad P0."""
+    key = ("checks",)
+    if key not in structure.cache:
+        def checks(theta, data):
+            x0, P0 = initial_state(structure, theta, data)
+            S = jax.vmap(lambda u, t: structure.observation_variance(x0, u, t, theta))(data.u_cur, data.t)
+            return S, P0
+
+        structure.cache[key] = jax.jit(checks)
+    S, P0 = structure.cache[key](jnp.asarray(theta), data)
+    S = np.asarray(S)[: series.n_rows]
+    bad = np.argwhere(~(S > 0))
+    if len(bad):
+        row, j = bad[0]
+        raise ModelError(
+            f"the variance of observation '{structure.output_names[j]}' is {S[row, j]} at row {row} "
+            "for the given parameters; variances must be positive"
+        )
+    P0 = np.asarray(P0)
+    if not np.all(np.isfinite(P0)) or np.min(np.linalg.eigvalsh(0.5 * (P0 + P0.T))) <= 0:
+        raise ModelError(
+            "the initial state covariance is not positive definite for the given parameters "
+            f"(kind '{structure.initial_covariance.kind}'); give a positive definite matrix"
+        )
+
+
+def _prepare(model, params, data, time, hold, time_unit):
+    structure = model.structure
+    theta = model.parameter_vector(params)
+    frames = as_frames(data)
+    prepared = []
+    for df in frames:
+        series = prepare_series(df, structure.input_names, structure.output_names, time, time_unit)
+        inputs = filter_inputs(series, hold)
+        if structure.initial_covariance.kind == "process" and series.n_rows < 2:
+            raise DataError("a data set with one row has no sampling interval for the 'process' initial covariance")
+        _check_at_parameters(model, structure, theta, series, inputs)
+        prepared.append((series, inputs))
+    return structure, theta, prepared
+
+
+def loglik(model, params, data, time="t", hold="zoh", method=None, time_unit=None, **options) -> float:
+    """Sum over data sets of the Gaussian log-likelihood (3.18)."""
+    structure, theta, prepared = _prepare(model, params, data, time, hold, time_unit)
+    run = compiled_filter(structure, filter_options(structure, method, **options), keep_outputs=False)
+    return float(sum(run(jnp.asarray(theta), inputs)[0] for _, inputs in prepared))
+
+
+def _result(structure: Structure, method: str, series: Series, outputs) -> FilterResult:
+    n = series.n_rows
+    cut = jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], outputs)
+    idx = series.index
+    states, outs = list(structure.state_names), list(structure.output_names)
+    observed = ~np.isnan(series.outputs)
+    innovations = np.where(observed, cut.innovation, np.nan)
+    R = np.array(cut.innovation_cov)
+    both = observed[:, :, None] & observed[:, None, :]
+    R[~both] = np.nan
+    return FilterResult(
+        method=method,
+        times=pd.Series(series.times, index=idx, name=series.time_name),
+        predicted=pd.DataFrame(cut.predicted_mean, index=idx, columns=states),
+        predicted_cov=cut.predicted_cov,
+        filtered=pd.DataFrame(cut.filtered_mean, index=idx, columns=states),
+        filtered_cov=cut.filtered_cov,
+        output_predictions=pd.DataFrame(cut.output_prediction, index=idx, columns=outs),
+        innovations=pd.DataFrame(innovations, index=idx, columns=outs),
+        innovation_cov=R,
+        loglik_terms=pd.Series(cut.loglik, index=idx, name="loglik"),
+        transitions=cut.transition,
+    )
+
+
+def filter_data(model, params, data, time="t", hold="zoh", method=None, time_unit=None, **options):
+    """Filter result(s): one :class:`FilterResult`, or a list for a list of data sets."""
+    structure, theta, prepared = _prepare(model, params, data, time, hold, time_unit)
+    opts = filter_options(structure, method, **options)
+    run = compiled_filter(structure, opts, keep_outputs=True)
+    results = [_result(structure, opts.method, series, run(jnp.asarray(theta), inputs)[1])
+               for series, inputs in prepared]
+    return results[0] if isinstance(data, pd.DataFrame) else results
+
+
+def smooth_data(model, params, data, time="t", hold="zoh", method=None, time_unit=None, **options):
+    """Rauch–Tung–Striebel smoothing after the Kalman filter or the EKF."""
+    structure = model.structure
+    chosen = method or (KALMAN if structure.is_linear else EKF)
+    if chosen not in (KALMAN, EKF):
+        raise ModelError(f"smoothing is available after the 'kalman' and 'ekf' filters, not '{chosen}'")
+    results = filter_data(model, params, data, time, hold, chosen, time_unit, **options)
+    single = isinstance(results, FilterResult)
+    out = []
+    for res in [results] if single else results:
+        xs, Ps = rts_smooth(jnp.asarray(res.filtered.to_numpy()), jnp.asarray(res.filtered_cov),
+                            jnp.asarray(res.predicted.to_numpy()), jnp.asarray(res.predicted_cov),
+                            jnp.asarray(res.transitions))
+        out.append(SmootherResult(res.times, pd.DataFrame(np.asarray(xs), index=res.filtered.index,
+                                                          columns=res.filtered.columns),
+                                  np.asarray(Ps), res))
+    return out[0] if single else out

@@ -1,0 +1,183 @@
+"""One implementation of each continuous–discrete filter, as a ``lax.scan``.
+
+The scan runs over the rows of a data set.  Row k first predicts from t_{k-1}
+to t_k (row 0 "predicts" over an interval of length 0, so the filter starts
+from x(t₀) ~ N(x0, P0) and updates it with the observation at t₀), then
+updates with the observed elements of y_k.  The same function gives the
+log-likelihood (3.18), the filtered and predicted states for results, and the
+quantities the smoother needs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from ..errors import ModelError
+from ..model.structure import LTI, Structure
+from .discretize import discretize, stationary_covariance
+from .predictors import (
+    Interval,
+    extended_predict,
+    linear_predict,
+    linearized_observation,
+    sigma_weights,
+    unscented_predict,
+    unscented_update,
+)
+from .updates import FORMS, from_matrix, linear_update, to_matrix
+
+KALMAN, EKF, IEKF, UKF = "kalman", "ekf", "iekf", "ukf"
+METHODS = (KALMAN, EKF, IEKF, UKF)
+
+
+@dataclass(frozen=True)
+class FilterOptions:
+    """Static settings of a filter; each distinct value compiles once."""
+
+    method: str
+    form: str = "sqrt"
+    substeps: int = 1
+    iterations: int = 5
+    alpha: float = 1.0
+    beta: float = 0.0
+    kappa: float = 0.0
+
+    def __post_init__(self):
+        if self.method not in METHODS:
+            raise ModelError(f"unknown filter method '{self.method}'; use one of {list(METHODS)}")
+        if self.form not in FORMS:
+            raise ModelError(f"unknown covariance form '{self.form}'; use 'sqrt' or 'plain'")
+        if not isinstance(self.substeps, int) or self.substeps < 1:
+            raise ModelError(f"substeps must be a positive integer, got {self.substeps!r}")
+        if not isinstance(self.iterations, int) or self.iterations < 1:
+            raise ModelError(f"iterations must be a positive integer, got {self.iterations!r}")
+
+
+class FilterInputs(NamedTuple):
+    """Arrays of one (padded) series; row k describes the interval ending at t_k."""
+
+    t: jnp.ndarray  # (N,)
+    t_prev: jnp.ndarray  # (N,)
+    dt: jnp.ndarray  # (N,), 0 at row 0 and on padding
+    u_prev: jnp.ndarray  # (N, nu)
+    u_cur: jnp.ndarray  # (N, nu)
+    y: jnp.ndarray  # (N, ny), 0 where unobserved
+    mask: jnp.ndarray  # (N, ny), 1.0 observed / 0.0 not
+    dt_index: jnp.ndarray  # (N,) into unique_dt
+    unique_dt: jnp.ndarray  # (M,)
+    first_interval: jnp.ndarray  # t_1 − t_0
+    foh: jnp.ndarray  # 0.0 (zoh) or 1.0 (foh)
+
+
+class StepOutput(NamedTuple):
+    predicted_mean: jnp.ndarray
+    predicted_cov: jnp.ndarray
+    filtered_mean: jnp.ndarray
+    filtered_cov: jnp.ndarray
+    output_prediction: jnp.ndarray
+    innovation: jnp.ndarray
+    innovation_cov: jnp.ndarray
+    loglik: jnp.ndarray
+    transition: jnp.ndarray
+
+
+def initial_state(structure: Structure, theta, data: FilterInputs):
+    """x0 and P0 (matrix, CTSM's scaled process noise, or stationary covariance)."""
+    x0 = structure.initial_mean(theta)
+    spec = structure.initial_covariance
+    if spec.kind == "matrix":
+        return x0, spec.matrix(theta)
+    u0, t0 = data.u_cur[0], data.t[0]
+    A = jax.jacfwd(structure.drift, argnums=0)(x0, u0, t0, theta)
+    G = structure.diffusion(x0, u0, t0, theta)
+    if spec.kind == "process":
+        return x0, spec.scale * discretize(A, G @ G.T, data.first_interval).noise_covariance
+    return x0, stationary_covariance(A, G @ G.T)
+
+
+def make_filter(structure: Structure, options: FilterOptions, keep_outputs: bool):
+    """A jitted ``run(theta, data) -> (loglik, StepOutput | None)``."""
+    f, G, h, S = structure.drift, structure.diffusion, structure.observation, structure.observation_variance
+    form, method = options.form, options.method
+    if method == KALMAN and not structure.is_linear:
+        raise ModelError(
+            f"the exact Kalman filter needs a linear model, but this model is {structure.kind}; "
+            "use method='ekf', 'iekf' or 'ukf'"
+        )
+    n = structure.n_states
+    weights = sigma_weights(n, options.alpha, options.beta, options.kappa) if method == UKF else None
+    jac_f = jax.jacfwd(f, argnums=0)
+    zeros = jnp.zeros(n)
+
+    def linear_terms(theta, data):
+        """Discretizations and affine drift terms b = f(0, u, t) for the exact filter."""
+        b_prev = jax.vmap(lambda u, t: f(zeros, u, t, theta))(data.u_prev, data.t_prev)
+        b_cur = jax.vmap(lambda u, t: f(zeros, u, t, theta))(data.u_cur, data.t)
+        if structure.kind == LTI:
+            u0, t0 = data.u_cur[0], data.t[0]
+            A = jac_f(zeros, u0, t0, theta)
+            g = G(zeros, u0, t0, theta)
+            cache = jax.vmap(discretize, in_axes=(None, None, 0))(A, g @ g.T, data.unique_dt)
+            return cache, b_prev, b_cur
+
+        def per_row(u, t, dt):
+            g = G(zeros, u, t, theta)
+            return discretize(jac_f(zeros, u, t, theta), g @ g.T, dt)
+
+        return jax.vmap(per_row)(data.u_prev, data.t_prev, data.dt), b_prev, b_cur
+
+    def run(theta, data: FilterInputs):
+        x0, P0 = initial_state(structure, theta, data)
+        carry0 = (x0, from_matrix(P0, form))
+        if method == KALMAN:
+            cache, b_prev, b_cur = linear_terms(theta, data)
+        rows = jnp.arange(data.t.shape[0])
+
+        def step(carry, k):
+            x, cov = carry
+            u, t, y, mask = data.u_cur[k], data.t[k], data.y[k], data.mask[k]
+            interval = Interval(data.t_prev[k], data.dt[k], data.u_prev[k], u, data.foh)
+            if method == KALMAN:
+                idx = data.dt_index[k] if structure.kind == LTI else k
+                disc = jax.tree_util.tree_map(lambda a: a[idx], cache)
+                x_pred, cov_pred = linear_predict(x, cov, disc, b_prev[k], b_cur[k], data.foh, form)
+                transition = disc.transition
+            elif method == UKF:
+                x_pred, cov_pred, transition = unscented_predict(
+                    x, cov, interval, theta, f, G, options.substeps, form, weights)
+            else:
+                x_pred, cov_pred, transition = extended_predict(
+                    x, cov, interval, theta, f, G, options.substeps, form)
+
+            if method == UKF:
+                upd, y_pred = unscented_update(x_pred, cov_pred, y, mask, u, t, theta, h, S, form, weights)
+            else:
+                y_pred, C = linearized_observation(h, x_pred, u, t, theta)
+                if method == IEKF:
+                    # Iterated update (4.43): relinearize h about the latest estimate η.
+                    def iterate(_, eta):
+                        h_eta, C_eta = linearized_observation(h, eta, u, t, theta)
+                        pseudo = h_eta + C_eta @ (x_pred - eta)
+                        return linear_update(x_pred, cov_pred, y, mask, pseudo, C_eta,
+                                             S(eta, u, t, theta), form).mean
+
+                    eta = jax.lax.fori_loop(0, options.iterations - 1, iterate, x_pred)
+                    h_eta, C = linearized_observation(h, eta, u, t, theta)
+                    y_pred = h_eta + C @ (x_pred - eta)
+                    upd = linear_update(x_pred, cov_pred, y, mask, y_pred, C, S(eta, u, t, theta), form)
+                else:
+                    upd = linear_update(x_pred, cov_pred, y, mask, y_pred, C, S(x_pred, u, t, theta), form)
+            out = None
+            if keep_outputs:
+                out = StepOutput(x_pred, to_matrix(cov_pred, form), upd.mean, to_matrix(upd.covariance, form),
+                                 y_pred, upd.innovation, upd.innovation_covariance, upd.loglik, transition)
+            return (upd.mean, upd.covariance), (upd.loglik, out)
+
+        _, (terms, outputs) = jax.lax.scan(step, carry0, rows)
+        return jnp.sum(terms), outputs
+
+    return jax.jit(run)

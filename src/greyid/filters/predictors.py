@@ -1,0 +1,145 @@
+"""Time updates: from (x_{k-1|k-1}, P_{k-1|k-1}) to (x_{k|k-1}, P_{k|k-1}).
+
+* linear: the exact discretization (4.34)–(4.39) of a linear model;
+* extended: the sub-sampled local linearization of appendix A.4 (A.46–A.50),
+  exact for linear models;
+* unscented: the moment equations (4.19)–(4.20) with the expectations of
+  f and G Gᵀ taken over sigma points, i.e. the statistically linearized drift
+  (4.47)–(4.48), integrated with the same exponential sub-steps as the EKF, so
+  that it too is exact for linear models and stable for stiff ones.
+
+Inputs are held (hold="zoh") or interpolated linearly (hold="foh", 4.37); the
+``foh`` flag is 0.0 or 1.0 so that both share one compiled function.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from .discretize import discretize
+from .updates import propagate, to_matrix, from_matrix
+
+
+class Interval(NamedTuple):
+    """What a time update needs to know of one sampling interval."""
+
+    t_prev: jnp.ndarray
+    dt: jnp.ndarray
+    u_prev: jnp.ndarray
+    u_cur: jnp.ndarray
+    foh: jnp.ndarray
+
+
+def linear_predict(mean, cov, disc, b_prev, b_cur, foh, form):
+    """x = Φx + Γb_k + Υ(b_{k+1} − b_k), P = ΦPΦᵀ + Λ (4.34, 4.35, 4.38)."""
+    mean = disc.transition @ mean + disc.input_gain @ b_prev + foh * disc.ramp_gain @ (b_cur - b_prev)
+    return mean, propagate(cov, disc.transition, disc.noise_covariance, form)
+
+
+def _input_rate(drift, x, u, t, theta, u_rate):
+    """∂f/∂u · du/dt, the drift's change along the interpolated inputs."""
+    return jax.jvp(lambda v: drift(x, v, t, theta), (u,), (u_rate,))[1]
+
+
+def extended_predict(mean, cov, interval: Interval, theta, drift, diffusion, substeps: int, form: str):
+    """Sub-sampled local linearization (A.46–A.50); returns mean, cov and the interval's Φ."""
+    h = interval.dt / substeps
+    du = (interval.u_cur - interval.u_prev) * interval.foh
+    u_rate = jnp.where(interval.dt > 0, du / jnp.where(interval.dt > 0, interval.dt, 1.0), 0.0)
+    jac = jax.jacfwd(drift, argnums=0)
+
+    def substep(j, state):
+        x, c, phi_total = state
+        t = interval.t_prev + j * h
+        u = interval.u_prev + du * (j / substeps)
+        f = drift(x, u, t, theta)
+        g = diffusion(x, u, t, theta)
+        disc = discretize(jac(x, u, t, theta), g @ g.T, h)
+        # x_{j+1} = x_j + Γ f_j + ∫(h−s)e^{As}ds ∂f/∂u u̇  (A.49 with the input ramp)
+        x = x + disc.input_gain @ f + h * disc.ramp_gain @ _input_rate(drift, x, u, t, theta, u_rate)
+        c = propagate(c, disc.transition, disc.noise_covariance, form)
+        return x, c, disc.transition @ phi_total
+
+    n = mean.shape[0]
+    return jax.lax.fori_loop(0, substeps, substep, (mean, cov, jnp.eye(n)))
+
+
+class SigmaWeights(NamedTuple):
+    mean: jnp.ndarray
+    cov: jnp.ndarray
+    spread: float
+
+
+def sigma_weights(n: int, alpha: float, beta: float, kappa: float) -> SigmaWeights:
+    """Weights of the scaled unscented transform with 2n+1 points."""
+    lam = alpha**2 * (n + kappa) - n
+    wm = jnp.full(2 * n + 1, 1.0 / (2.0 * (n + lam)))
+    wc = wm
+    wm = wm.at[0].set(lam / (n + lam))
+    wc = wc.at[0].set(lam / (n + lam) + 1.0 - alpha**2 + beta)
+    return SigmaWeights(wm, wc, float(jnp.sqrt(n + lam)))
+
+
+def sigma_points(mean, P, weights: SigmaWeights):
+    L = jnp.linalg.cholesky(0.5 * (P + P.T))
+    offsets = weights.spread * L.T  # rows are scaled columns of L
+    return jnp.concatenate([mean[None, :], mean + offsets, mean - offsets], axis=0)
+
+
+def unscented_predict(mean, cov, interval: Interval, theta, drift, diffusion, substeps: int, form: str,
+                      weights: SigmaWeights):
+    """Sigma-point moment propagation with statistically linearized drift (4.47–4.53)."""
+    h = interval.dt / substeps
+    du = (interval.u_cur - interval.u_prev) * interval.foh
+    u_rate = jnp.where(interval.dt > 0, du / jnp.where(interval.dt > 0, interval.dt, 1.0), 0.0)
+
+    def substep(j, state):
+        x, c, phi_total = state
+        t = interval.t_prev + j * h
+        u = interval.u_prev + du * (j / substeps)
+        P = to_matrix(c, form)
+        X = sigma_points(x, P, weights)
+        F = jax.vmap(lambda xi: drift(xi, u, t, theta))(X)
+        f_mean = weights.mean @ F
+        cross = (X - x).T @ (weights.cov[:, None] * (F - f_mean))  # Cov(x, f)
+        A = jnp.linalg.solve(0.5 * (P + P.T), cross).T  # (4.48)
+        Gs = jax.vmap(lambda xi: diffusion(xi, u, t, theta))(X)
+        Q = jnp.einsum("i,ijk,ilk->jl", weights.mean, Gs, Gs)
+        rate = weights.mean @ jax.vmap(lambda xi: _input_rate(drift, xi, u, t, theta, u_rate))(X)
+        disc = discretize(A, Q, h)
+        x = x + disc.input_gain @ f_mean + h * disc.ramp_gain @ rate
+        c = from_matrix(disc.transition @ P @ disc.transition.T + disc.noise_covariance, form)
+        return x, c, disc.transition @ phi_total
+
+    n = mean.shape[0]
+    return jax.lax.fori_loop(0, substeps, substep, (mean, cov, jnp.eye(n)))
+
+
+def unscented_update(mean, cov, y, mask, u, t, theta, observation, variance, form, weights: SigmaWeights):
+    """Unscented measurement update: ŷ, R and the state–output cross covariance from sigma points."""
+    from .updates import Update, gaussian_term, symmetrize
+
+    P = to_matrix(cov, form)
+    X = sigma_points(mean, P, weights)
+    Y = jax.vmap(lambda xi: observation(xi, u, t, theta))(X)
+    y_pred = weights.mean @ Y
+    dY = Y - y_pred
+    S = variance(mean, u, t, theta)
+    m = mask
+    R = dY.T @ (weights.cov[:, None] * dY) + jnp.diag(S)
+    R = R * m[:, None] * m[None, :] + jnp.diag(1.0 - m)
+    cross = ((X - mean).T @ (weights.cov[:, None] * dY)) * m[None, :]
+    innovation = jnp.where(m > 0, y - y_pred, 0.0)
+    chol_R = jnp.linalg.cholesky(symmetrize(R))
+    gain = jax.scipy.linalg.cho_solve((chol_R, True), cross.T).T
+    new_mean = mean + gain @ innovation
+    new_P = symmetrize(P - gain @ R @ gain.T)
+    return Update(new_mean, from_matrix(new_P, form), innovation, R, gaussian_term(innovation, chol_R, m)), y_pred
+
+
+def linearized_observation(observation: Callable, x, u, t, theta):
+    """h(x) and C = ∂h/∂x (A.41)."""
+    return observation(x, u, t, theta), jax.jacfwd(observation, argnums=0)(x, u, t, theta)

@@ -1,0 +1,71 @@
+"""Filter and smoother results as pandas objects."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+
+@dataclass(frozen=True)
+class FilterResult:
+    """Output of a continuous–discrete filter on one data set.
+
+    Means are DataFrames indexed like the data; covariances are arrays of shape
+    (N, n, n).  Innovations ε_k and their covariances R_k (4.32–4.33) are NaN
+    where an output was not observed.
+    """
+
+    method: str
+    times: pd.Series
+    predicted: pd.DataFrame  # x_{k|k-1}
+    predicted_cov: np.ndarray  # P_{k|k-1}
+    filtered: pd.DataFrame  # x_{k|k}
+    filtered_cov: np.ndarray  # P_{k|k}
+    output_predictions: pd.DataFrame  # ŷ_{k|k-1}
+    innovations: pd.DataFrame  # ε_k
+    innovation_cov: np.ndarray  # R_{k|k-1}
+    loglik_terms: pd.Series
+    transitions: np.ndarray  # Φ over the interval ending at row k (for smoothing)
+
+    @property
+    def loglik(self) -> float:
+        """Gaussian log-likelihood (3.18) with the full constant."""
+        return float(self.loglik_terms.sum())
+
+    @property
+    def n_obs(self) -> int:
+        """Number of observed output elements."""
+        return int(self.innovations.notna().to_numpy().sum())
+
+    @property
+    def standardized_innovations(self) -> pd.DataFrame:
+        """ε_k,i / √R_k,ii per output (NaN where unobserved)."""
+        sd = np.sqrt(np.diagonal(self.innovation_cov, axis1=1, axis2=2))
+        return self.innovations / sd
+
+    @property
+    def predicted_std(self) -> pd.DataFrame:
+        sd = np.sqrt(np.diagonal(self.predicted_cov, axis1=1, axis2=2))
+        return pd.DataFrame(sd, index=self.predicted.index, columns=self.predicted.columns)
+
+    @property
+    def filtered_std(self) -> pd.DataFrame:
+        sd = np.sqrt(np.diagonal(self.filtered_cov, axis1=1, axis2=2))
+        return pd.DataFrame(sd, index=self.filtered.index, columns=self.filtered.columns)
+
+
+@dataclass(frozen=True)
+class SmootherResult:
+    """Rauch–Tung–Striebel smoothed states x_{k|N}, P_{k|N}."""
+
+    times: pd.Series
+    smoothed: pd.DataFrame
+    smoothed_cov: np.ndarray
+    filter_result: FilterResult
+
+    @property
+    def smoothed_std(self) -> pd.DataFrame:
+        sd = np.sqrt(np.diagonal(self.smoothed_cov, axis1=1, axis2=2))
+        return pd.DataFrame(sd, index=self.smoothed.index, columns=self.smoothed.columns)

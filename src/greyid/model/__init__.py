@@ -1,0 +1,7 @@
+"""Model specification: equations as text (or Python functions) to JAX functions."""
+
+from .model import Model
+from .parameters import Parameter
+from .structure import LTI, LTV, NONLINEAR, Structure
+
+__all__ = ["Model", "Parameter", "Structure", "LTI", "LTV", "NONLINEAR"]

@@ -1,0 +1,491 @@
+"""The :class:`Model`: a stochastic state-space model written as equations.
+
+    m = Model("TiTw")
+    m.add_system("dTi = (1/(Ci*Riw)*(Tw-Ti) + Aw/Ci*Gv + Qi/Ci)*dt + exp(p11)*dw1")
+    m.add_system("dTw = (1/(Cw*Riw)*(Ti-Tw) + 1/(Cw*Rwe)*(Te-Tw))*dt + exp(p22)*dw2")
+    m.add_inputs("Te", "Gv", "Qi")
+    m.add_observation("yTi = Ti", variance="exp(e11)")
+    m.set_initial_state(mean={"Ti": "Ti0", "Tw": 31.0}, covariance="process")
+
+The equations are the model (4.1)–(4.2) of the thesis: dx = f(x,u,t,θ)dt +
+G(x,u,t,θ)dω and y_k = h(x_k,u_k,t_k,θ) + e_k with e_k ~ N(0, S).
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Iterable, Mapping, Sequence
+
+import numpy as np
+import sympy as sp
+
+from ..errors import ModelError
+from .equations import (
+    TIME,
+    is_wiener_name,
+    parse_equation,
+    parse_expression,
+    parse_system_equation,
+)
+from .parameters import Parameter
+from .structure import (
+    LTI,
+    LTV,
+    NONLINEAR,
+    InitialCovariance,
+    Structure,
+    classify,
+    lambdify_model,
+    lambdify_parameters,
+)
+
+_COVARIANCE_KINDS = ("process", "stationary")
+
+
+class Model:
+    """A continuous–discrete stochastic state-space model (thesis eq. 4.1–4.2)."""
+
+    def __init__(self, name: str = "model"):
+        self.name = name
+        self._system: list = []
+        self._inputs: list[str] = []
+        self._observations: list[tuple] = []
+        self._algebraics: list = []
+        self._parameters: dict[str, Parameter] = {}
+        self._initial_mean: dict[str, object] | None = None
+        self._initial_covariance: object = "process"
+        self._initial_scale: float = 1.0
+        self._functions: dict | None = None
+        self._structure: Structure | None = None
+
+    # ------------------------------------------------------------------ building
+    def _changed(self) -> None:
+        self._structure = None
+
+    def add_system(self, *equations: str) -> "Model":
+        """Add state equations ``d<state> = ...*dt + ...*dw<j>``."""
+        if self._functions is not None:
+            raise ModelError("this model is defined by Python functions; equations cannot be added")
+        for text in equations:
+            eq = parse_system_equation(text)
+            if any(e.state == eq.state for e in self._system):
+                raise ModelError(f"state '{eq.state}' is defined twice (again in '{text}')")
+            self._system.append(eq)
+        self._changed()
+        return self
+
+    def add_inputs(self, *names: str) -> "Model":
+        """Declare input columns (known external signals u)."""
+        for name in names:
+            if not isinstance(name, str) or not name.isidentifier():
+                raise ModelError(f"input name {name!r} is not a valid name")
+            if name in self._inputs:
+                raise ModelError(f"input '{name}' is declared twice")
+            if name in ("t", "dt") or is_wiener_name(name):
+                raise ModelError(f"'{name}' is reserved and cannot be an input")
+            self._inputs.append(name)
+        self._changed()
+        return self
+
+    def add_observation(self, equation: str, variance: str | float) -> "Model":
+        """Add ``y = h(x, u, t, θ)`` measured with noise of the given variance."""
+        eq = parse_equation(equation, "observation equation")
+        if any(o[0].lhs == eq.lhs for o in self._observations):
+            raise ModelError(f"observation '{eq.lhs}' is defined twice")
+        noise = [s.name for s in eq.rhs.free_symbols if is_wiener_name(s.name) or s.name == "dt"]
+        if noise:
+            raise ModelError(
+                f"observation equation '{equation}' contains '{noise[0]}'; observations cannot hold dt or dw "
+                "terms (give the measurement noise as variance=...)"
+            )
+        var = self._expression(variance, f"variance of observation '{eq.lhs}'")
+        self._observations.append((eq, var))
+        self._changed()
+        return self
+
+    def add_algebraic(self, equation: str) -> "Model":
+        """Define a name by an expression, e.g. ``theta = exp(logtheta)``."""
+        eq = parse_equation(equation, "algebraic equation")
+        if any(a.lhs == eq.lhs for a in self._algebraics):
+            raise ModelError(f"algebraic name '{eq.lhs}' is defined twice")
+        self._algebraics.append(eq)
+        self._changed()
+        return self
+
+    def set_parameter(
+        self,
+        name: str,
+        init: float | None = None,
+        lower: float | None = None,
+        upper: float | None = None,
+        fixed: bool = False,
+    ) -> "Model":
+        """Declare a parameter's initial value and bounds, or fix it (``fixed=True``)."""
+        if not isinstance(name, str) or not name.isidentifier():
+            raise ModelError(f"parameter name {name!r} is not a valid name")
+        self._parameters[name] = Parameter(name, init, lower, upper, fixed)
+        self._changed()
+        return self
+
+    def fix_parameter(self, name: str, value: float) -> "Model":
+        """Fix a parameter at a value (it is then not estimated)."""
+        return self.set_parameter(name, init=value, fixed=True)
+
+    def set_initial_state(
+        self,
+        mean: Mapping[str, float | str],
+        covariance: str | Sequence | np.ndarray = "process",
+        scale: float = 1.0,
+    ) -> "Model":
+        """Set x(t0) ~ N(mean, covariance).
+
+        ``mean`` maps every state to a number or to a parameter name or expression
+        (then estimated).  ``covariance`` is a matrix (numbers or expressions), a
+        vector of variances, ``"process"`` (the process noise integrated over the
+        first sampling interval times ``scale``, as in CTSM) or ``"stationary"``.
+        """
+        if not isinstance(mean, Mapping):
+            raise ModelError("initial state mean must be a mapping from state name to value")
+        if isinstance(covariance, str) and covariance not in _COVARIANCE_KINDS:
+            raise ModelError(
+                f"unknown initial covariance '{covariance}'; use a matrix, 'process' or 'stationary'"
+            )
+        if not isinstance(scale, (int, float)) or not scale > 0:
+            raise ModelError(f"initial covariance scale must be a positive number, got {scale!r}")
+        self._initial_mean = dict(mean)
+        self._initial_covariance = covariance
+        self._initial_scale = float(scale)
+        self._changed()
+        return self
+
+    @classmethod
+    def from_functions(
+        cls,
+        states: Sequence[str],
+        outputs: Sequence[str],
+        drift: Callable,
+        diffusion: Callable,
+        observation: Callable,
+        observation_variance: Callable,
+        parameters: Sequence[str],
+        inputs: Sequence[str] = (),
+        kind: str = NONLINEAR,
+        name: str = "model",
+    ) -> "Model":
+        """A model from JAX-traceable Python functions of ``(x, u, t, p)``.
+
+        ``p`` is a dict from parameter name to scalar; ``drift`` returns shape (n,),
+        ``diffusion`` shape (n, m), ``observation`` and ``observation_variance``
+        shape (s,).  ``kind`` declares the class ("lti", "ltv" or "nonlinear");
+        it cannot be derived from opaque functions.
+        """
+        if kind not in (LTI, LTV, NONLINEAR):
+            raise ModelError(f"unknown model kind '{kind}'; use 'lti', 'ltv' or 'nonlinear'")
+        model = cls(name)
+        model._functions = dict(
+            states=tuple(states), outputs=tuple(outputs), inputs=tuple(inputs), parameters=tuple(parameters),
+            drift=drift, diffusion=diffusion, observation=observation,
+            observation_variance=observation_variance, kind=kind,
+        )
+        model._inputs = list(inputs)
+        return model
+
+    # ------------------------------------------------------------------ helpers
+    @staticmethod
+    def _expression(value, where: str) -> sp.Expr:
+        if isinstance(value, (int, float, np.floating, np.integer)) and not isinstance(value, bool):
+            if not np.isfinite(value):
+                raise ModelError(f"{where} must be finite, got {value}")
+            return sp.Float(float(value))
+        if isinstance(value, str):
+            return parse_expression(value, where)
+        raise ModelError(f"{where} must be a number or an expression, got {value!r}")
+
+    @property
+    def parameters(self) -> dict[str, Parameter]:
+        """Declared parameters (bounds, initial and fixed values), by name."""
+        return dict(self._parameters)
+
+    @property
+    def structure(self) -> Structure:
+        """The compiled structure (built on first use, then reused)."""
+        if self._structure is None:
+            self._structure = self._build()
+        return self._structure
+
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        return self.structure.state_names
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        return self.structure.input_names
+
+    @property
+    def output_names(self) -> tuple[str, ...]:
+        return self.structure.output_names
+
+    @property
+    def parameter_names(self) -> tuple[str, ...]:
+        return self.structure.parameter_names
+
+    @property
+    def kind(self) -> str:
+        """``"lti"``, ``"ltv"`` or ``"nonlinear"``: which filter is exact."""
+        return self.structure.kind
+
+    def __repr__(self) -> str:
+        try:
+            s = self.structure
+            return (
+                f"Model({self.name!r}, kind={s.kind!r}, states={list(s.state_names)}, "
+                f"inputs={list(s.input_names)}, outputs={list(s.output_names)}, "
+                f"parameters={list(s.parameter_names)})"
+            )
+        except ModelError as err:
+            return f"Model({self.name!r}, incomplete: {err})"
+
+    # ------------------------------------------------------------------ compile
+    def _substitute_algebraics(self, expr: sp.Expr) -> sp.Expr:
+        defs = {sp.Symbol(a.lhs, real=True): a.rhs for a in self._algebraics}
+        for _ in range(len(defs) + 1):
+            new = expr.xreplace(defs)
+            if new == expr:
+                return new
+            expr = new
+        raise ModelError("algebraic equations refer to each other in a cycle: " + ", ".join(a.text for a in self._algebraics))
+
+    def _build(self) -> Structure:
+        if self._functions is not None:
+            return self._build_from_functions()
+        if not self._system:
+            raise ModelError("the model has no system equations; add them with add_system()")
+        if not self._observations:
+            raise ModelError("the model has no observation equation; add one with add_observation()")
+        states = [e.state for e in self._system]
+        inputs = list(self._inputs)
+        outputs = [o[0].lhs for o in self._observations]
+        clash = set(states) & set(inputs)
+        if clash:
+            raise ModelError(f"'{sorted(clash)[0]}' is declared both as a state and as an input")
+        for a in self._algebraics:
+            if a.lhs in states or a.lhs in inputs:
+                raise ModelError(f"algebraic equation '{a.text}' redefines the state or input '{a.lhs}'")
+        for o in outputs:
+            if o in states or o in inputs:
+                raise ModelError(f"observation name '{o}' is already a state or an input; give the output another name")
+
+        sub = self._substitute_algebraics
+        drift = [sub(e.drift) for e in self._system]
+        noise_names = sorted({w for e in self._system for w in e.diffusion})
+        diffusion = [[sub(e.diffusion.get(w, sp.Integer(0))) for w in noise_names] for e in self._system]
+        observation = [sub(o[0].rhs) for o in self._observations]
+        variance = [sub(o[1]) for o in self._observations]
+
+        mean_exprs, cov = self._initial_state_expressions(states)
+        mean_exprs = [sub(e) for e in mean_exprs]
+        if isinstance(cov, list):
+            cov = [[sub(e) for e in row] for row in cov]
+
+        known = {sp.Symbol(n, real=True) for n in states + inputs} | {TIME}
+        everything = [*drift, *[g for row in diffusion for g in row], *observation, *variance, *mean_exprs]
+        if isinstance(cov, list):
+            everything += [e for row in cov for e in row]
+        for e, where in [(x, "initial state") for x in mean_exprs] + [(v, "observation variance") for v in variance]:
+            bad = [s.name for s in e.free_symbols if s.name in states or s.name in inputs or s == TIME]
+            if where == "initial state" and bad:
+                raise ModelError(f"the initial state cannot depend on '{bad[0]}'")
+        for e in everything:
+            wieners = [s.name for s in e.free_symbols if is_wiener_name(s.name)]
+            if wieners:
+                raise ModelError(f"'{wieners[0]}' appears outside a system equation's noise term")
+        ordered: list[str] = []
+        for e in everything:
+            for s in sorted(e.free_symbols - known, key=lambda s: s.name):
+                if s.name not in ordered:
+                    ordered.append(s.name)
+        unknown_declared = sorted(set(self._parameters) - set(ordered))
+        if unknown_declared:
+            raise ModelError(f"parameter '{unknown_declared[0]}' is declared but does not appear in the model")
+        state_syms = [sp.Symbol(n, real=True) for n in states]
+        input_syms = [sp.Symbol(n, real=True) for n in inputs]
+        param_syms = [sp.Symbol(n, real=True) for n in ordered]
+
+        f_mat, g_mat = sp.Matrix(drift), sp.Matrix(diffusion) if noise_names else sp.zeros(len(states), 0)
+        h_mat, s_mat = sp.Matrix(observation), sp.Matrix(variance)
+        kind = classify(f_mat, g_mat, h_mat, s_mat, state_syms, input_syms)
+        n, m, s = len(states), len(noise_names), len(outputs)
+        args = (state_syms, input_syms, param_syms)
+        flat_g = [g for row in diffusion for g in row]
+        if isinstance(cov, list):
+            cov_fn = lambdify_parameters([e for row in cov for e in row], param_syms, (n, n))
+            initial_cov = InitialCovariance("matrix", matrix=cov_fn)
+        else:
+            initial_cov = InitialCovariance(cov, scale=self._initial_scale)
+        return Structure(
+            state_names=tuple(states),
+            input_names=tuple(inputs),
+            output_names=tuple(outputs),
+            parameter_names=tuple(ordered),
+            noise_names=tuple(noise_names),
+            kind=kind,
+            drift=lambdify_model(drift, *args, (n,)),
+            diffusion=lambdify_model(flat_g, *args, (n, m)) if m else _zero_diffusion(n),
+            observation=lambdify_model(observation, *args, (s,)),
+            observation_variance=lambdify_model(variance, *args, (s,)),
+            initial_mean=lambdify_parameters(mean_exprs, param_syms, (n,)),
+            initial_covariance=initial_cov,
+            equations=dict(drift=f_mat, diffusion=g_mat, observation=h_mat, variance=s_mat),
+        )
+
+    def _initial_state_expressions(self, states: list[str]):
+        if self._initial_mean is None:
+            raise ModelError("the model has no initial state; set it with set_initial_state(mean={...})")
+        unknown = [k for k in self._initial_mean if k not in states]
+        if unknown:
+            raise ModelError(f"initial state given for '{unknown[0]}', which is not a state (states: {states})")
+        missing = [x for x in states if x not in self._initial_mean]
+        if missing:
+            raise ModelError(f"initial state mean missing for state '{missing[0]}'")
+        mean = [self._expression(self._initial_mean[x], f"initial state of '{x}'") for x in states]
+        cov = self._initial_covariance
+        if isinstance(cov, str):
+            return mean, cov
+        n = len(states)
+        try:
+            arr = np.asarray(cov, dtype=object)
+        except Exception:  # ragged lists
+            raise ModelError(f"initial covariance must be an {n}x{n} matrix") from None
+        if arr.ndim == 1 and arr.shape == (n,):
+            arr = np.diag(arr).astype(object)
+            arr[arr == 0] = 0.0
+        if arr.shape != (n, n):
+            raise ModelError(f"initial covariance has shape {arr.shape}, but the model has {n} states: it must be {n}x{n}")
+        rows = [[self._expression(arr[i, j], f"initial covariance entry ({states[i]}, {states[j]})") for j in range(n)]
+                for i in range(n)]
+        return mean, rows
+
+    def _build_from_functions(self) -> Structure:
+        import jax.numpy as jnp
+
+        spec = self._functions
+        states, params = spec["states"], spec["parameters"]
+        if self._initial_mean is None:
+            raise ModelError("the model has no initial state; set it with set_initial_state(mean={...})")
+        unknown = [k for k in self._initial_mean if k not in states]
+        if unknown:
+            raise ModelError(f"initial state given for '{unknown[0]}', which is not a state (states: {list(states)})")
+        missing = [x for x in states if x not in self._initial_mean]
+        if missing:
+            raise ModelError(f"initial state mean missing for state '{missing[0]}'")
+        param_syms = [sp.Symbol(p, real=True) for p in params]
+        mean = [self._expression(self._initial_mean[x], f"initial state of '{x}'") for x in states]
+        extra = {s.name for e in mean for s in e.free_symbols} - set(params)
+        if extra:
+            raise ModelError(f"initial state refers to '{sorted(extra)[0]}', which is not a declared parameter")
+
+        def wrap(fn):
+            def model_function(x, u, t, theta):
+                p = {name: theta[i] for i, name in enumerate(params)}
+                return jnp.asarray(fn(x, u, t, p), dtype=jnp.float64)
+
+            return model_function
+
+        n = len(states)
+        cov = self._initial_covariance
+        if isinstance(cov, str):
+            initial_cov = InitialCovariance(cov, scale=self._initial_scale)
+        else:
+            _, rows = self._initial_state_expressions(list(states))
+            initial_cov = InitialCovariance("matrix", matrix=lambdify_parameters(
+                [e for r in rows for e in r], param_syms, (n, n)))
+        import jax
+
+        g_shape = jax.eval_shape(wrap(spec["diffusion"]), jnp.zeros(n), jnp.zeros(len(spec["inputs"])),
+                                 jnp.zeros(()), jnp.ones(len(params)))
+        if len(g_shape.shape) != 2 or g_shape.shape[0] != n:
+            raise ModelError(f"diffusion must return an array of shape ({n}, m), got {g_shape.shape}")
+        return Structure(
+            state_names=tuple(states),
+            input_names=tuple(spec["inputs"]),
+            output_names=tuple(spec["outputs"]),
+            parameter_names=tuple(params),
+            noise_names=tuple(f"dw{j + 1}" for j in range(g_shape.shape[1])),
+            kind=spec["kind"],
+            drift=wrap(spec["drift"]),
+            diffusion=wrap(spec["diffusion"]),
+            observation=wrap(spec["observation"]),
+            observation_variance=wrap(spec["observation_variance"]),
+            initial_mean=lambdify_parameters(mean, param_syms, (n,)),
+            initial_covariance=initial_cov,
+        )
+
+    # ------------------------------------------------------------------ parameters
+    def parameter_vector(self, params: Mapping[str, float] | None = None) -> np.ndarray:
+        """The parameter vector θ in :attr:`parameter_names` order.
+
+        Values come from ``params``; parameters not named there take their fixed
+        value.  A parameter with neither is an error.
+        """
+        names = self.parameter_names
+        params = {} if params is None else dict(params)
+        unknown = [k for k in params if k not in names]
+        if unknown:
+            raise ModelError(f"'{unknown[0]}' is not a parameter of the model (parameters: {list(names)})")
+        values = []
+        for name in names:
+            if name in params:
+                value = params[name]
+            elif name in self._parameters and self._parameters[name].fixed:
+                value = self._parameters[name].init
+            else:
+                raise ModelError(f"parameter '{name}' is used in the model but given no value")
+            try:
+                value = float(value)
+            except (TypeError, ValueError):
+                raise ModelError(f"parameter '{name}' must be a number, got {value!r}") from None
+            if not np.isfinite(value):
+                raise ModelError(f"parameter '{name}' must be finite, got {value}")
+            values.append(value)
+        return np.asarray(values, dtype=np.float64)
+
+    def initial_values(self) -> dict[str, float]:
+        """The declared initial (or fixed) value of every parameter that has one."""
+        return {n: p.init for n, p in self._parameters.items() if p.init is not None}
+
+    # ------------------------------------------------------------------ public calls
+    def loglik(self, params, data, time: str = "t", hold: str = "zoh", method: str | None = None, **options) -> float:
+        """Gaussian log-likelihood (3.18) of the data at the given parameters.
+
+        ``data`` is a DataFrame or a list of DataFrames (independent experiments;
+        their log-likelihoods add).  ``method`` is ``"kalman"``, ``"ekf"``,
+        ``"iekf"`` or ``"ukf"``; by default the exact Kalman filter for linear
+        models and the EKF otherwise.  See :func:`greyid.filters.run_filter` for
+        the other options (``form``, ``substeps``, ``iterations``, ``time_unit``).
+        """
+        from ..filters.api import loglik
+
+        return loglik(self, params, data, time=time, hold=hold, method=method, **options)
+
+    def filter(self, params, data, time: str = "t", hold: str = "zoh", method: str | None = None, **options):
+        """Run the filter and return a :class:`~greyid.filters.FilterResult`."""
+        from ..filters.api import filter_data
+
+        return filter_data(self, params, data, time=time, hold=hold, method=method, **options)
+
+    def smooth(self, params, data, time: str = "t", hold: str = "zoh", method: str | None = None, **options):
+        """Rauch–Tung–Striebel smoothed states (linear and EKF cases)."""
+        from ..filters.api import smooth_data
+
+        return smooth_data(self, params, data, time=time, hold=hold, method=method, **options)
+
+    def simulate(self, params, data_or_times, n_paths: int = 1, method: str = "euler", seed: int = 0, **options):
+        """Sample paths of states and noisy observations (section 2.5)."""
+        from ..simulate.simulate import simulate
+
+        return simulate(self, params, data_or_times, n_paths=n_paths, method=method, seed=seed, **options)
+
+
+def _zero_diffusion(n: int):
+    import jax.numpy as jnp
+
+    return lambda x, u, t, theta: jnp.zeros((n, 0))

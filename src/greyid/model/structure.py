@@ -1,0 +1,138 @@
+"""From a model specification to compiled JAX functions.
+
+A :class:`Structure` holds everything the filters need: names, the drift f, the
+diffusion G, the observation function h and the observation variances S as
+jitted-traceable functions of ``(x, u, t, theta)`` (model (4.1)–(4.2)), the initial
+state, and the model class (linear time-invariant, linear time-varying or
+nonlinear) that decides which filter is exact.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import jax.numpy as jnp
+import sympy as sp
+from sympy.utilities.lambdify import lambdify
+
+from ..errors import ModelError
+from .equations import TIME
+
+Array = jnp.ndarray
+ModelFunction = Callable[[Array, Array, Array, Array], Array]
+
+LTI = "lti"
+LTV = "ltv"
+NONLINEAR = "nonlinear"
+
+
+@dataclass(frozen=True)
+class InitialCovariance:
+    """How the initial state covariance P0 is formed.
+
+    kind is ``"matrix"`` (``matrix(theta)`` gives P0), ``"process"`` (the process
+    noise integrated over the first sampling interval, times ``scale``, as CTSM
+    does) or ``"stationary"`` (the solution of A P + P A' + G G' = 0).
+    """
+
+    kind: str
+    scale: float = 1.0
+    matrix: Callable[[Array], Array] | None = None
+
+
+@dataclass(frozen=True)
+class Structure:
+    """A compiled model structure; functions take ``(x, u, t, theta)``."""
+
+    state_names: tuple[str, ...]
+    input_names: tuple[str, ...]
+    output_names: tuple[str, ...]
+    parameter_names: tuple[str, ...]
+    noise_names: tuple[str, ...]
+    kind: str
+    drift: ModelFunction
+    diffusion: ModelFunction
+    observation: ModelFunction
+    observation_variance: ModelFunction
+    initial_mean: Callable[[Array], Array]
+    initial_covariance: InitialCovariance
+    equations: dict = field(default_factory=dict)
+    #: Compiled filters and simulators for this structure, keyed by their settings.
+    cache: dict = field(default_factory=dict, compare=False, repr=False)
+
+    @property
+    def n_states(self) -> int:
+        return len(self.state_names)
+
+    @property
+    def n_inputs(self) -> int:
+        return len(self.input_names)
+
+    @property
+    def n_outputs(self) -> int:
+        return len(self.output_names)
+
+    @property
+    def is_linear(self) -> bool:
+        return self.kind in (LTI, LTV)
+
+
+def _vector_function(exprs: list[sp.Expr], args: list, shape: tuple[int, ...]) -> ModelFunction:
+    """Lambdify a list of expressions into a JAX function returning ``shape``."""
+    raw = lambdify(args, exprs, modules="jax")
+
+    def function(*values):
+        out = raw(*values)
+        return jnp.reshape(jnp.stack([jnp.asarray(v, dtype=jnp.float64) for v in out]), shape)
+
+    return function
+
+
+def classify(drift: sp.Matrix, diffusion: sp.Matrix, observation: sp.Matrix, variance: sp.Matrix,
+             states: list[sp.Symbol], inputs: list[sp.Symbol]) -> str:
+    """Linear time-invariant, linear time-varying or nonlinear (section 4.1.4).
+
+    Linear means f affine in x, G and S free of x, and h affine in x.  Time
+    invariant means additionally that A and G depend on neither u nor t and that
+    f(0, u) is affine in u with constant coefficients, so that the discretization
+    (4.36)–(4.39) is exact for both hold orders.
+    """
+    xs, us = set(states), set(inputs)
+    if not states:
+        raise ModelError("the model has no states")
+    a = drift.jacobian(sp.Matrix(states))
+    c = observation.jacobian(sp.Matrix(states))
+    if any(e.free_symbols & xs for e in [*a, *diffusion, *c, *variance]):
+        return NONLINEAR
+    varying = us | {TIME}
+    if any(e.free_symbols & varying for e in [*a, *diffusion]):
+        return LTV
+    offset = drift.subs({x: 0 for x in states})
+    if inputs:
+        b = offset.jacobian(sp.Matrix(inputs))
+        if any(e.free_symbols & varying for e in b):
+            return LTV
+        constant = sp.simplify(offset - b * sp.Matrix(inputs))
+    else:
+        constant = offset
+    if any(e.free_symbols & varying for e in constant):
+        return LTV
+    return LTI
+
+
+def lambdify_model(exprs, states, inputs, parameters, shape) -> ModelFunction:
+    """A JAX function of ``(x, u, t, theta)`` from SymPy expressions."""
+    args = [list(states), list(inputs), TIME, list(parameters)]
+    fn = _vector_function(list(exprs), args, shape)
+
+    def model_function(x, u, t, theta):
+        return fn(x, u, t, theta)
+
+    return model_function
+
+
+def lambdify_parameters(exprs, parameters, shape) -> Callable[[Array], Array]:
+    """A JAX function of ``theta`` alone (initial state)."""
+    fn = _vector_function(list(exprs), [list(parameters)], shape)
+    return lambda theta: fn(theta)
