@@ -1,0 +1,176 @@
+"""Sample paths of a model's states and noisy observations (section 2.5).
+
+``model.simulate(params, data_or_times, n_paths, method, seed)`` takes the
+sampling times (and inputs) from a DataFrame, or plain times for a model
+without inputs.  Between sampling times each path takes ``substeps`` steps of
+the chosen scheme, with inputs held (``hold="zoh"``) or interpolated
+(``hold="foh"``).  ``method="exact"`` samples a linear model exactly from its
+discretization (4.34–4.39).  The initial state is drawn from N(x0, P0).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+
+from ..data.prepare import check_times, prepare_series
+from ..errors import DataError, ModelError
+from ..filters.api import HOLDS, filter_inputs
+from ..filters.core import initial_state
+from ..filters.discretize import discretize
+from .schemes import make_integrator
+
+METHODS = ("euler", "milstein", "heun", "exact")
+
+
+@dataclass(frozen=True)
+class Simulation:
+    """Simulated paths: ``states`` (paths, N, n) and ``outputs`` (paths, N, s)."""
+
+    times: np.ndarray
+    inputs: np.ndarray
+    states: np.ndarray
+    outputs: np.ndarray
+    time_name: str
+    input_names: tuple[str, ...]
+    state_names: tuple[str, ...]
+    output_names: tuple[str, ...]
+
+    @property
+    def n_paths(self) -> int:
+        return self.states.shape[0]
+
+    def frame(self, path: int = 0) -> pd.DataFrame:
+        """One path as a DataFrame with time, inputs, states and outputs (ready to filter)."""
+        cols = {self.time_name: self.times}
+        cols.update({n: self.inputs[:, j] for j, n in enumerate(self.input_names)})
+        cols.update({n: self.states[path, :, j] for j, n in enumerate(self.state_names)})
+        cols.update({n: self.outputs[path, :, j] for j, n in enumerate(self.output_names)})
+        return pd.DataFrame(cols)
+
+    def to_frame(self) -> pd.DataFrame:
+        """All paths stacked, with a ``path`` column."""
+        return pd.concat([self.frame(p).assign(path=p) for p in range(self.n_paths)], ignore_index=True)
+
+
+def _series(structure, data_or_times, time, time_unit):
+    if isinstance(data_or_times, pd.DataFrame):
+        return prepare_series(data_or_times, structure.input_names, structure.output_names, time, time_unit,
+                              require_outputs=False)
+    times = np.asarray(data_or_times, dtype=np.float64)
+    if times.ndim != 1 or len(times) == 0:
+        raise DataError("times must be a non-empty one-dimensional array")
+    if structure.n_inputs:
+        raise DataError(f"the model has inputs {list(structure.input_names)}; pass a DataFrame holding them")
+    check_times(times, time)
+    from ..data.prepare import Series
+
+    return Series(times, np.zeros((len(times), 0)), np.full((len(times), structure.n_outputs), np.nan),
+                  pd.RangeIndex(len(times)), time)
+
+
+def _fine_grid(series, substeps: int, hold: str):
+    """Times and inputs on the grid of ``substeps`` steps per sampling interval."""
+    t = series.times
+    frac = np.arange(substeps) / substeps
+    fine_t = np.concatenate([(t[:-1, None] + np.diff(t)[:, None] * frac).reshape(-1), t[-1:]])
+    u = series.inputs
+    if hold == "foh":
+        fine_u = np.concatenate([(u[:-1, None, :] + np.diff(u, axis=0)[:, None, :] * frac[None, :, None])
+                                 .reshape(-1, u.shape[1]), u[-1:]])
+    else:
+        fine_u = np.concatenate([np.repeat(u[:-1], substeps, axis=0), u[-1:]])
+    return fine_t, fine_u
+
+
+def _compiled(structure, key, build):
+    if key not in structure.cache:
+        structure.cache[key] = build()
+    return structure.cache[key]
+
+
+def simulate(model, params, data_or_times, n_paths: int = 1, method: str = "euler", seed: int = 0,
+             substeps: int = 10, hold: str = "zoh", calculus: str = "ito", time: str = "t",
+             time_unit: str | None = None) -> Simulation:
+    """Simulate ``n_paths`` seeded, reproducible sample paths; see the module docstring."""
+    structure = model.structure
+    if method not in METHODS:
+        raise ModelError(f"unknown simulation method '{method}'; use one of {list(METHODS)}")
+    if hold not in HOLDS:
+        raise DataError(f"unknown hold '{hold}'; use 'zoh' or 'foh'")
+    if not isinstance(n_paths, int) or n_paths < 1:
+        raise ModelError(f"n_paths must be a positive integer, got {n_paths!r}")
+    if not isinstance(substeps, int) or substeps < 1:
+        raise ModelError(f"substeps must be a positive integer, got {substeps!r}")
+    if method == "exact" and not structure.is_linear:
+        raise ModelError(f"exact simulation needs a linear model, but this model is {structure.kind}")
+    theta = jnp.asarray(model.parameter_vector(params))
+    series = _series(structure, data_or_times, time, time_unit)
+    inputs = filter_inputs(series, hold)
+    x0, P0 = initial_state(structure, theta, inputs)
+    key = jax.random.PRNGKey(seed)
+    k_init, k_path, k_obs = jax.random.split(key, 3)
+    N, n, m = series.n_rows, structure.n_states, len(structure.noise_names)
+    init = x0 + jax.random.normal(k_init, (n_paths, n)) @ _psd_sqrt(P0).T
+
+    if method == "exact":
+        states = _exact_paths(structure, theta, series, HOLDS[hold], init, k_path)
+    else:
+        fine_t, fine_u = _fine_grid(series, substeps, hold)
+        integrate = _compiled(structure, ("simulate", method, calculus),
+                              lambda: jax.jit(jax.vmap(make_integrator(structure.drift, structure.diffusion,
+                                                                       method, calculus),
+                                                       in_axes=(None, 0, None, None, 0))))
+        dt = np.diff(fine_t)
+        dW = jax.random.normal(k_path, (n_paths, len(dt), m)) * jnp.sqrt(jnp.asarray(dt))[None, :, None]
+        fine = integrate(theta, init, jnp.asarray(fine_t), jnp.asarray(fine_u), dW)
+        states = np.asarray(fine)[:, ::substeps, :]
+
+    u, t = jnp.asarray(series.inputs), jnp.asarray(series.times)
+    obs = jax.vmap(jax.vmap(lambda x, uu, tt: structure.observation(x, uu, tt, theta)), in_axes=(0, None, None))
+    var = jax.vmap(jax.vmap(lambda x, uu, tt: structure.observation_variance(x, uu, tt, theta)),
+                   in_axes=(0, None, None))
+    y_mean, S = obs(jnp.asarray(states), u, t), var(jnp.asarray(states), u, t)
+    if np.any(np.asarray(S) < 0):
+        raise ModelError("an observation variance is negative along the simulated paths")
+    y = y_mean + jnp.sqrt(S) * jax.random.normal(k_obs, y_mean.shape)
+    return Simulation(series.times, series.inputs, np.asarray(states), np.asarray(y), series.time_name,
+                      structure.input_names, structure.state_names, structure.output_names)
+
+
+def _psd_sqrt(P):
+    """A square root of a positive semi-definite matrix (eigenvalues clipped at 0)."""
+    w, V = jnp.linalg.eigh(0.5 * (P + P.T))
+    return V * jnp.sqrt(jnp.clip(w, 0.0, None))[None, :]
+
+
+def _exact_paths(structure, theta, series, foh, init, key):
+    """x_{k+1} = Φx_k + Γb_k + Υ(b_{k+1} − b_k) + Λ^½ z_k for linear models."""
+    f, G = structure.drift, structure.diffusion
+    n = structure.n_states
+    zeros = jnp.zeros(n)
+    t, u = jnp.asarray(series.times), jnp.asarray(series.inputs)
+    jac = jax.jacfwd(f, argnums=0)
+
+    def interval(u0, t0, u1, t1):
+        g = G(zeros, u0, t0, theta)
+        d = discretize(jac(zeros, u0, t0, theta), g @ g.T, t1 - t0)
+        b0, b1 = f(zeros, u0, t0, theta), f(zeros, u1, t1, theta)
+        return d.transition, d.input_gain @ b0 + foh * d.ramp_gain @ (b1 - b0), _psd_sqrt(d.noise_covariance)
+
+    phi, shift, noise = jax.vmap(interval)(u[:-1], t[:-1], u[1:], t[1:])
+    z = jax.random.normal(key, (init.shape[0], len(series.times) - 1, n))
+
+    def path(x0, zs):
+        def body(x, k):
+            x = phi[k] @ x + shift[k] + noise[k] @ zs[k]
+            return x, x
+
+        _, xs = jax.lax.scan(body, x0, jnp.arange(zs.shape[0]))
+        return jnp.concatenate([x0[None], xs], axis=0)
+
+    return np.asarray(jax.vmap(path)(init, z))
