@@ -1,0 +1,122 @@
+"""Shared models and references for the tests (compiled once per session)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.linalg as sl
+from scipy.stats import multivariate_normal
+
+import greyid
+
+
+def random_linear_model_spec(n=3, nu=2, ny=2, nw=2):
+    """Equations of a general linear model with every coefficient a parameter."""
+    m = greyid.Model(f"linear{n}{nu}{ny}{nw}")
+    for i in range(1, n + 1):
+        drift = " + ".join([f"a{i}{j}*x{j}" for j in range(1, n + 1)]
+                           + [f"b{i}{j}*u{j}" for j in range(1, nu + 1)] + [f"c{i}"])
+        noise = " + ".join(f"g{i}{j}*dw{j}" for j in range(1, nw + 1))
+        m.add_system(f"dx{i} = ({drift})*dt + {noise}")
+    m.add_inputs(*[f"u{j}" for j in range(1, nu + 1)])
+    for i in range(1, ny + 1):
+        obs = " + ".join([f"h{i}{j}*x{j}" for j in range(1, n + 1)] + [f"d{i}1*u1"])
+        m.add_observation(f"y{i} = {obs}", variance=f"s{i}")
+    cov = [[f"v{min(i, j)}{max(i, j)}" for j in range(1, n + 1)] for i in range(1, n + 1)]
+    m.set_initial_state(mean={f"x{i}": f"m{i}" for i in range(1, n + 1)}, covariance=cov)
+    return m
+
+
+def random_linear_parameters(rng, n=3, nu=2, ny=2, nw=2):
+    """Random stable A, inputs, noise and observation matrices, as a parameter dict."""
+    eig = -rng.uniform(0.2, 2.0, n)
+    V = rng.normal(size=(n, n)) + 2 * np.eye(n)
+    A = V @ np.diag(eig) @ np.linalg.inv(V)
+    B, c = rng.normal(size=(n, nu)), rng.normal(size=n)
+    G, H, D = rng.normal(size=(n, nw)) * 0.5, rng.normal(size=(ny, n)), rng.normal(size=(ny, 1))
+    S = rng.uniform(0.05, 0.3, ny)
+    M = rng.normal(size=(n, n))
+    P0 = M @ M.T + 0.5 * np.eye(n)
+    m0 = rng.normal(size=n)
+    p = {}
+    for i in range(n):
+        p[f"c{i + 1}"] = c[i]
+        p[f"m{i + 1}"] = m0[i]
+        for j in range(n):
+            p[f"a{i + 1}{j + 1}"] = A[i, j]
+            if j >= i:
+                p[f"v{i + 1}{j + 1}"] = P0[i, j]
+        for j in range(nu):
+            p[f"b{i + 1}{j + 1}"] = B[i, j]
+        for j in range(nw):
+            p[f"g{i + 1}{j + 1}"] = G[i, j]
+    for i in range(ny):
+        p[f"s{i + 1}"] = S[i]
+        p[f"d{i + 1}1"] = D[i, 0]
+        for j in range(n):
+            p[f"h{i + 1}{j + 1}"] = H[i, j]
+    mats = dict(A=A, B=B, c=c, G=G, H=H, D=D, S=S, P0=P0, m0=m0)
+    return p, mats
+
+
+def van_loan(A, Q, tau):
+    """Φ, ∫e^{As}ds, (1/τ)∫e^{As}(τ−s)ds and Λ by plain block exponentials (SciPy)."""
+    n = A.shape[0]
+    Z, I = np.zeros((n, n)), np.eye(n)
+    E = sl.expm(np.block([[A, I, Z], [Z, Z, I], [Z, Z, Z]]) * tau)
+    F = sl.expm(np.block([[-A, Q], [Z, A.T]]) * tau)
+    ups = E[:n, 2 * n:] / tau if tau > 0 else np.zeros((n, n))
+    return E[:n, :n], E[:n, n:2 * n], ups, F[n:, n:].T @ F[:n, n:]
+
+
+def dense_reference(mats, t, U, Y, foh):
+    """Mean and covariance of all stacked observations, built from the discretized model.
+
+    Returns the log-density of the observed elements, and the stacked state
+    mean/covariance with the observation operator for conditioning.
+    """
+    A, B, c, G, H, D, S = (mats[k] for k in "A B c G H D S".split())
+    N, n = len(t), A.shape[0]
+    b = U @ B.T + c  # affine drift term at each row
+    # X = mean + T w, w = (x0 - m0, w_1, ..., w_{N-1})
+    trans, shift, noise = [np.eye(n)], [np.zeros(n)], [mats["P0"]]
+    for k in range(1, N):
+        phi, gam, ups, lam = van_loan(A, G @ G.T, t[k] - t[k - 1])
+        trans.append(phi)
+        shift.append(gam @ b[k - 1] + foh * ups @ (b[k] - b[k - 1]))
+        noise.append(lam)
+    mean = np.zeros((N, n))
+    mean[0] = mats["m0"]
+    for k in range(1, N):
+        mean[k] = trans[k] @ mean[k - 1] + shift[k]
+    T = np.zeros((N * n, N * n))
+    for k in range(N):
+        block = np.eye(n)
+        for j in range(k, -1, -1):
+            T[k * n:(k + 1) * n, j * n:(j + 1) * n] = block
+            block = block @ trans[j]
+    Wcov = sl.block_diag(*noise)
+    Xcov = T @ Wcov @ T.T
+    ny = H.shape[0]
+    Hbig = np.kron(np.eye(N), H)
+    ymean = (mean @ H.T + U[:, :1] @ D.T).reshape(-1)
+    ycov = Hbig @ Xcov @ Hbig.T + np.diag(np.tile(S, N))
+    obs = ~np.isnan(Y.reshape(-1))
+    ll = multivariate_normal(ymean[obs], ycov[np.ix_(obs, obs)]).logpdf(Y.reshape(-1)[obs])
+    # Smoothed states: E[X | y_obs]
+    K = Xcov @ Hbig[obs].T @ np.linalg.inv(ycov[np.ix_(obs, obs)])
+    xs = mean.reshape(-1) + K @ (Y.reshape(-1)[obs] - ymean[obs])
+    Ps = Xcov - K @ Hbig[obs] @ Xcov
+    return ll, xs.reshape(N, n), Ps
+
+
+@pytest.fixture(scope="session")
+def linear_model():
+    return random_linear_model_spec()
+
+
+@pytest.fixture(scope="session")
+def building():
+    from greyid.datasets import TRUE_PARAMETERS, building_model, load_building_data
+
+    return building_model(), TRUE_PARAMETERS, load_building_data()

@@ -1,0 +1,66 @@
+"""The Kalman log-likelihood equals the dense Gaussian likelihood of all observations."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from conftest import dense_reference, random_linear_parameters
+
+
+def random_data(rng, N=40, nu=2, ny=2, missing=0.2):
+    t = np.cumsum(rng.uniform(0.2, 1.5, N)) + 3.0
+    U = rng.normal(size=(N, nu))
+    Y = rng.normal(size=(N, ny)) * 2.0
+    Y[rng.random((N, ny)) < missing] = np.nan
+    df = pd.DataFrame({"t": t, **{f"u{j + 1}": U[:, j] for j in range(nu)},
+                       **{f"y{i + 1}": Y[:, i] for i in range(ny)}})
+    return df, t, U, Y
+
+
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("hold", ["zoh", "foh"])
+def test_kalman_equals_dense_gaussian(linear_model, seed, hold):
+    rng = np.random.default_rng(seed)
+    params, mats = random_linear_parameters(rng)
+    df, t, U, Y = random_data(rng)
+    assert linear_model.kind == "lti"
+    ref, _, _ = dense_reference(mats, t, U, Y, foh=1.0 if hold == "foh" else 0.0)
+    for form in ("sqrt", "plain"):
+        ll = linear_model.loglik(params, df, hold=hold, form=form)
+        assert ll == pytest.approx(ref, rel=1e-8), form
+
+
+def test_smoother_equals_dense_conditional_mean(linear_model):
+    rng = np.random.default_rng(42)
+    params, mats = random_linear_parameters(rng)
+    df, t, U, Y = random_data(rng, N=30)
+    _, xs_ref, Ps_ref = dense_reference(mats, t, U, Y, foh=0.0)
+    sm = linear_model.smooth(params, df)
+    np.testing.assert_allclose(sm.smoothed.to_numpy(), xs_ref, rtol=1e-7, atol=1e-8)
+    n = 3
+    var_ref = np.array([np.diag(Ps_ref[k * n:(k + 1) * n, k * n:(k + 1) * n]) for k in range(len(t))])
+    np.testing.assert_allclose(np.diagonal(sm.smoothed_cov, axis1=1, axis2=2), var_ref, rtol=1e-6, atol=1e-9)
+    ekf = linear_model.smooth(params, df, method="ekf")
+    np.testing.assert_allclose(ekf.smoothed.to_numpy(), xs_ref, rtol=1e-7, atol=1e-8)
+
+
+def test_several_experiments_add_up(linear_model):
+    rng = np.random.default_rng(7)
+    params, _ = random_linear_parameters(rng)
+    a, _, _, _ = random_data(rng, N=25)
+    b, _, _, _ = random_data(rng, N=33)
+    total = linear_model.loglik(params, [a, b])
+    assert total == pytest.approx(linear_model.loglik(params, a) + linear_model.loglik(params, b), rel=1e-12)
+    results = linear_model.filter(params, [a, b])
+    assert len(results) == 2 and results[1].innovations.shape == (33, 2)
+
+
+def test_unobserved_elements_are_skipped(linear_model):
+    rng = np.random.default_rng(3)
+    params, _ = random_linear_parameters(rng)
+    df, *_ = random_data(rng, N=30, missing=0.3)
+    res = linear_model.filter(params, df)
+    observed = df[["y1", "y2"]].notna().to_numpy()
+    assert np.array_equal(res.innovations.notna().to_numpy(), observed)
+    assert res.n_obs == observed.sum()
+    assert res.loglik == pytest.approx(linear_model.loglik(params, df), rel=1e-12)
