@@ -132,3 +132,39 @@ def test_stationary_and_process_initial_covariance():
     m.set_initial_state(mean={"x": 0.0}, covariance="process", scale=3.0)
     res = m.filter(dict(a=2.0, s=1.0), df)
     assert res.predicted_cov[0, 0, 0] == pytest.approx(3.0 * (1 - np.exp(-2 * 2.0 * 0.5)) / (2 * 2.0), rel=1e-12)
+
+
+def test_time_varying_kalman_equals_ekf_with_held_inputs():
+    m = greyid.Model("ltv")
+    m.add_system("dx1 = (-k*(1 + u^2)*x1 + x2 + u)*dt + s*dw1")
+    m.add_system("dx2 = (-0.3*x2 + 0.1*sin(t))*dt + s*dw2")
+    m.add_inputs("u")
+    m.add_observation("y = x1 + x2", variance="r")
+    m.set_initial_state(mean={"x1": 1.0, "x2": 0.0}, covariance=[0.5, 0.5])
+    assert m.kind == "ltv"
+    rng = np.random.default_rng(2)
+    t = np.cumsum(rng.uniform(0.3, 1.0, 50))
+    df = pd.DataFrame({"t": t, "u": rng.normal(size=50), "y": rng.normal(size=50)})
+    p = dict(k=0.8, s=0.5, r=0.2)
+    assert m.loglik(p, df, method="ekf") == pytest.approx(m.loglik(p, df), rel=1e-10)
+
+
+def test_loglik_gradient_matches_finite_differences(building):
+    import jax
+    import jax.numpy as jnp
+    from greyid.data import prepare_series
+    from greyid.filters.api import compiled_filter, filter_inputs, filter_options
+
+    model, params, data = building
+    s = model.structure
+    data = data.iloc[:200]
+    inputs = filter_inputs(prepare_series(data, s.input_names, s.output_names), "foh")
+    theta = jnp.asarray(model.parameter_vector(params))
+    for method in ("kalman", "ekf"):
+        run = compiled_filter(s, filter_options(s, method), keep_outputs=False)
+        f = lambda th: run(th, inputs)[0]
+        g = np.asarray(jax.grad(f)(theta))
+        eps = 1e-6 * np.maximum(np.abs(np.asarray(theta)), 1.0)
+        fd = np.array([(f(theta.at[i].add(eps[i])) - f(theta.at[i].add(-eps[i]))) / (2 * eps[i])
+                       for i in range(len(theta))])
+        np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-4)
