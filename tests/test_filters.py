@@ -12,7 +12,7 @@ from test_kalman_dense import random_data
 
 
 @pytest.mark.parametrize("hold", ["zoh", "foh"])
-@pytest.mark.parametrize("method", ["ekf", "iekf", "ukf"])
+@pytest.mark.parametrize("method", ["ekf", "iekf", "ukf", "ekf2"])
 def test_nonlinear_filters_reduce_to_kalman_on_linear_model(linear_model, method, hold):
     rng = np.random.default_rng(11)
     params, _ = random_linear_parameters(rng)
@@ -168,3 +168,16 @@ def test_loglik_gradient_matches_finite_differences(building):
         fd = np.array([(f(theta.at[i].add(eps[i])) - f(theta.at[i].add(-eps[i]))) / (2 * eps[i])
                        for i in range(len(theta))])
         np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-4)
+
+
+def test_bias_corrected_and_unscented_predictions_of_a_quadratic_observation():
+    """For x ~ N(m, P) and y = x², E y = m² + P: (4.60) and the unscented transform are exact."""
+    m = greyid.Model("square")
+    m.add_system("dx = -a*x*dt + s*dw1")
+    m.add_observation("y = x^2", variance="r")
+    m.set_initial_state(mean={"x": "m0"}, covariance=[["p0"]])
+    p = dict(a=1.0, s=0.5, r=0.1, m0=1.5, p0=0.3)
+    df = pd.DataFrame({"t": [0.0, 1.0], "y": [2.0, 1.0]})
+    for method, expected in (("ekf2", 1.5**2 + 0.3), ("ukf", 1.5**2 + 0.3), ("ekf", 1.5**2)):
+        res = m.filter(p, df, method=method)
+        assert res.output_predictions["y"].iloc[0] == pytest.approx(expected, rel=1e-12), method

@@ -18,7 +18,7 @@ import pandas as pd
 from ..data.prepare import Series, as_frames, prepare_series
 from ..errors import DataError, ModelError
 from ..model.structure import Structure
-from .core import EKF, KALMAN, FilterInputs, FilterOptions, initial_state, make_filter
+from .core import EKF, EKF2, KALMAN, FilterInputs, FilterOptions, initial_state, make_filter
 from .result import FilterResult, SmootherResult
 from .smoother import rts_smooth
 
@@ -176,8 +176,8 @@ def smooth_data(model, params, data, time="t", hold="zoh", method=None, time_uni
     """Rauch–Tung–Striebel smoothing after the Kalman filter or the EKF."""
     structure = model.structure
     chosen = method or (KALMAN if structure.is_linear else EKF)
-    if chosen not in (KALMAN, EKF):
-        raise ModelError(f"smoothing is available after the 'kalman' and 'ekf' filters, not '{chosen}'")
+    if chosen not in (KALMAN, EKF, EKF2):
+        raise ModelError(f"smoothing is available after the 'kalman', 'ekf' and 'ekf2' filters, not '{chosen}'")
     results = filter_data(model, params, data, time, hold, chosen, time_unit, **options)
     single = isinstance(results, FilterResult)
     out = []

@@ -24,14 +24,15 @@ from .predictors import (
     extended_predict,
     linear_predict,
     linearized_observation,
+    second_order_term,
     sigma_weights,
     unscented_predict,
     unscented_update,
 )
 from .updates import FORMS, from_matrix, linear_update, to_matrix
 
-KALMAN, EKF, IEKF, UKF = "kalman", "ekf", "iekf", "ukf"
-METHODS = (KALMAN, EKF, IEKF, UKF)
+KALMAN, EKF, IEKF, UKF, EKF2 = "kalman", "ekf", "iekf", "ukf", "ekf2"
+METHODS = (KALMAN, EKF, IEKF, UKF, EKF2)
 
 
 @dataclass(frozen=True)
@@ -151,12 +152,14 @@ def make_filter(structure: Structure, options: FilterOptions, keep_outputs: bool
                     x, cov, interval, theta, f, G, options.substeps, form, weights)
             else:
                 x_pred, cov_pred, transition = extended_predict(
-                    x, cov, interval, theta, f, G, options.substeps, form)
+                    x, cov, interval, theta, f, G, options.substeps, form, bias_correction=method == EKF2)
 
             if method == UKF:
                 upd, y_pred = unscented_update(x_pred, cov_pred, y, mask, u, t, theta, h, S, form, weights)
             else:
                 y_pred, C = linearized_observation(h, x_pred, u, t, theta)
+                if method == EKF2:  # (4.60)
+                    y_pred = y_pred + second_order_term(h, x_pred, to_matrix(cov_pred, form), u, t, theta)
                 if method == IEKF:
                     # Iterated update (4.43): relinearize h about the latest estimate η.
                     def iterate(_, eta):

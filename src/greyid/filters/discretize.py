@@ -27,6 +27,7 @@ from jax.scipy.linalg import expm
 
 #: Largest number of doublings: handles ‖A‖τ up to about 2⁴⁰.
 MAX_DOUBLINGS = 40
+FEW_DOUBLINGS = 6
 
 
 class Discretization(NamedTuple):
@@ -74,7 +75,19 @@ def discretize(A: jnp.ndarray, Q: jnp.ndarray, tau: jnp.ndarray) -> Discretizati
         )
         return tuple(jnp.where(active, a, b) for a, b in zip(new, state))
 
-    phi, gamma, gamma2, lam, _ = jax.lax.fori_loop(0, MAX_DOUBLINGS, double, (phi, gamma, gamma2, lam, h))
+    def doubled(count):
+        return lambda state: jax.lax.fori_loop(0, count, double, state)
+
+    # Most intervals of a sub-sampled EKF need few or no doublings; branching keeps
+    # the (reverse-mode) cost of the loop to what is used.
+    state = (phi, gamma, gamma2, lam, h)
+    state = jax.lax.cond(
+        doublings == 0,
+        lambda s: s,
+        lambda s: jax.lax.cond(doublings <= FEW_DOUBLINGS, doubled(FEW_DOUBLINGS), doubled(MAX_DOUBLINGS), s),
+        state,
+    )
+    phi, gamma, gamma2, lam, _ = state
     safe_tau = jnp.where(tau > 0, tau, 1.0)
     ramp = jnp.where(tau > 0, gamma2 / safe_tau, jnp.zeros_like(gamma2))
     return Discretization(phi, gamma, ramp, 0.5 * (lam + lam.T))

@@ -44,8 +44,20 @@ def _input_rate(drift, x, u, t, theta, u_rate):
     return jax.jvp(lambda v: drift(x, v, t, theta), (u,), (u_rate,))[1]
 
 
-def extended_predict(mean, cov, interval: Interval, theta, drift, diffusion, substeps: int, form: str):
-    """Sub-sampled local linearization (A.46–A.50); returns mean, cov and the interval's Φ."""
+def second_order_term(fn, x, P, *args):
+    """½ Σ_ij P_ij ∂²fn/∂x_i∂x_j, the bias correction of (4.58) and (4.60)."""
+    hess = jax.hessian(fn, argnums=0)(x, *args)
+    return 0.5 * jnp.einsum("kij,ij->k", hess, P)
+
+
+def extended_predict(mean, cov, interval: Interval, theta, drift, diffusion, substeps: int, form: str,
+                     bias_correction: bool = False):
+    """Sub-sampled local linearization (A.46–A.50); returns mean, cov and the interval's Φ.
+
+    With ``bias_correction`` the mean follows (4.58), f + ½ P ∂²f/∂x², while the
+    covariance keeps the first-order equation (the "first order filter with bias
+    correction" of section 4.2.2).
+    """
     h = interval.dt / substeps
     du = (interval.u_cur - interval.u_prev) * interval.foh
     u_rate = jnp.where(interval.dt > 0, du / jnp.where(interval.dt > 0, interval.dt, 1.0), 0.0)
@@ -56,6 +68,8 @@ def extended_predict(mean, cov, interval: Interval, theta, drift, diffusion, sub
         t = interval.t_prev + j * h
         u = interval.u_prev + du * (j / substeps)
         f = drift(x, u, t, theta)
+        if bias_correction:
+            f = f + second_order_term(drift, x, to_matrix(c, form), u, t, theta)
         g = diffusion(x, u, t, theta)
         disc = discretize(jac(x, u, t, theta), g @ g.T, h)
         # x_{j+1} = x_j + Γ f_j + ∫(h−s)e^{As}ds ∂f/∂u u̇  (A.49 with the input ramp)

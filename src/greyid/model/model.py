@@ -369,17 +369,12 @@ class Model:
 
         spec = self._functions
         states, params = spec["states"], spec["parameters"]
-        if self._initial_mean is None:
-            raise ModelError("the model has no initial state; set it with set_initial_state(mean={...})")
-        unknown = [k for k in self._initial_mean if k not in states]
-        if unknown:
-            raise ModelError(f"initial state given for '{unknown[0]}', which is not a state (states: {list(states)})")
-        missing = [x for x in states if x not in self._initial_mean]
-        if missing:
-            raise ModelError(f"initial state mean missing for state '{missing[0]}'")
         param_syms = [sp.Symbol(p, real=True) for p in params]
-        mean = [self._expression(self._initial_mean[x], f"initial state of '{x}'") for x in states]
-        extra = {s.name for e in mean for s in e.free_symbols} - set(params)
+        mean, rows = self._initial_state_expressions(list(states))
+        used = {s.name for e in mean for s in e.free_symbols}
+        if isinstance(rows, list):
+            used |= {s.name for r in rows for e in r for s in e.free_symbols}
+        extra = used - set(params)
         if extra:
             raise ModelError(f"initial state refers to '{sorted(extra)[0]}', which is not a declared parameter")
 
@@ -391,11 +386,9 @@ class Model:
             return model_function
 
         n = len(states)
-        cov = self._initial_covariance
-        if isinstance(cov, str):
-            initial_cov = InitialCovariance(cov, scale=self._initial_scale)
+        if isinstance(rows, str):
+            initial_cov = InitialCovariance(rows, scale=self._initial_scale)
         else:
-            _, rows = self._initial_state_expressions(list(states))
             initial_cov = InitialCovariance("matrix", matrix=lambdify_parameters(
                 [e for r in rows for e in r], param_syms, (n, n)))
         import jax
