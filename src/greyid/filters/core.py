@@ -86,12 +86,17 @@ class StepOutput(NamedTuple):
     transition: jnp.ndarray
 
 
-def initial_state(structure: Structure, theta, data: FilterInputs):
-    """x0 and P0 (matrix, CTSM's scaled process noise, or stationary covariance)."""
+def initial_state(structure: Structure, theta, data: FilterInputs, first_noise=None):
+    """x0 and P0 (matrix, CTSM's scaled process noise, or stationary covariance).
+
+    ``first_noise`` is Λ of the first interval when the caller has it already.
+    """
     x0 = structure.initial_mean(theta)
     spec = structure.initial_covariance
     if spec.kind == "matrix":
         return x0, spec.matrix(theta)
+    if spec.kind == "process" and first_noise is not None:
+        return x0, spec.scale * first_noise
     u0, t0 = data.u_cur[0], data.t[0]
     A = jax.jacfwd(structure.drift, argnums=0)(x0, u0, t0, theta)
     G = structure.diffusion(x0, u0, t0, theta)
@@ -132,10 +137,13 @@ def make_filter(structure: Structure, options: FilterOptions, keep_outputs: bool
         return jax.vmap(per_row)(data.u_prev, data.t_prev, data.dt), b_prev, b_cur
 
     def run(theta, data: FilterInputs):
-        x0, P0 = initial_state(structure, theta, data)
-        carry0 = (x0, from_matrix(P0, form))
+        first_noise = None
         if method == KALMAN:
             cache, b_prev, b_cur = linear_terms(theta, data)
+            if structure.kind == LTI:  # the first interval's Λ is in the cache already
+                first_noise = cache.noise_covariance[data.dt_index[1]]
+        x0, P0 = initial_state(structure, theta, data, first_noise)
+        carry0 = (x0, from_matrix(P0, form))
         rows = jnp.arange(data.t.shape[0])
 
         def step(carry, k):
