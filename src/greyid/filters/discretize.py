@@ -82,9 +82,11 @@ def discretize(A: jnp.ndarray, Q: jnp.ndarray, tau: jnp.ndarray) -> Discretizati
 
     # A branch per iteration keeps the work (and its reverse-mode cost) to the
     # doublings actually needed; most sub-sampled EKF intervals need none.
-    state = jax.lax.fori_loop(
-        0, MAX_DOUBLINGS, lambda i, st: jax.lax.cond(i < doublings, double, lambda x: x, st),
-        (phi, gamma, gamma2, lam, h))
+    def doubled(state):
+        return jax.lax.fori_loop(
+            0, MAX_DOUBLINGS, lambda i, st: jax.lax.cond(i < doublings, double, lambda x: x, st), state)
+
+    state = jax.lax.cond(doublings > 0, doubled, lambda x: x, (phi, gamma, gamma2, lam, h))
     phi, gamma, gamma2, lam, _ = state
     safe_tau = jnp.where(tau > 0, tau, 1.0)
     ramp = jnp.where(tau > 0, gamma2 / safe_tau, jnp.zeros_like(gamma2))
