@@ -63,8 +63,8 @@ def bench(name, model, params, df, options, repeat):
     data = filter_inputs(series, "zoh")
     theta = jnp.asarray(model.parameter_vector(params))
     run = compiled_filter(s, opts, keep_outputs=False)
-    value = jax.jit(lambda th: run(th, data)[0])
-    grad = jax.jit(jax.value_and_grad(lambda th: run(th, data)[0]))
+    value = jax.jit(lambda th: run(th, data)[0].loglik.sum())
+    grad = jax.jit(jax.value_and_grad(lambda th: run(th, data)[0].loglik.sum()))
     rows = []
     for label, fn in (("loglik", value), ("loglik+grad", grad)):
         start = time.perf_counter()

@@ -162,7 +162,7 @@ def test_loglik_gradient_matches_finite_differences(building):
     theta = jnp.asarray(model.parameter_vector(params))
     for method in ("kalman", "ekf"):
         run = compiled_filter(s, filter_options(s, method), keep_outputs=False)
-        f = lambda th: run(th, inputs)[0]
+        f = lambda th: run(th, inputs)[0].loglik.sum()
         g = np.asarray(jax.grad(f)(theta))
         eps = 1e-6 * np.maximum(np.abs(np.asarray(theta)), 1.0)
         fd = np.array([(f(theta.at[i].add(eps[i])) - f(theta.at[i].add(-eps[i]))) / (2 * eps[i])

@@ -134,12 +134,13 @@ def loglik(model, params, data, time="t", hold="zoh", method=None, time_unit=Non
     """Sum over data sets of the Gaussian log-likelihood (3.18)."""
     structure, theta, prepared = _prepare(model, params, data, time, hold, time_unit)
     run = compiled_filter(structure, filter_options(structure, method, **options), keep_outputs=False)
-    return float(sum(run(jnp.asarray(theta), inputs)[0] for _, inputs in prepared))
+    return float(sum(jnp.sum(run(jnp.asarray(theta), inputs)[0].loglik) for _, inputs in prepared))
 
 
-def _result(structure: Structure, method: str, series: Series, outputs) -> FilterResult:
+def _result(structure: Structure, method: str, series: Series, terms, outputs) -> FilterResult:
     n = series.n_rows
     cut = jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], outputs)
+    loglik_terms = np.asarray(terms.loglik)[:n]
     idx = series.index
     states, outs = list(structure.state_names), list(structure.output_names)
     observed = ~np.isnan(series.outputs)
@@ -157,7 +158,7 @@ def _result(structure: Structure, method: str, series: Series, outputs) -> Filte
         output_predictions=pd.DataFrame(cut.output_prediction, index=idx, columns=outs),
         innovations=pd.DataFrame(innovations, index=idx, columns=outs),
         innovation_cov=R,
-        loglik_terms=pd.Series(cut.loglik, index=idx, name="loglik"),
+        loglik_terms=pd.Series(loglik_terms, index=idx, name="loglik"),
         transitions=cut.transition,
     )
 
@@ -167,8 +168,7 @@ def filter_data(model, params, data, time="t", hold="zoh", method=None, time_uni
     structure, theta, prepared = _prepare(model, params, data, time, hold, time_unit)
     opts = filter_options(structure, method, **options)
     run = compiled_filter(structure, opts, keep_outputs=True)
-    results = [_result(structure, opts.method, series, run(jnp.asarray(theta), inputs)[1])
-               for series, inputs in prepared]
+    results = [_result(structure, opts.method, series, *run(jnp.asarray(theta), inputs)) for series, inputs in prepared]
     return results[0] if isinstance(data, pd.DataFrame) else results
 
 

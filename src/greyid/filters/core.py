@@ -82,7 +82,6 @@ class StepOutput(NamedTuple):
     output_prediction: jnp.ndarray
     innovation: jnp.ndarray
     innovation_cov: jnp.ndarray
-    loglik: jnp.ndarray
     transition: jnp.ndarray
 
 
@@ -106,7 +105,11 @@ def initial_state(structure: Structure, theta, data: FilterInputs, first_noise=N
 
 
 def make_filter(structure: Structure, options: FilterOptions, keep_outputs: bool):
-    """A jitted ``run(theta, data) -> (loglik, StepOutput | None)``."""
+    """A jitted ``run(theta, data) -> (StepTerms, StepOutput | None)``.
+
+    The per-step terms give the Gaussian log-likelihood (``terms.loglik.sum()``)
+    and the robust criteria alike.
+    """
     f, G, h, S = structure.drift, structure.diffusion, structure.observation, structure.observation_variance
     form, method = options.form, options.method
     if method == KALMAN and not structure.is_linear:
@@ -185,10 +188,10 @@ def make_filter(structure: Structure, options: FilterOptions, keep_outputs: bool
             out = None
             if keep_outputs:
                 out = StepOutput(x_pred, to_matrix(cov_pred, form), upd.mean, to_matrix(upd.covariance, form),
-                                 y_pred, upd.innovation, upd.innovation_covariance, upd.loglik, transition)
-            return (upd.mean, upd.covariance), (upd.loglik, out)
+                                 y_pred, upd.innovation, upd.innovation_covariance, transition)
+            return (upd.mean, upd.covariance), (upd.terms, out)
 
         _, (terms, outputs) = jax.lax.scan(step, carry0, rows)
-        return jnp.sum(terms), outputs
+        return terms, outputs
 
     return jax.jit(run)

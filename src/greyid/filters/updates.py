@@ -30,7 +30,19 @@ class Update(NamedTuple):
     covariance: jnp.ndarray  # P_{k|k} (or its factor)
     innovation: jnp.ndarray  # ε_k (0 where unobserved)
     innovation_covariance: jnp.ndarray  # R_{k|k-1} (identity rows where unobserved)
-    loglik: jnp.ndarray  # this step's term of (3.18)
+    terms: "StepTerms"  # what this step adds to the criterion
+
+
+class StepTerms(NamedTuple):
+    """One step's contribution to (3.18): whitened innovation, log det R_k, count."""
+
+    whitened: jnp.ndarray  # R_k^{-1/2} ε_k (0 where unobserved)
+    logdet: jnp.ndarray
+    n_obs: jnp.ndarray
+
+    @property
+    def loglik(self):
+        return -0.5 * (self.n_obs * LOG_2PI + self.logdet + jnp.sum(self.whitened**2, axis=-1))
 
 
 def symmetrize(P: jnp.ndarray) -> jnp.ndarray:
@@ -55,11 +67,11 @@ def propagate(cov: jnp.ndarray, transition: jnp.ndarray, noise: jnp.ndarray, for
     return symmetrize(transition @ cov @ transition.T + noise)
 
 
-def gaussian_term(innovation, chol_R, mask) -> jnp.ndarray:
+def gaussian_term(innovation, chol_R, mask) -> StepTerms:
     """log N(ε; 0, R) over the observed elements, from a Cholesky factor of R."""
     z = solve_triangular(chol_R, innovation, lower=True)
     logdet = 2.0 * jnp.sum(jnp.log(jnp.abs(jnp.diag(chol_R))))
-    return -0.5 * (jnp.sum(mask) * LOG_2PI + logdet + z @ z)
+    return StepTerms(z, logdet, jnp.sum(mask))
 
 
 def mask_observation(y, y_pred, C, S, mask):
