@@ -11,7 +11,7 @@ quantities the smoother needs.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -29,7 +29,7 @@ from .predictors import (
     unscented_predict,
     unscented_update,
 )
-from .updates import FORMS, from_matrix, linear_update, to_matrix
+from .updates import FORMS, StepTerms, from_matrix, linear_update, to_matrix
 
 KALMAN, EKF, IEKF, UKF, EKF2 = "kalman", "ekf", "iekf", "ukf", "ekf2"
 METHODS = (KALMAN, EKF, IEKF, UKF, EKF2)
@@ -104,11 +104,19 @@ def initial_state(structure: Structure, theta, data: FilterInputs, first_noise=N
     return x0, stationary_covariance(A, G @ G.T)
 
 
-def make_filter(structure: Structure, options: FilterOptions, keep_outputs: bool):
-    """A jitted ``run(theta, data) -> (StepTerms, StepOutput | None)``.
+class FilterSteps(NamedTuple):
+    """The pieces of a filter for one parameter vector and data set."""
 
-    The per-step terms give the Gaussian log-likelihood (``terms.loglik.sum()``)
-    and the robust criteria alike.
+    initial: tuple  # (x0, covariance in the carried form)
+    predict: Callable  # (x, cov, k) -> (x_{k|k-1}, cov_{k|k-1}, Φ_k)
+    update: Callable  # (x_pred, cov_pred, k) -> (Update, ŷ_{k|k-1})
+
+
+def filter_steps(structure: Structure, options: FilterOptions):
+    """``steps(theta, data) -> FilterSteps``: one implementation of each filter.
+
+    The scan of :func:`make_filter` and the k-step predictions of
+    :func:`make_ahead` are both built from these predict and update closures.
     """
     f, G, h, S = structure.drift, structure.diffusion, structure.observation, structure.observation_variance
     form, method = options.form, options.method
@@ -139,59 +147,129 @@ def make_filter(structure: Structure, options: FilterOptions, keep_outputs: bool
 
         return jax.vmap(per_row)(data.u_prev, data.t_prev, data.dt), b_prev, b_cur
 
-    def run(theta, data: FilterInputs):
+    def steps(theta, data: FilterInputs) -> FilterSteps:
         first_noise = None
         if method == KALMAN:
             cache, b_prev, b_cur = linear_terms(theta, data)
             if structure.kind == LTI:  # the first interval's Λ is in the cache already
                 first_noise = cache.noise_covariance[data.dt_index[1]]
         x0, P0 = initial_state(structure, theta, data, first_noise)
-        carry0 = (x0, from_matrix(P0, form))
-        rows = jnp.arange(data.t.shape[0])
 
-        def step(carry, k):
-            x, cov = carry
-            u, t, y, mask = data.u_cur[k], data.t[k], data.y[k], data.mask[k]
-            interval = Interval(data.t_prev[k], data.dt[k], data.u_prev[k], u, data.foh)
+        def predict(x, cov, k):
             if method == KALMAN:
                 idx = data.dt_index[k] if structure.kind == LTI else k
                 disc = jax.tree_util.tree_map(lambda a: a[idx], cache)
                 x_pred, cov_pred = linear_predict(x, cov, disc, b_prev[k], b_cur[k], data.foh, form)
-                transition = disc.transition
-            elif method == UKF:
-                x_pred, cov_pred, transition = unscented_predict(
-                    x, cov, interval, theta, f, G, options.substeps, form, weights)
-            else:
-                x_pred, cov_pred, transition = extended_predict(
-                    x, cov, interval, theta, f, G, options.substeps, form, bias_correction=method == EKF2)
-
+                return x_pred, cov_pred, disc.transition
+            interval = Interval(data.t_prev[k], data.dt[k], data.u_prev[k], data.u_cur[k], data.foh)
             if method == UKF:
-                upd, y_pred = unscented_update(x_pred, cov_pred, y, mask, u, t, theta, h, S, form, weights)
-            else:
-                y_pred, C = linearized_observation(h, x_pred, u, t, theta)
-                if method == EKF2:  # (4.60)
-                    y_pred = y_pred + second_order_term(h, x_pred, to_matrix(cov_pred, form), u, t, theta)
-                if method == IEKF:
-                    # Iterated update (4.43): relinearize h about the latest estimate η.
-                    def iterate(_, eta):
-                        h_eta, C_eta = linearized_observation(h, eta, u, t, theta)
-                        pseudo = h_eta + C_eta @ (x_pred - eta)
-                        return linear_update(x_pred, cov_pred, y, mask, pseudo, C_eta,
-                                             S(eta, u, t, theta), form).mean
+                return unscented_predict(x, cov, interval, theta, f, G, options.substeps, form, weights)
+            return extended_predict(x, cov, interval, theta, f, G, options.substeps, form,
+                                    bias_correction=method == EKF2)
 
-                    eta = jax.lax.fori_loop(0, options.iterations - 1, iterate, x_pred)
-                    h_eta, C = linearized_observation(h, eta, u, t, theta)
-                    y_pred = h_eta + C @ (x_pred - eta)
-                    upd = linear_update(x_pred, cov_pred, y, mask, y_pred, C, S(eta, u, t, theta), form)
-                else:
-                    upd = linear_update(x_pred, cov_pred, y, mask, y_pred, C, S(x_pred, u, t, theta), form)
+        def update(x_pred, cov_pred, k):
+            u, t, y, mask = data.u_cur[k], data.t[k], data.y[k], data.mask[k]
+            if method == UKF:
+                return unscented_update(x_pred, cov_pred, y, mask, u, t, theta, h, S, form, weights)
+            y_pred, C = linearized_observation(h, x_pred, u, t, theta)
+            if method == EKF2:  # (4.60)
+                y_pred = y_pred + second_order_term(h, x_pred, to_matrix(cov_pred, form), u, t, theta)
+            if method != IEKF:
+                return linear_update(x_pred, cov_pred, y, mask, y_pred, C, S(x_pred, u, t, theta), form), y_pred
+
+            # Iterated update (4.43): relinearize h about the latest estimate η.
+            def iterate(_, eta):
+                h_eta, C_eta = linearized_observation(h, eta, u, t, theta)
+                pseudo = h_eta + C_eta @ (x_pred - eta)
+                return linear_update(x_pred, cov_pred, y, mask, pseudo, C_eta, S(eta, u, t, theta), form).mean
+
+            eta = jax.lax.fori_loop(0, options.iterations - 1, iterate, x_pred)
+            h_eta, C = linearized_observation(h, eta, u, t, theta)
+            y_pred = h_eta + C @ (x_pred - eta)
+            return linear_update(x_pred, cov_pred, y, mask, y_pred, C, S(eta, u, t, theta), form), y_pred
+
+        return FilterSteps((x0, from_matrix(P0, form)), predict, update)
+
+    return steps
+
+
+def make_filter(structure: Structure, options: FilterOptions, keep_outputs: bool):
+    """A jitted ``run(theta, data) -> (StepTerms, StepOutput | None)``.
+
+    The per-step terms give the Gaussian log-likelihood (``terms.loglik.sum()``)
+    and the robust criteria alike.
+    """
+    form = options.form
+    build = filter_steps(structure, options)
+
+    def run(theta, data: FilterInputs):
+        parts = build(theta, data)
+
+        def step(carry, k):
+            x_pred, cov_pred, transition = parts.predict(*carry, k)
+            upd, y_pred = parts.update(x_pred, cov_pred, k)
             out = None
             if keep_outputs:
                 out = StepOutput(x_pred, to_matrix(cov_pred, form), upd.mean, to_matrix(upd.covariance, form),
                                  y_pred, upd.innovation, upd.innovation_covariance, transition)
             return (upd.mean, upd.covariance), (upd.terms, out)
 
-        _, (terms, outputs) = jax.lax.scan(step, carry0, rows)
+        _, (terms, outputs) = jax.lax.scan(step, parts.initial, jnp.arange(data.t.shape[0]))
         return terms, outputs
+
+    return jax.jit(run)
+
+
+class AheadOutput(NamedTuple):
+    """k-step predictions ŷ_{k|k-h}, their covariances and criterion terms."""
+
+    output_prediction: jnp.ndarray
+    output_cov: jnp.ndarray
+    state_prediction: jnp.ndarray
+    state_cov: jnp.ndarray
+    terms: "StepTerms"
+
+
+def make_ahead(structure: Structure, options: FilterOptions, horizon: int):
+    """A jitted ``run(theta, data) -> AheadOutput`` of ``horizon``-step predictions.
+
+    Row k is predicted from the filtered state at row k − horizon, or from the
+    prior at t₀ for the first rows (section 7.2's k-step criterion).
+    """
+    if not isinstance(horizon, int) or horizon < 1:
+        raise ModelError(f"the prediction horizon must be a positive integer, got {horizon!r}")
+    form = options.form
+    build = filter_steps(structure, options)
+
+    def run(theta, data: FilterInputs):
+        parts = build(theta, data)
+
+        def filt(carry, k):
+            x_pred, cov_pred, _ = parts.predict(*carry, k)
+            upd, _ = parts.update(x_pred, cov_pred, k)
+            return (upd.mean, upd.covariance), (upd.mean, upd.covariance)
+
+        rows = jnp.arange(data.t.shape[0])
+        _, (means, covs) = jax.lax.scan(filt, parts.initial, rows)
+
+        def ahead(k):
+            start = k - horizon
+            from_prior = start < 0
+            x = jnp.where(from_prior, parts.initial[0], means[jnp.maximum(start, 0)])
+            cov = jnp.where(from_prior, parts.initial[1], covs[jnp.maximum(start, 0)])
+            first = jnp.maximum(start + 1, 1)
+
+            def advance(j, state):
+                row = first + j
+                x_new, cov_new, _ = parts.predict(state[0], state[1], jnp.minimum(row, k))
+                active = row <= k
+                return jnp.where(active, x_new, state[0]), jnp.where(active, cov_new, state[1])
+
+            x, cov = jax.lax.fori_loop(0, horizon, advance, (x, cov))
+            upd, y_pred = parts.update(x, cov, k)
+            return y_pred, upd.innovation_covariance, x, to_matrix(cov, form), upd.terms
+
+        y, R, x, P, terms = jax.vmap(ahead)(rows)
+        return AheadOutput(y, R, x, P, terms)
 
     return jax.jit(run)
