@@ -29,10 +29,10 @@ def building_model() -> Model:
     m.add_inputs("Te", "Gv", "Qi")
     m.add_observation("yTi = Ti", variance="exp(e11)")
     m.set_initial_state(mean={"Ti": "Ti0", "Tw": "Tw0"}, covariance="process", scale=1.0)
-    bounds = {
-        "Ci": (0.2, 0.01, 100.0), "Cw": (10.0, 0.1, 1000.0), "Riw": (0.5, 0.01, 100.0),
-        "Rwe": (5.0, 0.1, 1000.0), "Aw": (1.0, 0.0, 50.0), "p11": (-2.0, -20.0, 5.0),
-        "p22": (-2.0, -20.0, 5.0), "e11": (-2.0, -20.0, 5.0), "Ti0": (18.0, 0.0, 40.0), "Tw0": (15.0, -10.0, 40.0),
+    bounds = {  # (initial value, lower, upper): starting values a physicist would guess
+        "Ci": (1.0, 0.01, 100.0), "Cw": (10.0, 0.1, 1000.0), "Riw": (0.5, 0.01, 100.0),
+        "Rwe": (5.0, 0.1, 1000.0), "Aw": (3.0, 0.0, 50.0), "p11": (-2.0, -20.0, 5.0),
+        "p22": (-2.0, -20.0, 5.0), "e11": (-3.0, -20.0, 5.0), "Ti0": (20.0, 0.0, 40.0), "Tw0": (15.0, -10.0, 40.0),
     }
     for name, (init, lower, upper) in bounds.items():
         m.set_parameter(name, init=init, lower=lower, upper=upper)

@@ -18,7 +18,7 @@ import pandas as pd
 from ..data.prepare import Series, as_frames, prepare_series
 from ..errors import DataError, ModelError
 from ..model.structure import Structure
-from .core import EKF, EKF2, KALMAN, FilterInputs, FilterOptions, initial_state, make_filter
+from .core import EKF, EKF2, KALMAN, FilterInputs, FilterOptions, initial_state, make_ahead, make_filter
 from .result import FilterResult, SmootherResult
 from .smoother import rts_smooth
 
@@ -88,7 +88,7 @@ def compiled_filter(structure: Structure, options: FilterOptions, keep_outputs: 
     return structure.cache[key]
 
 
-def _check_at_parameters(model, structure: Structure, theta: np.ndarray, series: Series, data: FilterInputs) -> None:
+def check_at_parameters(model, structure: Structure, theta: np.ndarray, series: Series, data: FilterInputs) -> None:
     """Errors that depend on parameter values: negative variances, a bad P0."""
     key = ("checks",)
     if key not in structure.cache:
@@ -125,16 +125,24 @@ def _prepare(model, params, data, time, hold, time_unit):
         inputs = filter_inputs(series, hold)
         if structure.initial_covariance.kind == "process" and series.n_rows < 2:
             raise DataError("a data set with one row has no sampling interval for the 'process' initial covariance")
-        _check_at_parameters(model, structure, theta, series, inputs)
+        check_at_parameters(model, structure, theta, series, inputs)
         prepared.append((series, inputs))
     return structure, theta, prepared
 
 
-def loglik(model, params, data, time="t", hold="zoh", method=None, time_unit=None, **options) -> float:
-    """Sum over data sets of the Gaussian log-likelihood (3.18)."""
+def loglik(model, params, data, time="t", hold="zoh", method=None, time_unit=None, robust=None, **options) -> float:
+    """Sum over data sets of the Gaussian log-likelihood (3.18), or its robust version.
+
+    With ``robust=("huber", c)`` or ``("tukey", c)`` the squared normalised
+    innovations are replaced as in :mod:`greyid.estimate.criteria` (CTSM's
+    convention for Huber).
+    """
+    from ..estimate.criteria import check_robust, log_criterion
+
+    robust = check_robust(robust)
     structure, theta, prepared = _prepare(model, params, data, time, hold, time_unit)
     run = compiled_filter(structure, filter_options(structure, method, **options), keep_outputs=False)
-    return float(sum(jnp.sum(run(jnp.asarray(theta), inputs)[0].loglik) for _, inputs in prepared))
+    return float(sum(log_criterion(run(jnp.asarray(theta), inputs)[0], robust) for _, inputs in prepared))
 
 
 def _result(structure: Structure, method: str, series: Series, terms, outputs) -> FilterResult:
@@ -189,3 +197,28 @@ def smooth_data(model, params, data, time="t", hold="zoh", method=None, time_uni
                                                           columns=res.filtered.columns),
                                   np.asarray(Ps), res))
     return out[0] if single else out
+
+
+def predict_data(model, params, data, steps=1, time="t", hold="zoh", method=None, time_unit=None, **options):
+    """ŷ_{k|k−steps} and its standard deviation for every output (one DataFrame per data set).
+
+    Columns are the outputs and ``<output>_sd``; the prediction for row k uses
+    the data up to row k − steps (the first rows are predicted from the prior).
+    """
+    structure, theta, prepared = _prepare(model, params, data, time, hold, time_unit)
+    opts = filter_options(structure, method, **options)
+    key = ("ahead", opts, int(steps))
+    if key not in structure.cache:
+        structure.cache[key] = make_ahead(structure, opts, int(steps))
+    frames = []
+    for series, inputs in prepared:
+        out = structure.cache[key](jnp.asarray(theta), inputs)
+        n = series.n_rows
+        y = np.asarray(out.output_prediction)[:n]
+        sd = np.sqrt(np.diagonal(np.asarray(out.output_cov)[:n], axis1=1, axis2=2))
+        cols = {}
+        for j, name in enumerate(structure.output_names):
+            cols[name] = y[:, j]
+            cols[f"{name}_sd"] = sd[:, j]
+        frames.append(pd.DataFrame(cols, index=series.index))
+    return frames[0] if isinstance(data, pd.DataFrame) else frames

@@ -109,7 +109,7 @@ class FilterSteps(NamedTuple):
 
     initial: tuple  # (x0, covariance in the carried form)
     predict: Callable  # (x, cov, k) -> (x_{k|k-1}, cov_{k|k-1}, Φ_k)
-    update: Callable  # (x_pred, cov_pred, k) -> (Update, ŷ_{k|k-1})
+    update: Callable  # (x_pred, cov_pred, k, mask=None) -> (Update, ŷ_{k|k-1})
 
 
 def filter_steps(structure: Structure, options: FilterOptions):
@@ -167,8 +167,9 @@ def filter_steps(structure: Structure, options: FilterOptions):
             return extended_predict(x, cov, interval, theta, f, G, options.substeps, form,
                                     bias_correction=method == EKF2)
 
-        def update(x_pred, cov_pred, k):
-            u, t, y, mask = data.u_cur[k], data.t[k], data.y[k], data.mask[k]
+        def update(x_pred, cov_pred, k, mask=None):
+            u, t, y = data.u_cur[k], data.t[k], data.y[k]
+            mask = data.mask[k] if mask is None else mask
             if method == UKF:
                 return unscented_update(x_pred, cov_pred, y, mask, u, t, theta, h, S, form, weights)
             y_pred, C = linearized_observation(h, x_pred, u, t, theta)
@@ -267,7 +268,9 @@ def make_ahead(structure: Structure, options: FilterOptions, horizon: int):
 
             x, cov = jax.lax.fori_loop(0, horizon, advance, (x, cov))
             upd, y_pred = parts.update(x, cov, k)
-            return y_pred, upd.innovation_covariance, x, to_matrix(cov, form), upd.terms
+            # The prediction's covariance is wanted for every output, observed or not.
+            full, _ = parts.update(x, cov, k, jnp.ones_like(data.mask[k]))
+            return y_pred, full.innovation_covariance, x, to_matrix(cov, form), upd.terms
 
         y, R, x, P, terms = jax.vmap(ahead)(rows)
         return AheadOutput(y, R, x, P, terms)

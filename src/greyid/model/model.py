@@ -98,7 +98,7 @@ class Model:
                 "terms (give the measurement noise as variance=...)"
             )
         var = self._expression(variance, f"variance of observation '{eq.lhs}'")
-        self._observations.append((eq, var))
+        self._observations.append((eq, var, variance))
         self._changed()
         return self
 
@@ -445,15 +445,89 @@ class Model:
         """The declared initial (or fixed) value of every parameter that has one."""
         return {n: p.init for n, p in self._parameters.items() if p.init is not None}
 
+    # ------------------------------------------------------------------ saving
+    def to_dict(self) -> dict:
+        """Everything needed to rebuild this model (equations as text)."""
+        if self._functions is not None:
+            raise ModelError("a model defined by Python functions cannot be written out; rebuild it in code")
+
+        def plain(value):
+            if isinstance(value, np.ndarray):
+                return [plain(v) for v in value.tolist()]
+            if isinstance(value, (list, tuple)):
+                return [plain(v) for v in value]
+            if isinstance(value, (np.floating, np.integer)):
+                return float(value)
+            return value
+
+        return {
+            "name": self.name,
+            "system": [e.text for e in self._system],
+            "inputs": list(self._inputs),
+            "observations": [{"equation": o[0].text, "variance": plain(o[2])} for o in self._observations],
+            "algebraic": [a.text for a in self._algebraics],
+            "parameters": {n: {"init": p.init, "lower": p.lower, "upper": p.upper, "fixed": p.fixed}
+                           for n, p in self._parameters.items()},
+            "initial_state": None if self._initial_mean is None else {
+                "mean": {k: plain(v) for k, v in self._initial_mean.items()},
+                "covariance": plain(self._initial_covariance),
+                "scale": self._initial_scale,
+            },
+        }
+
+    @classmethod
+    def from_dict(cls, spec: Mapping) -> "Model":
+        """Rebuild a model written by :meth:`to_dict`."""
+        m = cls(spec.get("name", "model"))
+        m.add_system(*spec["system"])
+        if spec.get("inputs"):
+            m.add_inputs(*spec["inputs"])
+        for a in spec.get("algebraic", []):
+            m.add_algebraic(a)
+        for o in spec["observations"]:
+            m.add_observation(o["equation"], variance=o["variance"])
+        for name, p in spec.get("parameters", {}).items():
+            m.set_parameter(name, init=p.get("init"), lower=p.get("lower"), upper=p.get("upper"),
+                            fixed=p.get("fixed", False))
+        init = spec.get("initial_state")
+        if init is not None:
+            m.set_initial_state(mean=init["mean"], covariance=init["covariance"], scale=init.get("scale", 1.0))
+        return m
+
     # ------------------------------------------------------------------ public calls
+    def fit(self, data, time: str = "t", hold: str = "zoh", method: str | None = None, criterion: str = "ml",
+            prior=None, robust=None, horizon: int = 1, starts: int = 1, seed: int = 0, init=None, **options):
+        """Estimate the free parameters by maximum likelihood or MAP (chapter 3).
+
+        ``criterion`` is ``"ml"`` or ``"map"`` (with ``prior={"mean": ..., "sd":
+        ..., "corr": ...}`` by parameter name, 3.46); ``robust`` is ``None``,
+        ``("huber", c)`` or ``("tukey", c)`` (3.57–3.58); ``horizon`` > 1 uses
+        k-step prediction errors (section 7.2); ``starts`` > 1 adds random
+        starting points inside the bounds.  Returns a
+        :class:`~greyid.estimate.FitResult`.
+        """
+        from ..estimate.estimation import fit
+
+        return fit(self, data, time=time, hold=hold, method=method, criterion=criterion, prior=prior,
+                   robust=robust, horizon=horizon, starts=starts, seed=seed, init=init, **options)
+
+    def predict(self, params, data, steps: int = 1, time: str = "t", hold: str = "zoh", method: str | None = None,
+                **options):
+        """``steps``-ahead output predictions with standard deviations (a DataFrame)."""
+        from ..filters.api import predict_data
+
+        return predict_data(self, params, data, steps=steps, time=time, hold=hold, method=method, **options)
+
     def loglik(self, params, data, time: str = "t", hold: str = "zoh", method: str | None = None, **options) -> float:
         """Gaussian log-likelihood (3.18) of the data at the given parameters.
 
         ``data`` is a DataFrame or a list of DataFrames (independent experiments;
         their log-likelihoods add).  ``method`` is ``"kalman"``, ``"ekf"``,
         ``"iekf"`` or ``"ukf"``; by default the exact Kalman filter for linear
-        models and the EKF otherwise.  See :func:`greyid.filters.run_filter` for
-        the other options (``form``, ``substeps``, ``iterations``, ``time_unit``).
+        models and the EKF otherwise.  Other options: ``form`` ("sqrt" or
+        "plain"), ``substeps``, ``iterations`` (IEKF), ``time_unit`` (datetime
+        columns) and ``robust=("huber", c)`` or ``("tukey", c)`` for the robust
+        criterion (3.57–3.58) instead of the Gaussian one.
         """
         from ..filters.api import loglik
 

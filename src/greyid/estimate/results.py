@@ -1,0 +1,334 @@
+"""The result of a fit: estimates, honest uncertainty, and what to do next.
+
+Modelled on statsmodels' results: ``params``, ``bse``, ``cov``, ``corr``,
+``loglik``, ``aic``, ``bic``, ``summary()``.  Standard errors come from the
+exact Hessian of the negative log-posterior at the optimum (section 3.3.2);
+when that Hessian is singular or indefinite the ill-determined directions are
+reported by parameter name instead of dropping parameters.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Mapping
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+from ..errors import ModelError
+from ..model.equations import parse_expression
+from ..model.structure import lambdify_parameters
+
+#: Eigenvalues of the scaled Hessian below this fraction of the largest are ill-determined.
+ILL_DETERMINED = 1e-8
+
+
+@dataclass
+class FitResult:
+    """Estimates and their uncertainty for one model fitted to one or more data sets."""
+
+    model: object
+    params: pd.DataFrame
+    cov: pd.DataFrame
+    loglik: float
+    criterion_value: float
+    n_obs: int
+    converged: bool
+    message: str
+    iterations: int
+    settings: dict
+    warnings: list = field(default_factory=list)
+    ill_determined: list = field(default_factory=list)
+    data: list | None = None
+    start_values: list = field(default_factory=list)
+    _cache: dict = field(default_factory=dict, repr=False)
+
+    # -------------------------------------------------------------- numbers
+    @property
+    def values(self) -> dict[str, float]:
+        """Estimates of all parameters (free and fixed) by name."""
+        return {k: float(v) for k, v in self.params["estimate"].items()}
+
+    @property
+    def bse(self) -> pd.Series:
+        """Standard errors of the estimates (NaN for fixed parameters)."""
+        return self.params["std_error"]
+
+    @property
+    def n_params(self) -> int:
+        """Number of estimated parameters."""
+        return int((~self.params["fixed"]).sum())
+
+    @property
+    def corr(self) -> pd.DataFrame:
+        sd = np.sqrt(np.diag(self.cov.to_numpy()))
+        return self.cov / np.outer(sd, sd)
+
+    @property
+    def aic(self) -> float:
+        """Akaike's information criterion, −2 log L + 2k (5.7)."""
+        return -2.0 * self.loglik + 2.0 * self.n_params
+
+    @property
+    def bic(self) -> float:
+        """Bayesian information criterion, −2 log L + k log N (5.8)."""
+        return -2.0 * self.loglik + self.n_params * math.log(self.n_obs)
+
+    # -------------------------------------------------------------- report
+    def summary(self) -> str:
+        """A readable table of the fit, like statsmodels' summary."""
+        s = self.settings
+        crit = s["criterion"].upper()
+        if s.get("robust"):
+            crit += f", robust {s['robust'][0]} (c = {s['robust'][1]:g})"
+        if s.get("horizon", 1) > 1:
+            crit += f", {s['horizon']}-step predictions"
+        lines = [
+            f"greyid fit of model '{self.model.name}' ({self.model.kind})",
+            "=" * 78,
+            f"criterion: {crit:32s} filter: {s['method']} ({s['form']}), hold {s['hold']}",
+            f"log-likelihood: {self.loglik:<16.6f} observations: {self.n_obs:<10d} parameters: {self.n_params}",
+            f"AIC: {self.aic:<16.4f} BIC: {self.bic:<16.4f} converged: {self.converged} ({self.iterations} iterations)",
+        ]
+        if s.get("robust") or s.get("horizon", 1) > 1 or s["criterion"] == "map":
+            lines.append(f"criterion value (log scale): {self.criterion_value:.6f}")
+        lines.append("-" * 78)
+        header = f"{'':12s} {'estimate':>13s} {'std_error':>11s} {'t_value':>9s} {'p_value':>9s} {'lower':>10s} {'upper':>10s}"
+        lines.append(header)
+        for name, row in self.params.iterrows():
+            fmt = lambda v, w, p: f"{v:{w}.{p}g}" if v is not None and np.isfinite(v) else " " * (w - 1) + "-"
+            flag = " fixed" if row["fixed"] else (" at bound" if row["at_bound"] else "")
+            if not row["fixed"] and not row["reliable"]:
+                flag += " (unreliable)"
+            lines.append(f"{name:12.12s} {fmt(row['estimate'], 13, 6)} {fmt(row['std_error'], 11, 4)} "
+                         f"{fmt(row['t_value'], 9, 4)} {fmt(row['p_value'], 9, 3)} {fmt(row['lower'], 10, 4)} "
+                         f"{fmt(row['upper'], 10, 4)}{flag}")
+        lines.append("=" * 78)
+        for w in self.warnings:
+            lines.append(f"warning: {w}")
+        return "\n".join(lines)
+
+    def __repr__(self) -> str:
+        return f"<FitResult {self.model.name}: loglik={self.loglik:.4f}, k={self.n_params}, converged={self.converged}>"
+
+    # -------------------------------------------------------------- derived quantities
+    def derived(self, expressions: Mapping[str, str]) -> pd.DataFrame:
+        """Functions of the parameters with delta-method standard errors (6.35)."""
+        names = list(self.params.index)
+        syms = [parse_expression(n, "parameter") for n in names]
+        free = ~self.params["fixed"].to_numpy()
+        theta = jnp.asarray(self.params["estimate"].to_numpy(dtype=np.float64))
+        cov = self.cov.to_numpy()
+        rows = {}
+        for label, text in expressions.items():
+            expr = parse_expression(text, f"derived quantity '{label}'")
+            extra = {s.name for s in expr.free_symbols} - set(names)
+            if extra:
+                raise ModelError(f"derived quantity '{label}' uses '{sorted(extra)[0]}', which is not a parameter")
+            fn = lambdify_parameters([expr], syms, (1,))
+            value, grad = jax.value_and_grad(lambda th: fn(th)[0])(theta)
+            g = np.asarray(grad)[free]
+            rows[label] = {"estimate": float(value), "std_error": float(np.sqrt(max(g @ cov @ g, 0.0)))}
+        return pd.DataFrame.from_dict(rows, orient="index")
+
+    # -------------------------------------------------------------- filtering on the fitted model
+    def _data(self, data):
+        if data is not None:
+            return data
+        if self.data is None:
+            raise ModelError("this fit carries no data (it was loaded from a file); pass data explicitly")
+        return self.data[0] if len(self.data) == 1 else self.data
+
+    def _filter_settings(self):
+        s = self.settings
+        out = dict(time=s["time"], hold=s["hold"], method=s["method"], form=s["form"], substeps=s["substeps"],
+                   iterations=s["iterations"])
+        if s.get("time_unit"):
+            out["time_unit"] = s["time_unit"]
+        return out
+
+    def filter(self, data=None):
+        """The filter run at the estimates (a FilterResult, or a list for several data sets)."""
+        return self.model.filter(self.values, self._data(data), **self._filter_settings())
+
+    def smooth(self, data=None):
+        """Rauch–Tung–Striebel smoothed states at the estimates."""
+        return self.model.smooth(self.values, self._data(data), **self._filter_settings())
+
+    def predict(self, data=None, steps: int = 1):
+        """``steps``-ahead predictions of the outputs with standard deviations."""
+        return self.model.predict(self.values, self._data(data), steps=steps, **self._filter_settings())
+
+    def simulate(self, data=None, n_paths: int = 1, seed: int = 0, method: str = "euler", **options):
+        """Sample paths of the fitted model driven by the data's inputs."""
+        d = self._data(data)
+        if isinstance(d, list):
+            d = d[0]
+        return self.model.simulate(self.values, d, n_paths=n_paths, seed=seed, method=method,
+                                   hold=self.settings["hold"], time=self.settings["time"], **options)
+
+    @property
+    def residuals(self):
+        """Standardised one-step innovations per output (NaN where unobserved)."""
+        if "residuals" not in self._cache:
+            res = self.filter()
+            self._cache["residuals"] = ([r.standardized_innovations for r in res] if isinstance(res, list)
+                                        else res.standardized_innovations)
+        return self._cache["residuals"]
+
+    # -------------------------------------------------------------- saving
+    def to_dict(self) -> dict:
+        def clean(v):
+            if isinstance(v, (float, np.floating)):
+                return None if not np.isfinite(v) else float(v)
+            if isinstance(v, (np.bool_, bool)):
+                return bool(v)
+            return v
+
+        return {
+            "format": "greyid-fit-1",
+            "model": self.model.to_dict(),
+            "params": {n: {k: clean(v) for k, v in row.items()} for n, row in self.params.iterrows()},
+            "cov": {"names": list(self.cov.index), "matrix": self.cov.to_numpy().tolist()},
+            "loglik": self.loglik,
+            "criterion_value": self.criterion_value,
+            "n_obs": self.n_obs,
+            "converged": self.converged,
+            "message": self.message,
+            "iterations": self.iterations,
+            "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.settings.items()},
+            "warnings": list(self.warnings),
+            "ill_determined": self.ill_determined,
+        }
+
+    def save(self, path) -> None:
+        """Write the fit as JSON (model text, estimates, covariance, settings)."""
+        Path(path).write_text(json.dumps(self.to_dict(), indent=2))
+
+
+def load_fit(path) -> FitResult:
+    """Read a fit written by :meth:`FitResult.save`; its ``model`` reproduces the log-likelihood."""
+    from ..model import Model
+
+    spec = json.loads(Path(path).read_text())
+    if spec.get("format") != "greyid-fit-1":
+        raise ModelError(f"{path} is not a greyid fit file")
+    model = Model.from_dict(spec["model"])
+    params = pd.DataFrame.from_dict(spec["params"], orient="index")
+    for col in ("estimate", "std_error", "t_value", "p_value", "lower", "upper", "gradient"):
+        if col in params:
+            params[col] = params[col].astype(float)
+    for col in ("fixed", "at_bound", "reliable"):
+        if col in params:
+            params[col] = params[col].astype(bool)
+    names = spec["cov"]["names"]
+    cov = pd.DataFrame(np.asarray(spec["cov"]["matrix"], dtype=float).reshape(len(names), len(names)),
+                       index=names, columns=names)
+    settings = spec["settings"]
+    if settings.get("robust"):
+        settings["robust"] = tuple(settings["robust"])
+    return FitResult(model=model, params=params, cov=cov, loglik=spec["loglik"],
+                     criterion_value=spec["criterion_value"], n_obs=spec["n_obs"], converged=spec["converged"],
+                     message=spec["message"], iterations=spec["iterations"], settings=settings,
+                     warnings=spec.get("warnings", []), ill_determined=spec.get("ill_determined", []), data=None)
+
+
+def build_result(model, frames, theta, problem, best, optima, settings) -> FitResult:
+    """Map the optimum back to natural parameters and compute the uncertainty."""
+    names = list(model.parameter_names)
+    free = list(problem.free)
+    free_names = [names[i] for i in free]
+    transform = problem.transform
+    d1, d2 = transform.derivatives(best.z)
+    theta_free = theta[free]
+    warn = []
+    at_bound = transform.near_bound(theta_free) | (np.abs(d1) < 1e-10)
+    g_theta = np.where(at_bound, np.nan, best.gradient / np.where(at_bound, 1.0, d1))
+    # H_z = J H_θ J + diag(g_θ θ''), so H_θ = J⁻¹ (H_z − diag(g_θ θ'')) J⁻¹ (interior parameters).
+    inner = ~at_bound
+    Hz = 0.5 * (best.hessian + best.hessian.T)
+    Jinv = 1.0 / d1[inner]
+    H = (Hz[np.ix_(inner, inner)] - np.diag(np.nan_to_num(g_theta[inner] * d2[inner]))) * np.outer(Jinv, Jinv)
+    for i in np.flatnonzero(at_bound):
+        warn.append(f"parameter '{free_names[i]}' is at a bound ({theta_free[i]:.6g}); "
+                    "its standard error is not given")
+
+    k = int(inner.sum())
+    cov_inner = np.full((k, k), np.nan)
+    reliable = np.ones(len(free), dtype=bool)
+    ill = []
+    if k:
+        scale = np.sqrt(np.abs(np.diag(H)))
+        scale = np.where(scale > 0, scale, 1.0)
+        Hs = H / np.outer(scale, scale)
+        w, V = np.linalg.eigh(0.5 * (Hs + Hs.T))
+        bad = w <= ILL_DETERMINED * max(w.max(), 1e-300)
+        inner_names = [n for n, b in zip(free_names, inner) if b]
+        for j in np.flatnonzero(bad):
+            vec = V[:, j] / scale
+            vec = vec / np.max(np.abs(vec))
+            loading = {inner_names[i]: float(vec[i]) for i in np.argsort(-np.abs(vec)) if abs(vec[i]) > 0.05}
+            ill.append({"eigenvalue": float(w[j]), "direction": loading})
+            for name in loading:
+                reliable[free_names.index(name)] = False
+            desc = ", ".join(f"{v:+.3f}·{n}" for n, v in loading.items())
+            warn.append(f"the Hessian is {'singular' if w[j] > -1e-12 else 'not positive definite'} in the "
+                        f"direction {desc}: these parameters are not determined by the data, "
+                        "their standard errors are unreliable")
+        if bad.any():
+            cov_inner = np.linalg.pinv(H)
+        else:
+            cov_inner = np.linalg.inv(H)
+        cov_inner = 0.5 * (cov_inner + cov_inner.T)
+
+    cov = np.full((len(free), len(free)), np.nan)
+    idx = np.flatnonzero(inner)
+    cov[np.ix_(idx, idx)] = cov_inner
+    se = np.sqrt(np.where(np.diag(cov) >= 0, np.diag(cov), np.nan))
+    n_obs = int(sum(int(np.sum(~np.isnan(df[list(model.output_names)].to_numpy(dtype=float)))) for df in frames))
+    dof = max(n_obs - len(free), 1)
+    tval = theta_free / se
+    pval = 2 * stats.t.sf(np.abs(tval), dof)
+    if not best.converged:
+        warn.append(f"the optimiser did not converge: {best.message}")
+
+    declared = model.parameters
+    rows = []
+    for i, name in enumerate(names):
+        p = declared.get(name)
+        lower = None if p is None else p.lower
+        upper = None if p is None else p.upper
+        if i in free:
+            j = free.index(i)
+            rows.append(dict(name=name, estimate=theta[i], std_error=se[j], t_value=tval[j], p_value=pval[j],
+                             lower=lower, upper=upper, fixed=False, at_bound=bool(at_bound[j]),
+                             reliable=bool(reliable[j] and not at_bound[j]), gradient=-g_theta[j]))
+        else:
+            rows.append(dict(name=name, estimate=theta[i], std_error=np.nan, t_value=np.nan, p_value=np.nan,
+                             lower=lower, upper=upper, fixed=True, at_bound=False, reliable=True, gradient=np.nan))
+    params = pd.DataFrame(rows).set_index("name")
+    params.index.name = None
+    for col in ("lower", "upper"):
+        params[col] = params[col].astype(float)
+
+    criterion_value = -best.value
+    simple = settings["criterion"] == "ml" and not settings["robust"] and settings["horizon"] == 1
+    if simple:
+        loglik = criterion_value
+    else:
+        loglik = model.loglik(dict(zip(names, theta)), frames if len(frames) > 1 else frames[0],
+                              time=settings["time"], hold=settings["hold"], method=settings["method"],
+                              form=settings["form"], substeps=settings["substeps"],
+                              iterations=settings["iterations"],
+                              **({"time_unit": settings["time_unit"]} if settings.get("time_unit") else {}))
+    return FitResult(model=model, params=params, cov=pd.DataFrame(cov, index=free_names, columns=free_names),
+                     loglik=float(loglik), criterion_value=float(criterion_value), n_obs=n_obs,
+                     converged=bool(best.converged), message=best.message, iterations=best.iterations,
+                     settings=settings, warnings=warn, ill_determined=ill, data=frames,
+                     start_values=[float(-o.value) for o in optima])

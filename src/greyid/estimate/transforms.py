@@ -1,0 +1,72 @@
+"""Smooth maps from unbounded optimisation variables z to bounded parameters θ.
+
+Bounds are handled as in CTSM by transformation: θ = l + e^z (lower bound
+only), θ = u − e^z (upper bound only), θ = l + (u − l)/(1 + e^{−z}) (both), θ = z
+(none).  Derivatives are needed to map gradients and Hessians back to θ.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import jax.numpy as jnp
+import numpy as np
+
+NONE, LOWER, UPPER, BOTH = 0, 1, 2, 3
+
+
+@dataclass(frozen=True)
+class Transform:
+    """Element-wise bound transforms for a vector of free parameters."""
+
+    kind: np.ndarray  # int codes per parameter
+    lower: np.ndarray
+    upper: np.ndarray
+
+    @classmethod
+    def from_bounds(cls, lower, upper) -> "Transform":
+        lo = np.array([np.nan if v is None else v for v in lower], dtype=np.float64)
+        hi = np.array([np.nan if v is None else v for v in upper], dtype=np.float64)
+        kind = np.where(np.isnan(lo), np.where(np.isnan(hi), NONE, UPPER), np.where(np.isnan(hi), LOWER, BOTH))
+        return cls(kind.astype(int), np.nan_to_num(lo), np.nan_to_num(hi))
+
+    def to_theta(self, z):
+        z = jnp.asarray(z)
+        width = self.upper - self.lower
+        return jnp.select(
+            [self.kind == NONE, self.kind == LOWER, self.kind == UPPER],
+            [z, self.lower + jnp.exp(z), self.upper - jnp.exp(z)],
+            self.lower + width / (1.0 + jnp.exp(-z)),
+        )
+
+    def to_z(self, theta) -> np.ndarray:
+        theta = np.asarray(theta, dtype=np.float64)
+        width = np.where(self.kind == BOTH, self.upper - self.lower, 1.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            frac = np.clip((theta - self.lower) / width, 1e-12, 1 - 1e-12)
+            return np.select(
+                [self.kind == NONE, self.kind == LOWER, self.kind == UPPER],
+                [theta, np.log(np.maximum(theta - self.lower, 1e-300)), np.log(np.maximum(self.upper - theta, 1e-300))],
+                np.log(frac) - np.log1p(-frac),
+            )
+
+    def derivatives(self, z) -> tuple[np.ndarray, np.ndarray]:
+        """dθ/dz and d²θ/dz² at z."""
+        z = np.asarray(z, dtype=np.float64)
+        width = self.upper - self.lower
+        s = 1.0 / (1.0 + np.exp(-z))
+        e = np.exp(np.clip(z, -700, 700))
+        d1 = np.select([self.kind == NONE, self.kind == LOWER, self.kind == UPPER], [np.ones_like(z), e, -e],
+                       width * s * (1 - s))
+        d2 = np.select([self.kind == NONE, self.kind == LOWER, self.kind == UPPER], [np.zeros_like(z), e, -e],
+                       width * s * (1 - s) * (1 - 2 * s))
+        return d1, d2
+
+    def near_bound(self, theta, rel: float = 1e-5) -> np.ndarray:
+        """True where θ sits at a bound (relative to the bound's scale or the interval)."""
+        theta = np.asarray(theta, dtype=np.float64)
+        scale = np.where(self.kind == BOTH, self.upper - self.lower,
+                         np.maximum(np.abs(np.where(self.kind == UPPER, self.upper, self.lower)), 1.0))
+        low = (self.kind & LOWER).astype(bool) & (np.abs(theta - self.lower) <= rel * scale)
+        high = (self.kind & UPPER).astype(bool) & (np.abs(self.upper - theta) <= rel * scale)
+        return low | high
