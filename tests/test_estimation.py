@@ -1,0 +1,261 @@
+"""Estimation: standard errors, MAP, robust norms, identifiability, k-step predictions, saving."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+import pytest
+
+import greyid
+from greyid.estimate.estimation import _minimise
+from conftest import dense_reference, random_linear_parameters
+from test_kalman_dense import random_data
+
+TRUE = dict(a=0.8, b=1.5, s=0.5, r=0.04, x0=0.5)
+
+
+def ou_model():
+    m = greyid.Model("ou")
+    m.add_system("dx = (-a*x + b*u)*dt + s*dw1")
+    m.add_inputs("u")
+    m.add_observation("y = x", variance="r")
+    m.set_initial_state(mean={"x": "x0"}, covariance=[[0.1]])
+    m.set_parameter("a", init=0.5, lower=0.0, upper=10.0)
+    m.set_parameter("b", init=1.0)
+    m.set_parameter("s", init=0.3, lower=0.0)
+    m.set_parameter("r", init=0.1, lower=0.0)
+    m.set_parameter("x0", init=0.0)
+    return m
+
+
+@pytest.fixture(scope="module")
+def ou():
+    m = ou_model()
+    rng = np.random.default_rng(0)
+    t = np.arange(300) * 0.5
+    u = np.repeat(rng.choice([0.0, 1.0], 30), 10)
+    df = pd.DataFrame({"t": t, "u": u})
+    df["y"] = m.simulate(TRUE, df, method="exact", seed=5).outputs[0, :, 0]
+    return m, df, m.fit(df)
+
+
+def test_fit_recovers_parameters_and_reports(ou):
+    m, df, fit = ou
+    assert fit.converged
+    est = fit.params["estimate"]
+    for name, value in TRUE.items():
+        assert abs(est[name] - value) < 4 * fit.params.loc[name, "std_error"], name
+    assert fit.loglik == pytest.approx(m.loglik(fit.values, df), rel=1e-10)
+    assert fit.loglik >= m.loglik(TRUE, df)
+    assert fit.n_params == 5 and fit.n_obs == 300
+    assert fit.aic == pytest.approx(-2 * fit.loglik + 10)
+    assert fit.bic == pytest.approx(-2 * fit.loglik + 5 * np.log(300))
+    assert list(fit.params.columns[:7]) == ["estimate", "std_error", "t_value", "p_value", "lower", "upper", "fixed"]
+    np.testing.assert_allclose(np.diag(fit.corr), 1.0)
+    text = fit.summary()
+    assert "log-likelihood" in text and "x0" in text and "AIC" in text
+    res = fit.residuals
+    assert list(res.columns) == ["y"] and abs(res["y"].std() - 1) < 0.15
+
+
+def test_standard_errors_match_central_difference_hessian(ou):
+    m, df, fit = ou
+    names = list(fit.cov.index)
+    theta = np.array([fit.values[n] for n in names])
+
+    def nll(th):
+        return -m.loglik(dict(zip(names, th)), df)
+
+    k = len(theta)
+    h = 1e-4 * np.maximum(np.abs(theta), 0.1)
+    H = np.zeros((k, k))
+    for i in range(k):
+        for j in range(i, k):
+            ei, ej = np.eye(k)[i] * h[i], np.eye(k)[j] * h[j]
+            H[i, j] = H[j, i] = (nll(theta + ei + ej) - nll(theta + ei - ej) - nll(theta - ei + ej)
+                                 + nll(theta - ei - ej)) / (4 * h[i] * h[j])
+    se_fd = np.sqrt(np.diag(np.linalg.inv(H)))
+    np.testing.assert_allclose(fit.bse[names].to_numpy(), se_fd, rtol=2e-3)
+
+
+def test_delta_method_matches_monte_carlo(ou):
+    _, _, fit = ou
+    names = list(fit.cov.index)
+    d = fit.derived({"gain": "b/a", "tau": "1/a", "snr": "s^2/(2*a*r)"})
+    rng = np.random.default_rng(1)
+    # The delta method is exact to first order: compare where the spread is small
+    # (covariance scaled by 1/100, so standard errors by 1/10), as with more data.
+    draws = rng.multivariate_normal([fit.values[n] for n in names], fit.cov.to_numpy() / 100, 200000)
+    v = dict(zip(names, draws.T))
+    mc = {"gain": v["b"] / v["a"], "tau": 1 / v["a"], "snr": v["s"] ** 2 / (2 * v["a"] * v["r"])}
+    for label, samples in mc.items():
+        assert d.loc[label, "std_error"] / 10 == pytest.approx(np.std(samples), rel=0.03), label
+        assert d.loc[label, "estimate"] == pytest.approx(np.median(samples), rel=0.01), label
+    with pytest.raises(greyid.ModelError, match="not a parameter"):
+        fit.derived({"bad": "a*zz"})
+
+
+def regression_model():
+    """y = a + b u + e: the state is a dummy, so the likelihood is a linear regression."""
+    m = greyid.Model("regression")
+    m.add_system("dx = -x*dt + 0.1*dw1")
+    m.add_inputs("u")
+    m.add_observation("y = a + b*u + 0*x", variance="0.25")
+    m.set_initial_state(mean={"x": 0.0}, covariance=[[1.0]])
+    m.set_parameter("a", init=0.0)
+    m.set_parameter("b", init=0.0)
+    return m
+
+
+def test_map_equals_closed_form_posterior_mode():
+    m = regression_model()
+    rng = np.random.default_rng(3)
+    u = rng.normal(size=40)
+    y = 1.0 + 2.0 * u + 0.5 * rng.normal(size=40)
+    df = pd.DataFrame({"t": np.arange(40.0), "u": u, "y": y})
+    X = np.column_stack([np.ones(40), u])
+    mean, sd, rho = np.array([0.0, 1.0]), np.array([0.5, 0.4]), 0.3
+    prior_cov = np.array([[sd[0] ** 2, rho * sd[0] * sd[1]], [rho * sd[0] * sd[1], sd[1] ** 2]])
+    precision = X.T @ X / 0.25 + np.linalg.inv(prior_cov)
+    mode = np.linalg.solve(precision, X.T @ y / 0.25 + np.linalg.solve(prior_cov, mean))
+    prior = {"mean": {"a": 0.0, "b": 1.0}, "sd": {"a": 0.5, "b": 0.4}, "corr": {("a", "b"): 0.3}}
+    fit = m.fit(df, criterion="map", prior=prior)
+    np.testing.assert_allclose([fit.values["a"], fit.values["b"]], mode, rtol=1e-7)
+    np.testing.assert_allclose(fit.cov.to_numpy(), np.linalg.inv(precision), rtol=1e-6)
+    # The prior's pull vanishes as its variance grows: MAP tends to least squares.
+    ls = np.linalg.lstsq(X, y, rcond=None)[0]
+    gaps = []
+    for scale in (1.0, 10.0, 100.0):
+        wide = {"mean": prior["mean"], "sd": {"a": 0.5 * scale, "b": 0.4 * scale}}
+        f = m.fit(df, criterion="map", prior=wide)
+        gaps.append(np.max(np.abs([f.values["a"] - ls[0], f.values["b"] - ls[1]])))
+    assert gaps[0] > gaps[1] > gaps[2] and gaps[2] < 1e-4
+    with pytest.raises(greyid.ModelError, match="needs a prior"):
+        m.fit(df, criterion="map")
+
+
+def test_huber_fit_resists_outliers(ou):
+    m, df, _ = ou
+    dirty = df.copy()
+    rng = np.random.default_rng(8)
+    rows = rng.choice(len(df), 15, replace=False)
+    dirty.loc[rows, "y"] += 3.0
+    gauss = m.fit(dirty)
+    huber = m.fit(dirty, robust=("huber", 1.5))
+    for name in ("b", "r"):
+        assert abs(huber.values[name] - TRUE[name]) < abs(gauss.values[name] - TRUE[name]), name
+    assert abs(huber.values["r"] - TRUE["r"]) < 0.5 * abs(gauss.values["r"] - TRUE["r"])
+    # The reported log-likelihood stays the Gaussian one; the robust criterion is beside it.
+    assert huber.loglik == pytest.approx(m.loglik(huber.values, dirty), rel=1e-10)
+    assert huber.criterion_value == pytest.approx(m.loglik(huber.values, dirty, robust=("huber", 1.5)), rel=1e-10)
+    assert huber.criterion_value > huber.loglik
+
+
+def test_robust_loglik_follows_ctsm_convention(ou):
+    m, df, fit = ou
+    res = m.filter(fit.values, df)
+    r = res.standardized_innovations["y"].to_numpy()
+    R = res.innovation_cov[:, 0, 0]
+    c = 1.0
+    rho = np.where(np.abs(r) < c, r**2, 2 * c * np.abs(r) - c**2)
+    expected = -0.5 * np.sum(np.log(2 * np.pi) + np.log(R) + rho)
+    assert m.loglik(fit.values, df, robust=("huber", c)) == pytest.approx(expected, rel=1e-10)
+    tukey = np.where(np.abs(r) < c, (c**2 / 3) * (1 - (1 - (r / c) ** 2) ** 3), c**2 / 3)
+    assert m.loglik(fit.values, df, robust=("tukey", c)) == pytest.approx(
+        -0.5 * np.sum(np.log(2 * np.pi) + np.log(R) + tukey), rel=1e-10)
+    with pytest.raises(greyid.ModelError, match="robust must be"):
+        m.loglik(fit.values, df, robust=("cauchy", 1.0))
+
+
+def test_non_identifiable_product_is_reported():
+    m = greyid.Model("product")
+    m.add_system("dx = (-a*b*x + u)*dt + s*dw1")
+    m.add_inputs("u")
+    m.add_observation("y = x", variance="r")
+    m.set_initial_state(mean={"x": 0.0}, covariance=[[0.1]])
+    for name, init in dict(a=1.0, b=0.7, s=0.3, r=0.1).items():
+        m.set_parameter(name, init=init, lower=0.0)
+    rng = np.random.default_rng(2)
+    df = pd.DataFrame({"t": np.arange(200) * 0.5, "u": np.repeat(rng.choice([0.0, 1.0], 20), 10)})
+    df["y"] = m.simulate(dict(a=1.0, b=0.8, s=0.3, r=0.05), df, method="exact", seed=1).outputs[0, :, 0]
+    fit = m.fit(df)
+    assert fit.ill_determined, "the a·b ridge must be reported"
+    direction = fit.ill_determined[0]["direction"]
+    assert set(direction) >= {"a", "b"} and "s" not in direction
+    assert not fit.params.loc["a", "reliable"] and not fit.params.loc["b", "reliable"]
+    assert fit.params.loc["s", "reliable"]
+    assert any("not determined" in w for w in fit.warnings)
+    assert fit.values["a"] * fit.values["b"] == pytest.approx(0.8, rel=0.2)
+
+
+def test_active_bound_is_reported(ou):
+    m, df, _ = ou
+    bounded = ou_model()
+    bounded.set_parameter("a", init=1.5, lower=1.2, upper=10.0)  # the optimum (≈0.8) lies below
+    fit = bounded.fit(df)
+    assert fit.params.loc["a", "at_bound"] and fit.values["a"] == pytest.approx(1.2, abs=1e-3)
+    assert np.isnan(fit.params.loc["a", "std_error"])
+    assert any("'a' is at a bound" in w for w in fit.warnings)
+
+
+def test_non_finite_evaluation_is_a_rejected_step():
+    def f(z):  # z − log z, undefined (NaN) for z < 0, minimum at z = 1
+        return jnp.sum(z - jnp.log(z))
+
+    vg = jax.jit(jax.value_and_grad(f))
+    hess = jax.jit(jax.hessian(f))
+    opt = _minimise(vg, hess, np.array([6.0]), maxiter=100)
+    assert opt.converged and opt.z[0] == pytest.approx(1.0, abs=1e-6)
+
+
+def test_several_experiments_and_multistart(ou):
+    m, df, fit = ou
+    a, b = df.iloc[:150].reset_index(drop=True), df.iloc[150:].reset_index(drop=True)
+    both = m.fit([a, b], starts=3, seed=1)
+    assert both.converged and len(both.start_values) == 3
+    assert both.loglik == pytest.approx(m.loglik(both.values, a) + m.loglik(both.values, b), rel=1e-10)
+    assert both.loglik == pytest.approx(max(both.start_values), rel=1e-10)
+    assert isinstance(both.residuals, list) and len(both.residuals) == 2
+
+
+def test_k_step_predictions_equal_dense_conditional_means(linear_model):
+    rng = np.random.default_rng(21)
+    params, mats = random_linear_parameters(rng)
+    df, t, U, Y = random_data(rng, N=25, missing=0.15)
+    pred = linear_model.predict(params, df, steps=3)
+    one = linear_model.filter(params, df)
+    np.testing.assert_allclose(linear_model.predict(params, df, steps=1)[["y1", "y2"]].to_numpy(),
+                               one.output_predictions.to_numpy(), rtol=1e-10)
+    # E[y_k | y_0..y_{k-3}] from the stacked Gaussian of all observations.
+    for k in (5, 12, 24):
+        cut = Y.copy()
+        cut[k - 2:] = np.nan
+        _, xs, _ = dense_reference(mats, t[:k + 1], U[:k + 1], cut[:k + 1], foh=0.0)
+        y_expected = mats["H"] @ xs[k] + mats["D"][:, 0] * U[k, 0]
+        np.testing.assert_allclose(pred.loc[k, ["y1", "y2"]].to_numpy(), y_expected, rtol=1e-7, atol=1e-8)
+    # Conditioning on less data cannot make the prediction more certain.
+    sd1 = linear_model.predict(params, df, steps=1)[["y1_sd", "y2_sd"]].to_numpy()
+    assert np.all(pred[["y1_sd", "y2_sd"]].to_numpy() >= sd1 - 1e-9)
+
+
+def test_k_step_criterion_fit(ou):
+    m, df, fit1 = ou
+    fit4 = m.fit(df, horizon=4)
+    assert fit4.converged and fit4.settings["horizon"] == 4
+    assert fit4.loglik == pytest.approx(m.loglik(fit4.values, df), rel=1e-10)
+    assert fit4.loglik <= fit1.loglik + 1e-8  # the 1-step fit maximises the likelihood
+    pred = fit4.predict(steps=4)
+    assert list(pred.columns) == ["y", "y_sd"] and len(pred) == len(df)
+
+
+def test_save_and_load_reproduce_the_fit(ou, tmp_path):
+    m, df, fit = ou
+    path = tmp_path / "fit.json"
+    fit.save(path)
+    loaded = greyid.load_fit(path)
+    assert loaded.model.loglik(loaded.values, df) == pytest.approx(fit.loglik, rel=1e-12)
+    pd.testing.assert_frame_equal(loaded.cov, fit.cov)
+    assert loaded.summary().splitlines()[2] == fit.summary().splitlines()[2]
+    np.testing.assert_allclose(loaded.predict(df)["y"], fit.predict()["y"], rtol=1e-12)
+    with pytest.raises(greyid.ModelError, match="carries no data"):
+        loaded.residuals
