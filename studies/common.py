@@ -1,0 +1,28 @@
+"""Printing of Monte Carlo study tables in the thesis' layout."""
+
+from __future__ import annotations
+
+import sys
+import time
+
+
+def progress(done: int, total: int) -> None:
+    sys.stderr.write(f"\r  fitted {done}/{total} series")
+    if done == total:
+        sys.stderr.write("\n")
+    sys.stderr.flush()
+
+
+def print_table(title: str, study, started: float) -> None:
+    table = study.table()
+    crit = study.critical_values(0.1)
+    n = len(study.estimates)
+    print(f"\n{title}")
+    print(f"n_e = {n} series, {int(study.converged.sum())} converged, "
+          f"mean lag-1 residual autocorrelation {study.residual_acf1.mean():.3f}, "
+          f"{time.perf_counter() - started:.1f} s")
+    print(f"{'parameter':10s} {'x_sim':>11s} {'mean':>11s} {'s_x^2':>11s} {'s_bar^2':>11s} {'F-stat':>8s} {'|t|-stat':>8s}")
+    for name, row in table.iterrows():
+        print(f"{name:10s} {row.x_sim:11.5g} {row['mean']:11.5g} {row.s2_empirical:11.4g} "
+              f"{row.s2_estimated:11.4g} {row.F:8.4f} {row.t:8.3f}")
+    print(f"acceptance at level 0.1: F in [{crit['F'][0]:.2f}, {crit['F'][1]:.2f}], |t| < {crit['t']:.2f}")

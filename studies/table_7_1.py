@@ -1,0 +1,37 @@
+"""Thesis table 7.1 (and 7.2 with --horizon 4): the test-cell model of section 7.2.
+
+    python studies/table_7_1.py [--series 50] [--horizon 1] [--seed 0]
+
+50 series of 1512 samples at 20 minutes are simulated from the model (7.43)
+with the parameters of section 7.2, PRBS heating of order 6 with an 8 h clock
+between 0 and 300 W and an outdoor temperature with a daily cycle; each series
+is fitted by maximum likelihood with the 1-step (or k-step) criterion.
+"""
+
+import argparse
+import time
+
+from common import print_table, progress
+
+from greyid.datasets.thesis import TEST_CELL_DERIVED, TEST_CELL_PARAMETERS, test_cell_inputs, test_cell_model
+from greyid.estimate.montecarlo import run_study
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--series", type=int, default=50)
+    parser.add_argument("--horizon", type=int, default=1)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    started = time.perf_counter()
+    study = run_study(
+        test_cell_model(), TEST_CELL_PARAMETERS, test_cell_inputs(seed=args.seed), args.series,
+        report=["Hi", "Hm", "Ci", "Cm", "s1i", "s1m", "s2"], derived=TEST_CELL_DERIVED, seed=args.seed + 1,
+        simulate={"method": "exact"}, fit={"horizon": args.horizon}, progress=progress,
+    )
+    print_table(f"Table 7.{1 if args.horizon == 1 else 2}: test-cell model, {args.horizon}-step criterion",
+                study, started)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,37 @@
+"""Thesis table A.1: the stochastic Lotka–Volterra model estimated with the EKF.
+
+    python studies/table_A_1.py [--series 50] [--seed 0]
+
+50 series of 500 observations (sampling time 0.005) are simulated with the
+Milstein scheme on 20 sub-steps per sample and fitted by maximum likelihood
+through the extended Kalman filter.
+"""
+
+import argparse
+import time
+
+from common import print_table, progress
+
+from greyid.datasets.thesis import LOTKA_VOLTERRA_PARAMETERS, lotka_volterra_model, lotka_volterra_times
+from greyid.estimate.montecarlo import run_study
+
+import pandas as pd
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--series", type=int, default=50)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    started = time.perf_counter()
+    data = pd.DataFrame({"t": lotka_volterra_times()})
+    study = run_study(
+        lotka_volterra_model(), LOTKA_VOLTERRA_PARAMETERS, data, args.series,
+        report=["a", "b", "c", "d", "N10", "N20", "s1", "s2", "m1", "m2"], seed=args.seed,
+        simulate={"method": "milstein", "substeps": 20}, fit={"method": "ekf"}, progress=progress,
+    )
+    print_table("Table A.1: stochastic Lotka-Volterra model, EKF", study, started)
+
+
+if __name__ == "__main__":
+    main()
