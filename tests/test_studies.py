@@ -1,0 +1,49 @@
+"""Reduced Monte Carlo validations of the estimator (full size in studies/)."""
+
+import numpy as np
+import pandas as pd
+import pytest
+from scipy import stats
+
+from greyid.datasets import thesis
+from greyid.estimate.montecarlo import run_study
+
+
+def check(study, alpha=0.01):
+    """No significant bias (|t| test) and estimated variances consistent with the empirical ones.
+
+    With few series the F test has little power, so besides each quantity's F
+    test the pooled log-ratio of variances is tested too.
+    """
+    assert study.converged.all()
+    table = study.table()
+    n = len(study.estimates)
+    t_crit = stats.t.ppf(1 - alpha / 2, n - 1)
+    f_lo, f_hi = stats.f.ppf(alpha / 2, n - 1, 1e9), stats.f.ppf(1 - alpha / 2, n - 1, 1e9)
+    bad_t = table.index[table.t > t_crit].tolist()
+    bad_f = table.index[(table.F < f_lo) | (table.F > f_hi)].tolist()
+    assert not bad_t, f"biased: {bad_t}\n{table}"
+    assert not bad_f, f"variance mismatch: {bad_f}\n{table}"
+    # Pooled over quantities, the mean log F ratio is near 0 (variances neither under- nor over-estimated).
+    assert abs(np.mean(np.log(table.F))) < 0.6, table
+    return table
+
+
+def test_test_cell_study_reduced():
+    """Table 7.1 with 6 series: unbiased, honest standard errors, white residuals."""
+    study = run_study(thesis.test_cell_model(), thesis.TEST_CELL_PARAMETERS, thesis.test_cell_inputs(), 6,
+                      report=["Hi", "Hm", "Ci", "Cm", "s1i", "s1m", "s2"], derived=thesis.TEST_CELL_DERIVED,
+                      seed=11, simulate={"method": "exact"})
+    table = check(study)
+    assert table.loc["UA", "x_sim"] == pytest.approx(11.082, abs=1e-3)
+    assert table.loc["CI", "x_sim"] == pytest.approx(2.2862, abs=1e-3)
+    assert abs(study.residual_acf1.mean()) < 0.05
+
+
+def test_lotka_volterra_study_reduced():
+    """Table A.1 with 5 series through the EKF."""
+    data = pd.DataFrame({"t": thesis.lotka_volterra_times()})
+    study = run_study(thesis.lotka_volterra_model(), thesis.LOTKA_VOLTERRA_PARAMETERS, data, 5,
+                      report=["a", "b", "c", "d", "s1", "s2", "m1", "m2"], seed=3,
+                      simulate={"method": "milstein", "substeps": 20}, fit={"method": "ekf"})
+    check(study)
