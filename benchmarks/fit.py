@@ -1,0 +1,108 @@
+"""Estimation benchmarks (issue "Estimation", section Speed).
+
+    python benchmarks/fit.py [--lengths 1000,10000,100000,1000000]
+
+Prints, on this machine:
+* the Armadillo fit (pySIP's TwTi_RoRi, first-order hold, 232 rows; data from
+  ../shared/data) and the test-cell fit (model 7.43, 1512 samples): the first fit
+  in a fresh process (import + compile + fit, measured as a subprocess, with an
+  empty and with a warm persistent compilation cache) and the fit with compiled
+  functions (a second fit in the same process);
+* log-likelihood + gradient time of the test-cell model against series length.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+ARMADILLO = ROOT.parent / "shared" / "data" / "armadillo_box" / "armadillo_data_H2.csv"
+
+FIT_SCRIPT = """
+import time, sys
+start = time.perf_counter()
+import pandas as pd
+import greyid
+from greyid.datasets.reference import armadillo_model
+from greyid.datasets import thesis
+case = sys.argv[1]
+if case == "armadillo":
+    model, data = armadillo_model(), pd.read_csv(sys.argv[2]).iloc[:-1]
+    kwargs = dict(time="Time", hold="foh")
+else:
+    model, data = thesis.test_cell_model(), thesis.test_cell_inputs()
+    data["Ttr"] = model.simulate(thesis.TEST_CELL_PARAMETERS, data, method="exact", seed=1).outputs[0, :, 0]
+    kwargs = {}
+ready = time.perf_counter()
+fit = model.fit(data, **kwargs)
+first = time.perf_counter()
+fit2 = model.fit(data, **kwargs)
+second = time.perf_counter()
+print(f"{ready - start:.3f} {first - ready:.3f} {second - first:.3f} {fit.loglik:.4f} {fit.iterations}")
+"""
+
+
+def fit_case(case: str) -> None:
+    cache = tempfile.mkdtemp(prefix="greyid-bench-cache-")
+    env = dict(os.environ, GREYID_CACHE_DIR=cache)
+    for label in ("cold cache", "warm cache"):
+        start = time.perf_counter()
+        out = subprocess.run([sys.executable, "-c", FIT_SCRIPT, case, str(ARMADILLO)], env=env, check=True,
+                             capture_output=True, text=True).stdout.split()
+        total = time.perf_counter() - start
+        setup, first, second, loglik, iterations = out
+        print(f"  {label}: process total {total:6.2f} s (setup+import {float(setup):.2f} s, first fit "
+              f"{float(first):.2f} s); compiled fit {float(second):.3f} s; loglik {loglik}, {iterations} iterations")
+
+
+def scaling(lengths: list[int]) -> None:
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from greyid.data import prepare_series
+    from greyid.datasets import thesis
+    from greyid.filters.api import compiled_filter, filter_inputs, filter_options
+
+    model = thesis.test_cell_model()
+    s = model.structure
+    theta = jnp.asarray(model.parameter_vector(thesis.TEST_CELL_PARAMETERS))
+    run = compiled_filter(s, filter_options(s, None), keep_outputs=False)
+    value_grad = jax.jit(jax.value_and_grad(lambda th, d: run(th, d)[0].loglik.sum()))
+    print(f"  {'samples':>9s} {'compile+run [s]':>16s} {'run [s]':>9s} {'per sample [us]':>16s}")
+    for n in lengths:
+        data = thesis.test_cell_inputs(n)
+        data["Ttr"] = 20.0 + np.random.default_rng(0).normal(size=n)
+        inputs = filter_inputs(prepare_series(data, s.input_names, s.output_names), "zoh")
+        start = time.perf_counter()
+        jax.block_until_ready(value_grad(theta, inputs))
+        first = time.perf_counter() - start
+        start = time.perf_counter()
+        jax.block_until_ready(value_grad(theta, inputs))
+        run_time = time.perf_counter() - start
+        print(f"  {n:9d} {first:16.2f} {run_time:9.3f} {run_time / n * 1e6:16.2f}")
+
+
+def main():
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--lengths", default="1000,10000,100000,1000000")
+    args = parser.parse_args()
+    if ARMADILLO.exists():
+        print("Armadillo fit (TwTi_RoRi, foh, 232 rows):")
+        fit_case("armadillo")
+    else:
+        print(f"Armadillo data not found at {ARMADILLO}; skipped")
+    print("Test-cell fit (7.43, 1512 samples):")
+    fit_case("testcell")
+    print("Test-cell log-likelihood + gradient against series length:")
+    scaling([int(v) for v in args.lengths.split(",")])
+
+
+if __name__ == "__main__":
+    main()
