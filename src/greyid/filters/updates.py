@@ -1,9 +1,11 @@
 """Covariance propagation and measurement updates in plain and square-root form.
 
-A filter carries the state covariance either as the matrix P ("plain") or as
-a lower Cholesky factor L with P = L Lᵀ ("sqrt").  The square-root measurement
-update is the array (QR) form, which never subtracts covariances and so keeps
-P positive definite (the role of the LDLᵀ updates of A.1.2 and A.3).
+A filter carries the state covariance either as the matrix P ("plain", with
+the Joseph-form update) or as a square root L with P = L Lᵀ ("sqrt").  The
+square-root measurement update is Potter's, one scalar observation at a time,
+and never subtracts covariances, so P stays positive definite (the role of the
+LDLᵀ updates of A.1.2 and A.3); the time update refactorises Φ P Φᵀ + Λ, a sum
+of positive semi-definite terms, by Cholesky.
 
 Unobserved elements of y_k are masked: their row of C is zeroed, their
 innovation set to 0 and their variance to 1, so they add nothing to the
@@ -15,7 +17,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import jax.numpy as jnp
-from jax.scipy.linalg import cho_solve, solve_triangular
+from . import small
 
 LOG_2PI = float(jnp.log(2.0 * jnp.pi))
 PLAIN = "plain"
@@ -56,20 +58,20 @@ def to_matrix(cov: jnp.ndarray, form: str) -> jnp.ndarray:
 
 def from_matrix(P: jnp.ndarray, form: str) -> jnp.ndarray:
     """The carried representation from P."""
-    return jnp.linalg.cholesky(symmetrize(P)) if form == SQRT else symmetrize(P)
+    return small.cholesky(symmetrize(P)) if form == SQRT else symmetrize(P)
 
 
 def propagate(cov: jnp.ndarray, transition: jnp.ndarray, noise: jnp.ndarray, form: str) -> jnp.ndarray:
     """Φ P Φᵀ + Λ (4.35, A.33, A.50) in the carried representation."""
     if form == SQRT:
         FL = transition @ cov
-        return jnp.linalg.cholesky(symmetrize(FL @ FL.T + noise))
+        return small.cholesky(symmetrize(FL @ FL.T + noise))
     return symmetrize(transition @ cov @ transition.T + noise)
 
 
 def gaussian_term(innovation, chol_R, mask) -> StepTerms:
     """log N(ε; 0, R) over the observed elements, from a Cholesky factor of R."""
-    z = solve_triangular(chol_R, innovation, lower=True)
+    z = small.solve_lower(chol_R, innovation)
     logdet = 2.0 * jnp.sum(jnp.log(jnp.abs(jnp.diag(chol_R))))
     return StepTerms(z, logdet, jnp.sum(mask))
 
@@ -87,20 +89,29 @@ def linear_update(mean, cov, y, mask, y_pred, C, S, form: str) -> Update:
     innovation, C, S = mask_observation(y, y_pred, C, S, mask)
     s, n = C.shape
     if form == SQRT:
-        # Pre-array [[√S, C L], [0, L]] → lower-triangular [[R^½, 0], [K̄, L⁺]].
-        pre = jnp.block([[jnp.diag(jnp.sqrt(S)), C @ cov], [jnp.zeros((n, s)), cov]])
-        post = jnp.linalg.qr(pre.T)[1].T
-        chol_R, gain_bar, new_cov = post[:s, :s], post[s:, :s], post[s:, s:]
-        new_mean = mean + gain_bar @ solve_triangular(chol_R, innovation, lower=True)
-        R = chol_R @ chol_R.T
-        # Cholesky factors from QR may carry negative diagonals; the product is unaffected.
-        new_cov = new_cov * jnp.where(jnp.diag(new_cov) < 0, -1.0, 1.0)[None, :]
-    else:
-        PCt = cov @ C.T
-        R = symmetrize(C @ PCt + jnp.diag(S))
-        chol_R = jnp.linalg.cholesky(R)
-        gain = cho_solve((chol_R, True), PCt.T).T
-        new_mean = mean + gain @ innovation
-        IKC = jnp.eye(n) - gain @ C
-        new_cov = symmetrize(IKC @ cov @ IKC.T + (gain * S) @ gain.T)  # Joseph form
+        # Potter's square-root update, one scalar observation at a time (S is
+        # diagonal): L⁺ = L (I − γ f fᵀ) with f = Lᵀcᵢ.  Processing the elements in
+        # turn factorises R_k, so the scaled innovations are R_k^{-1/2} ε_k.
+        x, L = mean, cov
+        whitened, logdet = [], jnp.zeros(())
+        for i in range(s):
+            c = C[i]
+            f = L.T @ c
+            alpha = f @ f + S[i]
+            e = innovation[i] - c @ (x - mean)
+            Lf = L @ f
+            x = x + Lf * (e / alpha)
+            L = L - jnp.outer(Lf, f) / (alpha + jnp.sqrt(alpha * S[i]))
+            whitened.append(e / jnp.sqrt(alpha))
+            logdet = logdet + jnp.log(alpha)
+        R = symmetrize(C @ cov @ cov.T @ C.T + jnp.diag(S))
+        terms = StepTerms(jnp.stack(whitened), logdet, jnp.sum(mask))
+        return Update(x, L, innovation, R, terms)
+    PCt = cov @ C.T
+    R = symmetrize(C @ PCt + jnp.diag(S))
+    chol_R = small.cholesky(R)
+    gain = small.cho_solve(chol_R, PCt.T).T
+    new_mean = mean + gain @ innovation
+    IKC = jnp.eye(n) - gain @ C
+    new_cov = symmetrize(IKC @ cov @ IKC.T + (gain * S) @ gain.T)  # Joseph form
     return Update(new_mean, new_cov, innovation, R, gaussian_term(innovation, chol_R, mask))

@@ -1,0 +1,61 @@
+"""Cholesky factorisation and triangular solves unrolled for small matrices.
+
+Filters work with state dimensions of a handful.  Written out element by
+element, these factorisations become a few fused arithmetic kernels instead of
+LAPACK calls inside every step of a scan, which on CPUs is several times faster,
+above all in reverse-mode differentiation.  Larger matrices use jax.numpy.linalg.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jax.scipy.linalg import solve_triangular as _solve_triangular
+
+#: Largest dimension handled by the unrolled routines.
+SMALL = 6
+
+
+def cholesky(A: jnp.ndarray) -> jnp.ndarray:
+    """Lower Cholesky factor of a symmetric positive definite A."""
+    n = A.shape[0]
+    if n > SMALL:
+        return jnp.linalg.cholesky(A)
+    L = [[None] * n for _ in range(n)]
+    for j in range(n):
+        d = A[j, j] - sum((L[j][k] ** 2 for k in range(j)), jnp.zeros((), A.dtype))
+        L[j][j] = jnp.sqrt(d)
+        for i in range(j + 1, n):
+            off = A[i, j] - sum((L[i][k] * L[j][k] for k in range(j)), jnp.zeros((), A.dtype))
+            L[i][j] = off / L[j][j]
+    zero = jnp.zeros((), A.dtype)
+    return jnp.stack([jnp.stack([L[i][j] if j <= i else zero for j in range(n)]) for i in range(n)])
+
+
+def solve_lower(L: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
+    """x with L x = b for lower-triangular L; b is a vector or a matrix of columns."""
+    n = L.shape[0]
+    if n > SMALL:
+        return _solve_triangular(L, b, lower=True)
+    x = []
+    for i in range(n):
+        acc = b[i] - sum((L[i, k] * x[k] for k in range(i)), jnp.zeros_like(b[i]))
+        x.append(acc / L[i, i])
+    return jnp.stack(x)
+
+
+def solve_upper_transposed(L: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
+    """x with Lᵀ x = b for lower-triangular L."""
+    n = L.shape[0]
+    if n > SMALL:
+        return _solve_triangular(L.T, b, lower=False)
+    x = [None] * n
+    for i in reversed(range(n)):
+        acc = b[i] - sum((L[k, i] * x[k] for k in range(i + 1, n)), jnp.zeros_like(b[i]))
+        x[i] = acc / L[i, i]
+    return jnp.stack(x)
+
+
+def cho_solve(L: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
+    """x with L Lᵀ x = b."""
+    return solve_upper_transposed(L, solve_lower(L, b))
+
