@@ -24,6 +24,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from .small import mm
+
 #: Largest number of doublings: handles ‖A‖τ up to about 2⁴⁰.
 MAX_DOUBLINGS = 40
 TAYLOR_ORDER = 16
@@ -47,7 +49,7 @@ def _taylor_expm(M: jnp.ndarray) -> jnp.ndarray:
     polynomial compiles and differentiates faster than a general ``expm``.
     """
     eye = jnp.eye(M.shape[0])
-    return jax.lax.fori_loop(0, TAYLOR_ORDER, lambda i, E: eye + (M @ E) / (TAYLOR_ORDER - i), eye)
+    return jax.lax.fori_loop(0, TAYLOR_ORDER, lambda i, E: eye + mm(M, E) / (TAYLOR_ORDER - i), eye)
 
 
 def _small_interval(A: jnp.ndarray, Q: jnp.ndarray, h: jnp.ndarray):
@@ -57,7 +59,7 @@ def _small_interval(A: jnp.ndarray, Q: jnp.ndarray, h: jnp.ndarray):
     E = _taylor_expm(jnp.block([[A * h, eye * h, zero], [zero, zero, eye * h], [zero, zero, zero]]))
     phi, gamma, gamma2 = E[:n, :n], E[:n, n:2 * n], E[:n, 2 * n:]
     F = _taylor_expm(jnp.block([[-A * h, Q * h], [zero, A.T * h]]))
-    lam = F[n:, n:].T @ F[:n, n:]
+    lam = mm(F[n:, n:].T, F[:n, n:])
     return phi, gamma, gamma2, 0.5 * (lam + lam.T)
 
 
@@ -73,10 +75,10 @@ def discretize(A: jnp.ndarray, Q: jnp.ndarray, tau: jnp.ndarray) -> Discretizati
     def double(state):
         phi, gamma, gamma2, lam, h = state
         return (
-            phi @ phi,
-            gamma + phi @ gamma,
-            gamma2 + h * gamma + phi @ gamma2,
-            phi @ lam @ phi.T + lam,
+            mm(phi, phi),
+            gamma + mm(phi, gamma),
+            gamma2 + h * gamma + mm(phi, gamma2),
+            mm(mm(phi, lam), phi.T) + lam,
             2.0 * h,
         )
 

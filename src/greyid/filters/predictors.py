@@ -19,6 +19,7 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from . import small
 from .discretize import discretize
 from .updates import propagate, to_matrix, from_matrix
 
@@ -35,7 +36,8 @@ class Interval(NamedTuple):
 
 def linear_predict(mean, cov, disc, b_prev, b_cur, foh, form):
     """x = Φx + Γb_k + Υ(b_{k+1} − b_k), P = ΦPΦᵀ + Λ (4.34, 4.35, 4.38)."""
-    mean = disc.transition @ mean + disc.input_gain @ b_prev + foh * disc.ramp_gain @ (b_cur - b_prev)
+    mean = (small.mm(disc.transition, mean) + small.mm(disc.input_gain, b_prev)
+            + foh * small.mm(disc.ramp_gain, b_cur - b_prev))
     return mean, propagate(cov, disc.transition, disc.noise_covariance, form)
 
 
@@ -71,11 +73,11 @@ def extended_predict(mean, cov, interval: Interval, theta, drift, diffusion, sub
         if bias_correction:
             f = f + second_order_term(drift, x, to_matrix(c, form), u, t, theta)
         g = diffusion(x, u, t, theta)
-        disc = discretize(jac(x, u, t, theta), g @ g.T, h)
+        disc = discretize(jac(x, u, t, theta), small.mm(g, g.T), h)
         # x_{j+1} = x_j + Γ f_j + ∫(h−s)e^{As}ds ∂f/∂u u̇  (A.49 with the input ramp)
-        x = x + disc.input_gain @ f + h * disc.ramp_gain @ _input_rate(drift, x, u, t, theta, u_rate)
+        x = x + small.mm(disc.input_gain, f) + h * small.mm(disc.ramp_gain, _input_rate(drift, x, u, t, theta, u_rate))
         c = propagate(c, disc.transition, disc.noise_covariance, form)
-        return x, c, disc.transition @ phi_total
+        return x, c, small.mm(disc.transition, phi_total)
 
     n = mean.shape[0]
     return jax.lax.fori_loop(0, substeps, substep, (mean, cov, jnp.eye(n)))

@@ -59,3 +59,14 @@ def cho_solve(L: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
     """x with L Lᵀ x = b."""
     return solve_upper_transposed(L, solve_lower(L, b))
 
+
+
+def mm(A: jnp.ndarray, B: jnp.ndarray) -> jnp.ndarray:
+    """A @ B for small operands as a fused multiply-sum (no matrix-multiply call)."""
+    if max(A.shape + B.shape) > 4 * SMALL:
+        return A @ B
+    if A.ndim == 1:
+        return jnp.sum(A[:, None] * B, axis=0) if B.ndim == 2 else jnp.sum(A * B)
+    if B.ndim == 1:
+        return jnp.sum(A * B[None, :], axis=1)
+    return jnp.sum(A[:, :, None] * B[None, :, :], axis=1)

@@ -64,9 +64,9 @@ def from_matrix(P: jnp.ndarray, form: str) -> jnp.ndarray:
 def propagate(cov: jnp.ndarray, transition: jnp.ndarray, noise: jnp.ndarray, form: str) -> jnp.ndarray:
     """Φ P Φᵀ + Λ (4.35, A.33, A.50) in the carried representation."""
     if form == SQRT:
-        FL = transition @ cov
-        return small.cholesky(symmetrize(FL @ FL.T + noise))
-    return symmetrize(transition @ cov @ transition.T + noise)
+        FL = small.mm(transition, cov)
+        return small.cholesky(symmetrize(small.mm(FL, FL.T) + noise))
+    return symmetrize(small.mm(small.mm(transition, cov), transition.T) + noise)
 
 
 def gaussian_term(innovation, chol_R, mask) -> StepTerms:
@@ -96,10 +96,10 @@ def linear_update(mean, cov, y, mask, y_pred, C, S, form: str) -> Update:
         whitened, logdet = [], jnp.zeros(())
         for i in range(s):
             c = C[i]
-            f = L.T @ c
-            alpha = f @ f + S[i]
-            e = innovation[i] - c @ (x - mean)
-            Lf = L @ f
+            f = small.mm(L.T, c)
+            alpha = jnp.sum(f * f) + S[i]
+            e = innovation[i] - jnp.sum(c * (x - mean))
+            Lf = small.mm(L, f)
             x = x + Lf * (e / alpha)
             L = L - jnp.outer(Lf, f) / (alpha + jnp.sqrt(alpha * S[i]))
             whitened.append(e / jnp.sqrt(alpha))
