@@ -12,47 +12,31 @@ XLA compile + run) minus one later run.
 from __future__ import annotations
 
 import argparse
+import os
 import time
+
+# Measure real compile times: no persistent compilation cache in this process.
+os.environ["GREYID_CACHE_DIR"] = "off"
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pandas as pd
-
-import greyid
 from greyid.filters.api import compiled_filter, filter_inputs, filter_options
 from greyid.data import prepare_series
-from greyid.simulate import prbs
+from greyid.datasets import thesis
 
 
 def test_cell():
-    m = greyid.Model("testcell")
-    m.add_system("dTi = (Hi/Ci*(Tm-Ti) + Qh/Ci)*dt + sqrt(s1i)*dw1")
-    m.add_system("dTm = (Hi/Cm*(Ti-Tm) + Hm/Cm*(Te-Tm))*dt + sqrt(s1m)*dw2")
-    m.add_inputs("Te", "Qh")
-    m.add_observation("Ttr = Ti", variance="s2")
-    m.set_initial_state(mean={"Ti": "Ti0", "Tm": "Tm0"}, covariance="process")
-    # H in W/K, C in Wh/K, time in hours: dT/dt [K/h] = H/C (T) since W/(Wh/K) = K/h.
-    params = dict(Hi=55.29, Hm=13.86, Ci=325.0, Cm=387.8, s1i=0.00167, s1m=0.00978, s2=0.00019,
-                  Ti0=20.0, Tm0=15.0)
-    t = np.arange(1512) / 3.0
-    te = 5 + 4 * np.sin(2 * np.pi * (t - 9) / 24)
-    qh = prbs(6, clock=24, levels=(0.0, 300.0), length=1512)
-    df = pd.DataFrame({"t": t, "Te": te, "Qh": qh})
-    df["Ttr"] = m.simulate(params, df, method="exact", seed=1).outputs[0, :, 0]
-    return m, params, df, {}
+    m = thesis.test_cell_model()
+    df = thesis.test_cell_inputs()
+    df["Ttr"] = m.simulate(thesis.TEST_CELL_PARAMETERS, df, method="exact", seed=1).outputs[0, :, 0]
+    return m, thesis.TEST_CELL_PARAMETERS, df, {}
 
 
 def lotka_volterra():
-    m = greyid.Model("lotka_volterra")
-    m.add_system("dN1 = (a*N1 - b*N1*N2)*dt + sqrt(s1)*dw1")
-    m.add_system("dN2 = (c*N1*N2 - d*N2)*dt + sqrt(s2)*dw2")
-    m.add_observation("y1 = N1", variance="m1")
-    m.add_observation("y2 = N2", variance="m2")
-    m.set_initial_state(mean={"N1": "N10", "N2": "N20"}, covariance=[[0.01, 0], [0, 0.01]])
-    params = dict(a=10.0, b=1.0, c=2.0, d=10.0, s1=0.3, s2=0.3, m1=0.03, m2=0.03, N10=2.0, N20=5.0)
-    t = np.arange(500) * 0.005  # sampling time of A.7
-    sim = m.simulate(params, t, method="euler", substeps=50, seed=3)
+    m = thesis.lotka_volterra_model()
+    params = thesis.LOTKA_VOLTERRA_PARAMETERS
+    sim = m.simulate(params, thesis.lotka_volterra_times(), method="milstein", substeps=20, seed=3)
     return m, params, sim.frame(0), {"method": "ekf"}
 
 

@@ -203,22 +203,28 @@ def make_filter(structure: Structure, options: FilterOptions, keep_outputs: bool
     form = options.form
     build = filter_steps(structure, options)
 
+    def collect(x_pred, cov_pred, transition, upd, y_pred):
+        out = None
+        if keep_outputs:
+            out = StepOutput(x_pred, to_matrix(cov_pred, form), upd.mean, to_matrix(upd.covariance, form),
+                             y_pred, upd.innovation, upd.innovation_covariance, transition)
+        return upd.terms, out
+
     def run(theta, data: FilterInputs):
-        parts = build(theta, data)
-
-        def step(carry, k):
-            x_pred, cov_pred, transition = parts.predict(*carry, k)
-            upd, y_pred = parts.update(x_pred, cov_pred, k)
-            out = None
-            if keep_outputs:
-                out = StepOutput(x_pred, to_matrix(cov_pred, form), upd.mean, to_matrix(upd.covariance, form),
-                                 y_pred, upd.innovation, upd.innovation_covariance, transition)
-            return (upd.mean, upd.covariance), (upd.terms, out)
-
-        _, (terms, outputs) = jax.lax.scan(step, parts.initial, jnp.arange(data.t.shape[0]))
-        return terms, outputs
+        return scan_rows(build(theta, data), data.t.shape[0], collect)
 
     return jax.jit(run)
+
+
+def scan_rows(parts: FilterSteps, n_rows: int, collect: Callable):
+    """Predict and update over all rows; ``collect`` picks what each step returns."""
+
+    def step(carry, k):
+        x_pred, cov_pred, transition = parts.predict(*carry, k)
+        upd, y_pred = parts.update(x_pred, cov_pred, k)
+        return (upd.mean, upd.covariance), collect(x_pred, cov_pred, transition, upd, y_pred)
+
+    return jax.lax.scan(step, parts.initial, jnp.arange(n_rows))[1]
 
 
 class AheadOutput(NamedTuple):
@@ -244,14 +250,8 @@ def make_ahead(structure: Structure, options: FilterOptions, horizon: int):
 
     def run(theta, data: FilterInputs):
         parts = build(theta, data)
-
-        def filt(carry, k):
-            x_pred, cov_pred, _ = parts.predict(*carry, k)
-            upd, _ = parts.update(x_pred, cov_pred, k)
-            return (upd.mean, upd.covariance), (upd.mean, upd.covariance)
-
         rows = jnp.arange(data.t.shape[0])
-        _, (means, covs) = jax.lax.scan(filt, parts.initial, rows)
+        means, covs = scan_rows(parts, data.t.shape[0], lambda *a: (a[3].mean, a[3].covariance))
 
         def ahead(k):
             start = k - horizon
