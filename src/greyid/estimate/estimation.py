@@ -12,12 +12,10 @@ mapped back to the natural parameters.
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass
 
 import jax.numpy as jnp
 import numpy as np
-from scipy.optimize import minimize
 
 from ..data.prepare import as_frames, prepare_series
 from ..errors import ModelError
@@ -61,8 +59,54 @@ def _starting_points(transform: Transform, theta0: np.ndarray, starts: int, seed
     return points
 
 
+def _bfgs(fun, z, f, g, inverse, maxiter: int, gtol: float = 1e-4):
+    """BFGS with a backtracking (Armijo) line search that tries the full step first.
+
+    Near a well-scaled start the full quasi-Newton step is usually accepted, so
+    most iterations cost one evaluation.  Updates that would lose positive
+    definiteness (sᵀy ≤ 0) are skipped.
+    """
+    eye = np.eye(len(z))
+    stalled = 0
+    for iteration in range(1, maxiter + 1):
+        p = -inverse @ g
+        slope = float(g @ p)
+        if not slope < 0:  # not a descent direction: restart from scaled steepest descent
+            inverse = eye / max(float(np.max(np.abs(g))), 1.0)
+            p = -inverse @ g
+            slope = float(g @ p)
+        alpha = 1.0
+        for _ in range(50):
+            f_new, g_new = fun(z + alpha * p)
+            if f_new <= f + 1e-4 * alpha * slope:
+                break
+            # Quadratic interpolation of the step, kept within [0.1, 0.5] of the last one.
+            curvature = f_new - f - slope * alpha
+            trial = -slope * alpha**2 / (2.0 * curvature) if curvature > 0 else 0.1 * alpha
+            alpha = float(np.clip(trial, 0.1 * alpha, 0.5 * alpha))
+        else:
+            return z, f, g, iteration, False, "line search found no decrease"
+        s = alpha * p
+        y = g_new - g
+        sy = float(s @ y)
+        decrease = f - f_new
+        z, f, g = z + s, f_new, g_new
+        if sy > 1e-12 * np.linalg.norm(s) * np.linalg.norm(y):
+            rho = 1.0 / sy
+            A = eye - rho * np.outer(s, y)
+            inverse = A @ inverse @ A.T + rho * np.outer(s, s)
+        if np.max(np.abs(g)) < gtol:
+            return z, f, g, iteration, True, "converged: gradient below tolerance"
+        # The Newton steps that follow converge quadratically: hand over once BFGS
+        # only creeps.
+        stalled = stalled + 1 if decrease <= 1e-10 * max(1.0, abs(f)) else 0
+        if stalled >= 2:
+            return z, f, g, iteration, True, "converged: no further decrease"
+    return z, f, g, maxiter, False, "maximum number of iterations reached"
+
+
 def _minimise(value_and_grad, hessian, z0: np.ndarray, maxiter: int) -> Optimum:
-    """BFGS on exact gradients, then Newton steps on the exact Hessian."""
+    """BFGS on exact gradients from the exact Hessian, then Newton steps on the exact Hessian."""
     evaluations = 0
     best = {"f": np.inf}
 
@@ -77,27 +121,19 @@ def _minimise(value_and_grad, hessian, z0: np.ndarray, maxiter: int) -> Optimum:
         best["f"] = min(best["f"], f)
         return f, g
 
-    f0, _ = fun(z0)
+    f0, g0 = fun(z0)
     if not np.isfinite(best["f"]):
         raise ModelError("the criterion is not finite at the starting values; check the initial parameter values")
     # Start BFGS from the exact Hessian where it is positive definite: the scales of
     # physical parameters differ by orders of magnitude, and an identity start wastes
     # many iterations learning them.
-    options = {"maxiter": maxiter, "gtol": 1e-6}
+    inverse = np.eye(len(z0)) / max(float(np.max(np.abs(g0))), 1.0)
     H0 = np.asarray(hessian(jnp.asarray(z0)))
     if np.all(np.isfinite(H0)):
-        H0 = 0.5 * (H0 + H0.T)
-        w, V = np.linalg.eigh(H0)
+        w, V = np.linalg.eigh(0.5 * (H0 + H0.T))
         floor = max(np.max(np.abs(w)), 1e-8) * 1e-6
         inverse = (V / np.maximum(np.abs(w), floor)) @ V.T
-        inverse = 0.5 * (inverse + inverse.T)
-        if np.all(np.linalg.eigvalsh(inverse) > 0):
-            options["hess_inv0"] = inverse
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        res = minimize(fun, z0, jac=True, method="BFGS", options=options)
-    z, f, g = res.x, float(res.fun), np.asarray(res.jac)
-    message, iterations = res.message, int(res.nit)
+    z, f, g, iterations, bfgs_ok, message = _bfgs(fun, np.asarray(z0, dtype=float), f0, g0, inverse, maxiter)
     # Newton polish: quadratic convergence near the optimum, and its Hessian is needed anyway.
     H = None
     newton_converged = False
@@ -125,7 +161,7 @@ def _minimise(value_and_grad, hessian, z0: np.ndarray, maxiter: int) -> Optimum:
         H = np.asarray(hessian(jnp.asarray(z)))
     if H is None or newton_converged is False:
         H = np.asarray(hessian(jnp.asarray(z)))
-    converged = newton_converged or bool(res.success)
+    converged = newton_converged or bfgs_ok
     if newton_converged:
         message = "converged: Newton decrement below tolerance"
     return Optimum(z, f, g, H, iterations, evaluations, converged, str(message))
