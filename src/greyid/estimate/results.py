@@ -245,16 +245,18 @@ def build_result(model, frames, theta, problem, best, optima, settings) -> FitRe
     free = list(problem.free)
     free_names = [names[i] for i in free]
     transform = problem.transform
-    d1, d2 = transform.derivatives(best.z)
+    d1, _ = transform.derivatives(best.z)
     theta_free = theta[free]
     warn = []
     at_bound = transform.near_bound(theta_free) | (np.abs(d1) < 1e-10)
     g_theta = np.where(at_bound, np.nan, best.gradient / np.where(at_bound, 1.0, d1))
-    # H_z = J H_θ J + diag(g_θ θ''), so H_θ = J⁻¹ (H_z − diag(g_θ θ'')) J⁻¹ (interior parameters).
+    # H_z = J H_θ J + diag(g_θ θ''); at the optimum g_θ = 0 for interior parameters, so
+    # H_θ = J⁻¹ H_z J⁻¹.  (Keeping the g_θ θ'' term would only add the optimiser's
+    # residual gradient, which can mask an exactly singular direction.)
     inner = ~at_bound
     Hz = 0.5 * (best.hessian + best.hessian.T)
     Jinv = 1.0 / d1[inner]
-    H = (Hz[np.ix_(inner, inner)] - np.diag(np.nan_to_num(g_theta[inner] * d2[inner]))) * np.outer(Jinv, Jinv)
+    H = Hz[np.ix_(inner, inner)] * np.outer(Jinv, Jinv)
     for i in np.flatnonzero(at_bound):
         warn.append(f"parameter '{free_names[i]}' is at a bound ({theta_free[i]:.6g}); "
                     "its standard error is not given")
