@@ -104,12 +104,29 @@ def initial_state(structure: Structure, theta, data: FilterInputs, first_noise=N
     return x0, stationary_covariance(A, G @ G.T)
 
 
+class Row(NamedTuple):
+    """What one step needs of its row; the filter scans over these (leading axis N)."""
+
+    t: jnp.ndarray
+    t_prev: jnp.ndarray
+    dt: jnp.ndarray
+    u_prev: jnp.ndarray
+    u_cur: jnp.ndarray
+    y: jnp.ndarray
+    mask: jnp.ndarray
+    dt_index: jnp.ndarray
+    b_prev: jnp.ndarray | None = None  # f(0, u, t) at both ends (exact filter)
+    b_cur: jnp.ndarray | None = None
+    discretization: object = None  # per-row Φ, Γ, Υ, Λ (time-varying exact filter)
+
+
 class FilterSteps(NamedTuple):
     """The pieces of a filter for one parameter vector and data set."""
 
     initial: tuple  # (x0, covariance in the carried form)
-    predict: Callable  # (x, cov, k) -> (x_{k|k-1}, cov_{k|k-1}, Φ_k)
-    update: Callable  # (x_pred, cov_pred, k, mask=None) -> (Update, ŷ_{k|k-1})
+    rows: Row  # per-row inputs, leading axis N
+    predict: Callable  # (x, cov, row) -> (x_{k|k-1}, cov_{k|k-1}, Φ_k)
+    update: Callable  # (x_pred, cov_pred, row, mask=None) -> (Update, ŷ_{k|k-1})
 
 
 def filter_steps(structure: Structure, options: FilterOptions):
@@ -149,27 +166,33 @@ def filter_steps(structure: Structure, options: FilterOptions):
 
     def steps(theta, data: FilterInputs) -> FilterSteps:
         first_noise = None
+        rows = Row(data.t, data.t_prev, data.dt, data.u_prev, data.u_cur, data.y, data.mask, data.dt_index)
         if method == KALMAN:
             cache, b_prev, b_cur = linear_terms(theta, data)
             if structure.kind == LTI:  # the first interval's Λ is in the cache already
                 first_noise = cache.noise_covariance[data.dt_index[1]]
+                rows = rows._replace(b_prev=b_prev, b_cur=b_cur)
+            else:
+                rows = rows._replace(b_prev=b_prev, b_cur=b_cur, discretization=cache)
         x0, P0 = initial_state(structure, theta, data, first_noise)
 
-        def predict(x, cov, k):
+        def predict(x, cov, row: Row):
             if method == KALMAN:
-                idx = data.dt_index[k] if structure.kind == LTI else k
-                disc = jax.tree_util.tree_map(lambda a: a[idx], cache)
-                x_pred, cov_pred = linear_predict(x, cov, disc, b_prev[k], b_cur[k], data.foh, form)
+                if structure.kind == LTI:
+                    disc = jax.tree_util.tree_map(lambda a: a[row.dt_index], cache)
+                else:
+                    disc = row.discretization
+                x_pred, cov_pred = linear_predict(x, cov, disc, row.b_prev, row.b_cur, data.foh, form)
                 return x_pred, cov_pred, disc.transition
-            interval = Interval(data.t_prev[k], data.dt[k], data.u_prev[k], data.u_cur[k], data.foh)
+            interval = Interval(row.t_prev, row.dt, row.u_prev, row.u_cur, data.foh)
             if method == UKF:
                 return unscented_predict(x, cov, interval, theta, f, G, options.substeps, form, weights)
             return extended_predict(x, cov, interval, theta, f, G, options.substeps, form,
                                     bias_correction=method == EKF2)
 
-        def update(x_pred, cov_pred, k, mask=None):
-            u, t, y = data.u_cur[k], data.t[k], data.y[k]
-            mask = data.mask[k] if mask is None else mask
+        def update(x_pred, cov_pred, row: Row, mask=None):
+            u, t, y = row.u_cur, row.t, row.y
+            mask = row.mask if mask is None else mask
             if method == UKF:
                 return unscented_update(x_pred, cov_pred, y, mask, u, t, theta, h, S, form, weights)
             y_pred, C = linearized_observation(h, x_pred, u, t, theta)
@@ -189,7 +212,7 @@ def filter_steps(structure: Structure, options: FilterOptions):
             y_pred = h_eta + C @ (x_pred - eta)
             return linear_update(x_pred, cov_pred, y, mask, y_pred, C, S(eta, u, t, theta), form), y_pred
 
-        return FilterSteps((x0, from_matrix(P0, form)), predict, update)
+        return FilterSteps((x0, from_matrix(P0, form)), rows, predict, update)
 
     return steps
 
@@ -219,12 +242,12 @@ def make_filter(structure: Structure, options: FilterOptions, keep_outputs: bool
 def scan_rows(parts: FilterSteps, n_rows: int, collect: Callable):
     """Predict and update over all rows; ``collect`` picks what each step returns."""
 
-    def step(carry, k):
-        x_pred, cov_pred, transition = parts.predict(*carry, k)
-        upd, y_pred = parts.update(x_pred, cov_pred, k)
+    def step(carry, row):
+        x_pred, cov_pred, transition = parts.predict(*carry, row)
+        upd, y_pred = parts.update(x_pred, cov_pred, row)
         return (upd.mean, upd.covariance), collect(x_pred, cov_pred, transition, upd, y_pred)
 
-    return jax.lax.scan(step, parts.initial, jnp.arange(n_rows))[1]
+    return jax.lax.scan(step, parts.initial, parts.rows, length=n_rows)[1]
 
 
 class AheadOutput(NamedTuple):
@@ -253,6 +276,9 @@ def make_ahead(structure: Structure, options: FilterOptions, horizon: int):
         rows = jnp.arange(data.t.shape[0])
         means, covs = scan_rows(parts, data.t.shape[0], lambda *a: (a[3].mean, a[3].covariance))
 
+        def row_at(k):
+            return jax.tree_util.tree_map(lambda a: a[k], parts.rows)
+
         def ahead(k):
             start = k - horizon
             from_prior = start < 0
@@ -262,14 +288,14 @@ def make_ahead(structure: Structure, options: FilterOptions, horizon: int):
 
             def advance(j, state):
                 row = first + j
-                x_new, cov_new, _ = parts.predict(state[0], state[1], jnp.minimum(row, k))
+                x_new, cov_new, _ = parts.predict(state[0], state[1], row_at(jnp.minimum(row, k)))
                 active = row <= k
                 return jnp.where(active, x_new, state[0]), jnp.where(active, cov_new, state[1])
 
             x, cov = jax.lax.fori_loop(0, horizon, advance, (x, cov))
-            upd, y_pred = parts.update(x, cov, k)
+            upd, y_pred = parts.update(x, cov, row_at(k))
             # The prediction's covariance is wanted for every output, observed or not.
-            full, _ = parts.update(x, cov, k, jnp.ones_like(data.mask[k]))
+            full, _ = parts.update(x, cov, row_at(k), jnp.ones_like(data.mask[k]))
             return y_pred, full.innovation_covariance, x, to_matrix(cov, form), upd.terms
 
         y, R, x, P, terms = jax.vmap(ahead)(rows)
