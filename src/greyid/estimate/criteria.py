@@ -88,10 +88,3 @@ class GaussianPrior:
         if np.min(np.linalg.eigvalsh(cov)) <= 0:
             raise ModelError("the prior covariance (sd and corr) is not positive definite")
         return cls(names, mean, cov)
-
-    def log_density(self, theta_by_index, index):
-        """log N(θ_prior; mean, covariance) for θ given as a vector and name→position map."""
-        x = jnp.stack([theta_by_index[index[n]] for n in self.names]) - self.mean
-        chol = np.linalg.cholesky(self.covariance)
-        z = jnp.linalg.solve(chol, x)
-        return -0.5 * (z @ z + 2 * np.sum(np.log(np.diag(chol))) + len(self.names) * LOG_2PI)

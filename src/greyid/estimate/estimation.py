@@ -17,9 +17,9 @@ from dataclasses import dataclass
 import jax.numpy as jnp
 import numpy as np
 
-from ..data.prepare import as_frames, prepare_series
+from ..data.prepare import as_frames
 from ..errors import ModelError
-from ..filters.api import check_at_parameters, filter_inputs, filter_options
+from ..filters.api import filter_options, prepare_datasets
 from .criteria import GaussianPrior, check_robust
 from .objective import Problem, compiled
 from .transforms import Transform
@@ -135,10 +135,10 @@ def _minimise(value_and_grad, hessian, z0: np.ndarray, maxiter: int) -> Optimum:
         inverse = (V / np.maximum(np.abs(w), floor)) @ V.T
     z, f, g, iterations, bfgs_ok, message = _bfgs(fun, np.asarray(z0, dtype=float), f0, g0, inverse, maxiter)
     # Newton polish: quadratic convergence near the optimum, and its Hessian is needed anyway.
-    H = None
+    H, H_is_current = None, False
     newton_converged = False
     for _ in range(20):
-        H = np.asarray(hessian(jnp.asarray(z)))
+        H, H_is_current = np.asarray(hessian(jnp.asarray(z))), True
         try:
             L = np.linalg.cholesky(0.5 * (H + H.T))
         except np.linalg.LinAlgError:
@@ -156,10 +156,9 @@ def _minimise(value_and_grad, hessian, z0: np.ndarray, maxiter: int) -> Optimum:
         else:
             break
         z, f, g = z + step, f_new, g_new
+        H_is_current = False
         iterations += 1
-    else:
-        H = np.asarray(hessian(jnp.asarray(z)))
-    if H is None or newton_converged is False:
+    if not H_is_current:  # the uncertainty needs the Hessian at the final point
         H = np.asarray(hessian(jnp.asarray(z)))
     converged = newton_converged or bfgs_ok
     if newton_converged:
@@ -215,12 +214,7 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
                       () if gaussian_prior is None else tuple(names.index(n) for n in gaussian_prior.names))
 
     frames = as_frames(data)
-    datasets = []
-    for df in frames:
-        series = prepare_series(df, structure.input_names, structure.output_names, time, time_unit)
-        inputs = filter_inputs(series, hold)
-        check_at_parameters(model, structure, theta0, series, inputs)
-        datasets.append(inputs)
+    datasets = [inputs for _, inputs in prepare_datasets(structure, theta0, frames, time, hold, time_unit)]
 
     value_and_grad, hessian, theta_of_z, _ = compiled(structure, problem)
     args = problem.arguments(theta0)

@@ -146,12 +146,7 @@ class FitResult:
         return self.data[0] if len(self.data) == 1 else self.data
 
     def _filter_settings(self):
-        s = self.settings
-        out = dict(time=s["time"], hold=s["hold"], method=s["method"], form=s["form"], substeps=s["substeps"],
-                   iterations=s["iterations"])
-        if s.get("time_unit"):
-            out["time_unit"] = s["time_unit"]
-        return out
+        return filter_settings(self.settings)
 
     def filter(self, data=None):
         """The filter run at the estimates (a FilterResult, or a list for several data sets)."""
@@ -212,6 +207,14 @@ class FitResult:
         Path(path).write_text(json.dumps(self.to_dict(), indent=2))
 
 
+def filter_settings(settings: dict) -> dict:
+    """The keyword arguments that rerun a fit's filter (time column, hold, method ...)."""
+    out = {k: settings[k] for k in ("time", "hold", "method", "form", "substeps", "iterations")}
+    if settings.get("time_unit"):
+        out["time_unit"] = settings["time_unit"]
+    return out
+
+
 def load_fit(path) -> FitResult:
     """Read a fit written by :meth:`FitResult.save`; its ``model`` reproduces the log-likelihood."""
     from ..model import Model
@@ -245,7 +248,7 @@ def build_result(model, frames, theta, problem, best, optima, settings) -> FitRe
     free = list(problem.free)
     free_names = [names[i] for i in free]
     transform = problem.transform
-    d1, _ = transform.derivatives(best.z)
+    d1 = transform.derivative(best.z)
     theta_free = theta[free]
     warn = []
     at_bound = transform.near_bound(theta_free) | (np.abs(d1) < 1e-10)
@@ -325,10 +328,7 @@ def build_result(model, frames, theta, problem, best, optima, settings) -> FitRe
         loglik = criterion_value
     else:
         loglik = model.loglik(dict(zip(names, theta)), frames if len(frames) > 1 else frames[0],
-                              time=settings["time"], hold=settings["hold"], method=settings["method"],
-                              form=settings["form"], substeps=settings["substeps"],
-                              iterations=settings["iterations"],
-                              **({"time_unit": settings["time_unit"]} if settings.get("time_unit") else {}))
+                              **filter_settings(settings))
     return FitResult(model=model, params=params, cov=pd.DataFrame(cov, index=free_names, columns=free_names),
                      loglik=float(loglik), criterion_value=float(criterion_value), n_obs=n_obs,
                      converged=bool(best.converged), message=best.message, iterations=best.iterations,

@@ -2,7 +2,7 @@
 
 Bounds are handled as in CTSM by transformation: θ = l + e^z (lower bound
 only), θ = u − e^z (upper bound only), θ = l + (u − l)/(1 + e^{−z}) (both), θ = z
-(none).  Derivatives are needed to map gradients and Hessians back to θ.
+(none).  dθ/dz maps gradients and Hessians back to θ.
 """
 
 from __future__ import annotations
@@ -50,17 +50,14 @@ class Transform:
                 np.log(frac) - np.log1p(-frac),
             )
 
-    def derivatives(self, z) -> tuple[np.ndarray, np.ndarray]:
-        """dθ/dz and d²θ/dz² at z."""
+    def derivative(self, z) -> np.ndarray:
+        """dθ/dz at z."""
         z = np.asarray(z, dtype=np.float64)
         width = self.upper - self.lower
         s = 1.0 / (1.0 + np.exp(-z))
         e = np.exp(np.clip(z, -700, 700))
-        d1 = np.select([self.kind == NONE, self.kind == LOWER, self.kind == UPPER], [np.ones_like(z), e, -e],
-                       width * s * (1 - s))
-        d2 = np.select([self.kind == NONE, self.kind == LOWER, self.kind == UPPER], [np.zeros_like(z), e, -e],
-                       width * s * (1 - s) * (1 - 2 * s))
-        return d1, d2
+        return np.select([self.kind == NONE, self.kind == LOWER, self.kind == UPPER], [np.ones_like(z), e, -e],
+                         width * s * (1 - s))
 
     def near_bound(self, theta, rel: float = 1e-5) -> np.ndarray:
         """True where θ sits at a bound (relative to the bound's scale or the interval)."""

@@ -88,7 +88,7 @@ def compiled_filter(structure: Structure, options: FilterOptions, keep_outputs: 
     return structure.cache[key]
 
 
-def check_at_parameters(model, structure: Structure, theta: np.ndarray, series: Series, data: FilterInputs) -> None:
+def check_at_parameters(structure: Structure, theta: np.ndarray, series: Series, data: FilterInputs) -> None:
     """Errors that depend on parameter values: negative variances, a bad P0."""
     key = ("checks",)
     if key not in structure.cache:
@@ -115,19 +115,23 @@ def check_at_parameters(model, structure: Structure, theta: np.ndarray, series: 
         )
 
 
-def _prepare(model, params, data, time, hold, time_unit):
-    structure = model.structure
-    theta = model.parameter_vector(params)
-    frames = as_frames(data)
+def prepare_datasets(structure: Structure, theta: np.ndarray, data, time, hold, time_unit):
+    """Check every data set against the model at θ; ``[(series, filter inputs), ...]``."""
     prepared = []
-    for df in frames:
+    for df in as_frames(data):
         series = prepare_series(df, structure.input_names, structure.output_names, time, time_unit)
         inputs = filter_inputs(series, hold)
         if structure.initial_covariance.kind == "process" and series.n_rows < 2:
             raise DataError("a data set with one row has no sampling interval for the 'process' initial covariance")
-        check_at_parameters(model, structure, theta, series, inputs)
+        check_at_parameters(structure, theta, series, inputs)
         prepared.append((series, inputs))
-    return structure, theta, prepared
+    return prepared
+
+
+def _prepare(model, params, data, time, hold, time_unit):
+    structure = model.structure
+    theta = model.parameter_vector(params)
+    return structure, theta, prepare_datasets(structure, theta, data, time, hold, time_unit)
 
 
 def loglik(model, params, data, time="t", hold="zoh", method=None, time_unit=None, robust=None, **options) -> float:
