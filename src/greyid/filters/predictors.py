@@ -21,7 +21,7 @@ import jax.numpy as jnp
 
 from . import small
 from .discretize import discretize
-from .updates import propagate, to_matrix, from_matrix
+from .updates import Update, from_matrix, gaussian_term, propagate, symmetrize, to_matrix
 
 
 class Interval(NamedTuple):
@@ -136,8 +136,6 @@ def unscented_predict(mean, cov, interval: Interval, theta, drift, diffusion, su
 
 def unscented_update(mean, cov, y, mask, u, t, theta, observation, variance, form, weights: SigmaWeights):
     """Unscented measurement update: ŷ, R and the state–output cross covariance from sigma points."""
-    from .updates import Update, gaussian_term, symmetrize
-
     P = to_matrix(cov, form)
     X = sigma_points(mean, P, weights)
     Y = jax.vmap(lambda xi: observation(xi, u, t, theta))(X)
