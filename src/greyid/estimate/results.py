@@ -177,6 +177,18 @@ class FitResult:
                                         else res.standardized_innovations)
         return self._cache["residuals"]
 
+    def validate(self, level: float = 0.05, lags: int | None = None, m: int | None = None):
+        """Residual tests of chapter 5 on every output: a :class:`~greyid.validation.Validation`.
+
+        Its ``tests`` DataFrame has columns ``test, output, statistic, df,
+        p_value, reject``; ``plot()``, ``plot_coherency()``,
+        ``plot_simulation()``, ``plot_bootstrap()`` and ``plot_prediction()``
+        return matplotlib figures.
+        """
+        from ..validation.validate import validate
+
+        return validate(self, level=level, lags=lags, m=m)
+
     # -------------------------------------------------------------- saving
     def to_dict(self) -> dict:
         def clean(v):

@@ -95,8 +95,13 @@ def _compiled(structure, key, build):
 
 def simulate(model, params, data_or_times, n_paths: int = 1, method: str = "euler", seed: int = 0,
              substeps: int = 10, hold: str = "zoh", calculus: str = "ito", time: str = "t",
-             time_unit: str | None = None) -> Simulation:
-    """Simulate ``n_paths`` seeded, reproducible sample paths; see the module docstring."""
+             time_unit: str | None = None, noise: bool = True) -> Simulation:
+    """Simulate ``n_paths`` seeded, reproducible sample paths; see the module docstring.
+
+    With ``noise=False`` the deterministic part alone is solved (the ODE from
+    the initial mean, no process or observation noise): the model's simulation
+    of the measured outputs (section 5.3).
+    """
     structure = model.structure
     if method not in METHODS:
         raise ModelError(f"unknown simulation method '{method}'; use one of {list(METHODS)}")
@@ -111,14 +116,17 @@ def simulate(model, params, data_or_times, n_paths: int = 1, method: str = "eule
     theta = jnp.asarray(model.parameter_vector(params))
     series = _series(structure, data_or_times, time, time_unit)
     inputs = filter_inputs(series, hold)
-    x0, P0 = initial_state(structure, theta, inputs)
+    start = _compiled(structure, ("simulate", "initial"),
+                      lambda: jax.jit(lambda theta, inputs: initial_state(structure, theta, inputs)))
+    x0, P0 = start(theta, inputs)
     key = jax.random.PRNGKey(seed)
     k_init, k_path, k_obs = jax.random.split(key, 3)
     N, n, m = series.n_rows, structure.n_states, len(structure.noise_names)
-    init = x0 + jax.random.normal(k_init, (n_paths, n)) @ _psd_sqrt(P0).T
+    scale = 1.0 if noise else 0.0
+    init = x0 + scale * jax.random.normal(k_init, (n_paths, n)) @ _psd_sqrt(P0).T
 
     if method == "exact":
-        states = _exact_paths(structure, theta, series, HOLDS[hold], init, k_path)
+        states = _exact_paths(structure, theta, series, HOLDS[hold], init, k_path, scale)
     else:
         fine_t, fine_u = _fine_grid(series, substeps, hold)
         integrate = _compiled(structure, ("simulate", method, calculus),
@@ -126,20 +134,29 @@ def simulate(model, params, data_or_times, n_paths: int = 1, method: str = "eule
                                                                        method, calculus),
                                                        in_axes=(None, 0, None, None, 0))))
         dt = np.diff(fine_t)
-        dW = jax.random.normal(k_path, (n_paths, len(dt), m)) * jnp.sqrt(jnp.asarray(dt))[None, :, None]
+        dW = scale * jax.random.normal(k_path, (n_paths, len(dt), m)) * jnp.sqrt(jnp.asarray(dt))[None, :, None]
         fine = integrate(theta, init, jnp.asarray(fine_t), jnp.asarray(fine_u), dW)
         states = np.asarray(fine)[:, ::substeps, :]
 
     u, t = jnp.asarray(series.inputs), jnp.asarray(series.times)
-    obs = jax.vmap(jax.vmap(lambda x, uu, tt: structure.observation(x, uu, tt, theta)), in_axes=(0, None, None))
-    var = jax.vmap(jax.vmap(lambda x, uu, tt: structure.observation_variance(x, uu, tt, theta)),
-                   in_axes=(0, None, None))
-    y_mean, S = obs(jnp.asarray(states), u, t), var(jnp.asarray(states), u, t)
+    observe = _compiled(structure, ("simulate", "observe"), lambda: jax.jit(_make_observe(structure)))
+    y_mean, S = observe(theta, jnp.asarray(states), u, t)
     if np.any(np.asarray(S) < 0):
         raise ModelError("an observation variance is negative along the simulated paths")
-    y = y_mean + jnp.sqrt(S) * jax.random.normal(k_obs, y_mean.shape)
+    y = y_mean + scale * jnp.sqrt(S) * jax.random.normal(k_obs, y_mean.shape)
     return Simulation(series.times, series.inputs, np.asarray(states), np.asarray(y), series.time_name,
                       structure.input_names, structure.state_names, structure.output_names)
+
+
+def _make_observe(structure):
+    """Means and variances of the observations along paths (paths, N, outputs)."""
+    def observe(theta, states, u, t):
+        def at(fn):
+            return jax.vmap(jax.vmap(lambda x, uu, tt: fn(x, uu, tt, theta)), in_axes=(0, None, None))(states, u, t)
+
+        return at(structure.observation), at(structure.observation_variance)
+
+    return observe
 
 
 def _psd_sqrt(P):
@@ -148,29 +165,35 @@ def _psd_sqrt(P):
     return V * jnp.sqrt(jnp.clip(w, 0.0, None))[None, :]
 
 
-def _exact_paths(structure, theta, series, foh, init, key):
+def _exact_paths(structure, theta, series, foh, init, key, scale=1.0):
     """x_{k+1} = Φx_k + Γb_k + Υ(b_{k+1} − b_k) + Λ^½ z_k for linear models."""
+    z = scale * jax.random.normal(key, (init.shape[0], len(series.times) - 1, structure.n_states))
+    run = _compiled(structure, ("simulate", "exact"), lambda: jax.jit(_make_exact(structure)))
+    return np.asarray(run(theta, jnp.asarray(series.times), jnp.asarray(series.inputs), foh, init, z))
+
+
+def _make_exact(structure):
     f, G = structure.drift, structure.diffusion
-    n = structure.n_states
-    zeros = jnp.zeros(n)
-    t, u = jnp.asarray(series.times), jnp.asarray(series.inputs)
+    zeros = jnp.zeros(structure.n_states)
     jac = jax.jacfwd(f, argnums=0)
 
-    def interval(u0, t0, u1, t1):
-        g = G(zeros, u0, t0, theta)
-        d = discretize(jac(zeros, u0, t0, theta), g @ g.T, t1 - t0)
-        b0, b1 = f(zeros, u0, t0, theta), f(zeros, u1, t1, theta)
-        return d.transition, d.input_gain @ b0 + foh * d.ramp_gain @ (b1 - b0), _psd_sqrt(d.noise_covariance)
+    def paths(theta, t, u, foh, init, z):
+        def interval(u0, t0, u1, t1):
+            g = G(zeros, u0, t0, theta)
+            d = discretize(jac(zeros, u0, t0, theta), g @ g.T, t1 - t0)
+            b0, b1 = f(zeros, u0, t0, theta), f(zeros, u1, t1, theta)
+            return d.transition, d.input_gain @ b0 + foh * d.ramp_gain @ (b1 - b0), _psd_sqrt(d.noise_covariance)
 
-    phi, shift, noise = jax.vmap(interval)(u[:-1], t[:-1], u[1:], t[1:])
-    z = jax.random.normal(key, (init.shape[0], len(series.times) - 1, n))
+        phi, shift, noise = jax.vmap(interval)(u[:-1], t[:-1], u[1:], t[1:])
 
-    def path(x0, zs):
-        def body(x, k):
-            x = phi[k] @ x + shift[k] + noise[k] @ zs[k]
-            return x, x
+        def path(x0, zs):
+            def body(x, k):
+                x = phi[k] @ x + shift[k] + noise[k] @ zs[k]
+                return x, x
 
-        _, xs = jax.lax.scan(body, x0, jnp.arange(zs.shape[0]))
-        return jnp.concatenate([x0[None], xs], axis=0)
+            _, xs = jax.lax.scan(body, x0, jnp.arange(zs.shape[0]))
+            return jnp.concatenate([x0[None], xs], axis=0)
 
-    return np.asarray(jax.vmap(path)(init, z))
+        return jax.vmap(path)(init, z)
+
+    return paths

@@ -1,0 +1,68 @@
+"""Forward model selection by likelihood-ratio tests (Bacher & Madsen, 2011).
+
+Start from the simplest model; at each step fit the candidate extensions, keep
+the one with the highest likelihood, and accept it only if the likelihood-ratio
+test (5.3) against the current model rejects at ``level``.  Stop at the first
+step that does not improve significantly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import pandas as pd
+
+from ..errors import ModelError
+from .structure import lr_test
+
+
+@dataclass
+class ForwardSelection:
+    """The steps taken (a table), every fit by model name, and the chosen fit."""
+
+    table: pd.DataFrame
+    fits: dict = field(repr=False)
+    chosen: object = field(repr=False)
+
+    def __repr__(self) -> str:
+        return f"<ForwardSelection: chose '{self.chosen.model.name}' after {len(self.table)} fits>"
+
+
+def select_forward(candidates, data, level: float = 0.05, **fit_options) -> ForwardSelection:
+    """Fit ``candidates`` in order and stop when the LR test no longer prefers the extension.
+
+    ``candidates`` is a list whose items are models or lists of alternative
+    models (the extensions tried at that step); each step's models must nest
+    the model chosen before.  ``fit_options`` go to every ``fit`` call.
+    """
+    steps = [c if isinstance(c, (list, tuple)) else [c] for c in candidates]
+    if len(steps) < 2 or not steps[0]:
+        raise ModelError("give a starting model and at least one step of extensions")
+    fits, rows = {}, []
+
+    def fit_all(models):
+        out = []
+        for m in models:
+            if m.name in fits:
+                raise ModelError(f"two candidate models are named '{m.name}'; give each its own name")
+            fits[m.name] = m.fit(data, **fit_options)
+            out.append(fits[m.name])
+        return max(out, key=lambda f: f.loglik), out
+
+    current, first = fit_all(steps[0])
+    for f in first:
+        rows.append(dict(step=0, model=f.model.name, loglik=f.loglik, n_params=f.n_params, compared_with=None,
+                         statistic=float("nan"), df=float("nan"), p_value=float("nan"), chosen=f is current))
+    for number, models in enumerate(steps[1:], start=1):
+        best, tried = fit_all(models)
+        test = lr_test(current, best)
+        accepted = test.p_value < level
+        for f in tried:
+            t = test if f is best else lr_test(current, f)
+            rows.append(dict(step=number, model=f.model.name, loglik=f.loglik, n_params=f.n_params,
+                             compared_with=current.model.name, statistic=t.statistic, df=t.df, p_value=t.p_value,
+                             chosen=bool(accepted and f is best)))
+        if not accepted:
+            break
+        current = best
+    return ForwardSelection(pd.DataFrame(rows), fits, current)
