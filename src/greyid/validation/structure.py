@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Iterable, Sequence
 
 import jax
@@ -169,11 +170,25 @@ def lm_test(fit, model, at: dict | None = None, data=None, df: int | None = None
     return TestResult("lagrange_multiplier", lm, float(r), float(stats.chi2.sf(lm, r)))
 
 
-def cross_validation_test(fit, data, information: str = "fisher") -> TestResult:
-    """LM at the fit's estimates on a new data set, ~ χ²(dim θ) if they also fit there (5.4)."""
+def cross_validation_test(fit, data, information: str = "fisher", estimation_error: bool = True) -> TestResult:
+    """LM at the fit's estimates on a new data set: do the same parameters also fit there? (5.4)
+
+    The score S₁ of the new data at θ̂ has variance M₁ from the new data's noise
+    plus M₁Σ̂M₁ from θ̂'s own estimation error (Σ̂ the fit's covariance), so by
+    default LM = S₁ᵀ(M₁ + M₁Σ̂M₁)⁻¹S₁ ~ χ²(dim θ).  With
+    ``estimation_error=False`` it is the thesis' S₁ᵀM₁⁻¹S₁, which treats θ̂ as
+    exact and rejects too often unless the new data set is much longer.
+    """
     _require_ml(fit, "cross-validation test")
     free = list(fit.cov.index)
     d = loglik_derivatives(fit.model, fit.values, data, free, information, **filter_settings(fit.settings))
+    if estimation_error:
+        cov = fit.cov.to_numpy()
+        if not np.all(np.isfinite(cov)):
+            raise ModelError("the fit has parameters without covariance (at a bound or not determined); "
+                             "use estimation_error=False")
+        M = d.information
+        d = replace(d, information=M + M @ cov @ M)
     lm = _score_statistic(d)
     k = len(free)
     return TestResult("cross_validation", lm, float(k), float(stats.chi2.sf(lm, k)))
