@@ -31,12 +31,13 @@ class ForwardSelection:
 def select_forward(candidates, data, level: float = 0.05, **fit_options) -> ForwardSelection:
     """Fit ``candidates`` in order and stop when the LR test no longer prefers the extension.
 
-    ``candidates`` is a list whose items are models or lists of alternative
-    models (the extensions tried at that step); each step's models must nest
+    ``candidates`` is a list whose items are models, lists of alternative
+    models (the extensions tried at that step), or functions that take the
+    model chosen so far and return that list; each step's models must nest
     the model chosen before.  ``fit_options`` go to every ``fit`` call.
     """
-    steps = [c if isinstance(c, (list, tuple)) else [c] for c in candidates]
-    if len(steps) < 2 or not steps[0]:
+    steps = [c if isinstance(c, (list, tuple)) or callable(c) else [c] for c in candidates]
+    if len(steps) < 2 or callable(steps[0]) or not steps[0]:
         raise ModelError("give a starting model and at least one step of extensions")
     fits, rows = {}, []
 
@@ -54,6 +55,10 @@ def select_forward(candidates, data, level: float = 0.05, **fit_options) -> Forw
         rows.append(dict(step=0, model=f.model.name, loglik=f.loglik, n_params=f.n_params, compared_with=None,
                          statistic=float("nan"), df=float("nan"), p_value=float("nan"), chosen=f is current))
     for number, models in enumerate(steps[1:], start=1):
+        if callable(models):
+            models = list(models(current.model))
+            if not models:
+                break
         best, tried = fit_all(models)
         test = lr_test(current, best)
         accepted = test.p_value < level
