@@ -51,22 +51,28 @@ def select_forward(candidates, data, level: float = 0.05, **fit_options) -> Forw
         return max(out, key=lambda f: f.loglik), out
 
     current, first = fit_all(steps[0])
+    nan = float("nan")
     for f in first:
         rows.append(dict(step=0, model=f.model.name, loglik=f.loglik, n_params=f.n_params, compared_with=None,
-                         statistic=float("nan"), df=float("nan"), p_value=float("nan"), chosen=f is current))
+                         statistic=nan, df=nan, p_value=nan, chosen=f is current, note=""))
     for number, models in enumerate(steps[1:], start=1):
         if callable(models):
             models = list(models(current.model))
             if not models:
                 break
         best, tried = fit_all(models)
-        test = lr_test(current, best)
-        accepted = test.p_value < level
+        accepted = False
         for f in tried:
-            t = test if f is best else lr_test(current, f)
+            try:  # an extension stuck below the current likelihood is reported, not fatal
+                t, note = lr_test(current, f), ""
+            except ModelError as err:
+                t, note = None, str(err)
+            chosen = bool(f is best and t is not None and t.p_value < level)
+            accepted = accepted or chosen
             rows.append(dict(step=number, model=f.model.name, loglik=f.loglik, n_params=f.n_params,
-                             compared_with=current.model.name, statistic=t.statistic, df=t.df, p_value=t.p_value,
-                             chosen=bool(accepted and f is best)))
+                             compared_with=current.model.name, statistic=nan if t is None else t.statistic,
+                             df=nan if t is None else t.df, p_value=nan if t is None else t.p_value,
+                             chosen=chosen, note=note))
         if not accepted:
             break
         current = best
