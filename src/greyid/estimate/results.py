@@ -127,10 +127,7 @@ class FitResult:
         cov = self.cov.to_numpy()
         rows = {}
         for label, text in expressions.items():
-            expr = parse_expression(text, f"derived quantity '{label}'")
-            extra = {s.name for s in expr.free_symbols} - set(names)
-            if extra:
-                raise ModelError(f"derived quantity '{label}' uses '{sorted(extra)[0]}', which is not a parameter")
+            expr = parameter_expression(text, names, f"derived quantity '{label}'")
             fn = lambdify_parameters([expr], syms, (1,))
             value, grad = jax.value_and_grad(lambda th: fn(th)[0])(theta)
             g = np.asarray(grad)[free]
@@ -217,6 +214,15 @@ class FitResult:
     def save(self, path) -> None:
         """Write the fit as JSON (model text, estimates, covariance, settings)."""
         Path(path).write_text(json.dumps(self.to_dict(), indent=2))
+
+
+def parameter_expression(text: str, names, what: str):
+    """``text`` parsed as a function of the parameters ``names`` only (else a ModelError naming ``what``)."""
+    expr = parse_expression(text, what)
+    extra = {s.name for s in expr.free_symbols} - set(names)
+    if extra:
+        raise ModelError(f"{what} uses '{sorted(extra)[0]}', which is not a parameter")
+    return expr
 
 
 def filter_settings(settings: dict) -> dict:

@@ -70,8 +70,8 @@ def bispectrum(x, side: int | None = None, dt: float = 1.0) -> Bispectrum:
     j, k = j[inside], k[inside]
     F = X[j] * X[k] * np.conj(X[j + k]) / n
     normalised = F / np.sqrt(n * S[j] * S[k] * S[j + k])
-    a, b = (j - 1) // side, (k - 1) // side
-    key = a * (half // side + 2) + b
+    stride = half // side + 2  # square (a, b) gets the key a·stride + b
+    key = ((j - 1) // side) * stride + (k - 1) // side
     order = np.argsort(key, kind="stable")
     keys, start, counts = np.unique(key[order], return_index=True, return_counts=True)
     sums = np.add.reduceat(normalised[order], start)
@@ -80,8 +80,7 @@ def bispectrum(x, side: int | None = None, dt: float = 1.0) -> Bispectrum:
     if len(keys) < 4:
         raise DataError(f"only {len(keys)} squares of side {side} fit in the principal domain; use a smaller side")
     z = sums / np.sqrt(counts)
-    rows = keys // (half // side + 2)
-    cols = keys % (half // side + 2)
+    rows, cols = keys // stride, keys % stride
     squares = pd.DataFrame({
         "f1": (rows * side + (side + 1) / 2) / (n * dt),
         "f2": (cols * side + (side + 1) / 2) / (n * dt),

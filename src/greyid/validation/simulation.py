@@ -43,11 +43,8 @@ class ParameterBootstrap:
 
 
 def _frame_of(fit, data):
-    if data is not None:
-        return data
-    if fit.data is None:
-        raise ModelError("this fit carries no data (it was loaded from a file); pass data explicitly")
-    return fit.data[0]
+    frames = fit._data(data)
+    return frames[0] if isinstance(frames, list) else frames
 
 
 def _simulate(fit, params, data, **options):

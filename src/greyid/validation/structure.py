@@ -21,7 +21,7 @@ from scipy import stats
 
 from ..errors import ModelError
 from ..estimate.information import loglik_derivatives
-from ..estimate.results import filter_settings
+from ..estimate.results import filter_settings, parameter_expression
 from ..model.equations import parse_expression
 from ..model.structure import lambdify_parameters
 from .series import TestResult
@@ -75,11 +75,7 @@ def wald_test(fit, restrictions: str | Sequence[str]) -> TestResult:
     syms = [parse_expression(n, "parameter") for n in names]
     exprs = []
     for r in restrictions:
-        expr = parse_expression(_restriction_text(r), f"restriction '{r}'")
-        extra = {s.name for s in expr.free_symbols} - set(names)
-        if extra:
-            raise ModelError(f"restriction '{r}' uses '{sorted(extra)[0]}', which is not a parameter of the fit")
-        exprs.append(expr)
+        exprs.append(parameter_expression(_restriction_text(r), names, f"restriction '{r}'"))
     if not exprs:
         raise ModelError("give at least one restriction")
     fn = lambdify_parameters(exprs, syms, (len(exprs),))
@@ -134,14 +130,6 @@ def _free_names(model) -> list[str]:
     return [n for n in model.parameter_names if not (n in declared and declared[n].fixed)]
 
 
-def _data_of(fit, data):
-    if data is not None:
-        return data
-    if fit.data is None:
-        raise ModelError("this fit carries no data (it was loaded from a file); pass data explicitly")
-    return fit.data if len(fit.data) > 1 else fit.data[0]
-
-
 def lm_test(fit, model, at: dict | None = None, data=None, df: int | None = None, information: str = "fisher",
             method: str | None = None) -> TestResult:
     """LM = SᵀM⁻¹S at the restricted fit, with S and M from the larger ``model`` (5.6).
@@ -165,7 +153,7 @@ def lm_test(fit, model, at: dict | None = None, data=None, df: int | None = None
     if r < 1:
         raise ModelError(f"model '{model.name}' has {len(free)} free parameters, no more than the fit's "
                          f"{fit.n_params}; give df explicitly")
-    d = loglik_derivatives(model, values, _data_of(fit, data), free, information, **_settings(fit, model, method))
+    d = loglik_derivatives(model, values, fit._data(data), free, information, **_settings(fit, model, method))
     lm = _score_statistic(d)
     return TestResult("lagrange_multiplier", lm, float(r), float(stats.chi2.sf(lm, r)))
 

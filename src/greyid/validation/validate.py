@@ -103,9 +103,8 @@ class Validation:
 
     def plot_prediction(self, steps: int = 1):
         """Measured against ``steps``-ahead predictions with ±2 standard deviations."""
-        data = self.fit.data[0] if self.fit.data else None
-        if data is None:
-            raise ModelError("this fit carries no data (it was loaded from a file)")
+        data = self.fit._data(None)
+        data = data[0] if isinstance(data, list) else data
         pred = self.fit.predict(data, steps=steps)
         return prediction_figure(data, pred, self.fit.settings["time"], self.fit.model.output_names, steps)
 
@@ -135,7 +134,7 @@ def validate(fit, level: float = 0.05, lags: int | None = None, m: int | None = 
             for u in input_names:
                 try:
                     rows.append((f"input_correlation[{u}]", label,
-                                 spectral.input_correlation_test(series, frame[u], None if lags is None else lags)))
+                                 spectral.input_correlation_test(series, frame[u], lags)))
                 except DataError as err:
                     skipped.append((f"input_correlation[{u}]", label, str(err)))
             if input_names:
