@@ -6,13 +6,6 @@ import sys
 import time
 
 
-def progress(done: int, total: int) -> None:
-    sys.stderr.write(f"\r  fitted {done}/{total} series")
-    if done == total:
-        sys.stderr.write("\n")
-    sys.stderr.flush()
-
-
 def print_table(title: str, study, started: float) -> None:
     table = study.table()
     crit = study.critical_values(0.1)

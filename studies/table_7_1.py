@@ -11,7 +11,7 @@ is fitted by maximum likelihood with the 1-step (or k-step) criterion.
 import argparse
 import time
 
-from common import print_table, progress
+from common import print_table
 
 from greyid.datasets.thesis import TEST_CELL_DERIVED, TEST_CELL_PARAMETERS, test_cell_inputs, test_cell_model
 from greyid.estimate.montecarlo import run_study
@@ -27,7 +27,7 @@ def main():
     study = run_study(
         test_cell_model(), TEST_CELL_PARAMETERS, test_cell_inputs(seed=args.seed), args.series,
         report=["Hi", "Hm", "Ci", "Cm", "s1i", "s1m", "s2"], derived=TEST_CELL_DERIVED, seed=args.seed + 1,
-        simulate={"method": "exact"}, fit={"horizon": args.horizon}, progress=progress,
+        simulate={"method": "exact"}, fit={"horizon": args.horizon}, progress=True,
     )
     print_table(f"Table 7.{1 if args.horizon == 1 else 2}: test-cell model, {args.horizon}-step criterion",
                 study, started)

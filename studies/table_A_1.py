@@ -10,7 +10,7 @@ through the extended Kalman filter.
 import argparse
 import time
 
-from common import print_table, progress
+from common import print_table
 
 from greyid.datasets.thesis import LOTKA_VOLTERRA_PARAMETERS, lotka_volterra_model, lotka_volterra_times
 from greyid.estimate.montecarlo import run_study
@@ -28,7 +28,7 @@ def main():
     study = run_study(
         lotka_volterra_model(), LOTKA_VOLTERRA_PARAMETERS, data, args.series,
         report=["a", "b", "c", "d", "N10", "N20", "s1", "s2", "m1", "m2"], seed=args.seed,
-        simulate={"method": "milstein", "substeps": 20}, fit={"method": "ekf"}, progress=progress,
+        simulate={"method": "milstein", "substeps": 20}, fit={"method": "ekf"}, progress=True,
     )
     print_table("Table A.1: stochastic Lotka-Volterra model, EKF", study, started)
 

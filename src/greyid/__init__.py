@@ -30,7 +30,7 @@ _enable_compilation_cache()
 
 from .errors import DataError, ModelError  # noqa: E402
 from .model import Model  # noqa: E402
-from .estimate import FitResult, load_fit  # noqa: E402
+from .estimate import FitResult, FitWarning, load_fit  # noqa: E402
 
 __version__ = "0.1.0"
-__all__ = ["Model", "FitResult", "load_fit", "ModelError", "DataError", "__version__"]
+__all__ = ["Model", "FitResult", "FitWarning", "load_fit", "ModelError", "DataError", "__version__"]

@@ -1,3 +1,5 @@
+"""``python -m greyid`` is the ``greyid`` command."""
+
 import sys
 
 from .cli import main

@@ -1,40 +1,268 @@
-"""Command line: ``greyid demo`` runs the main job (a fit) on the bundled data."""
+"""The ``greyid`` command line.
+
+    greyid fit MODEL [DATA] [--out DIR] [--report]    estimate, print the summary, save the fit
+    greyid simulate MODEL [DATA] --out FILE            sample paths driven by the data's inputs
+    greyid validate FIT [DATA]                         the residual tests of chapter 5
+    greyid report FIT [DATA] --out FILE.html           a self-contained HTML report
+    greyid models [NAME]                               the model library, or one model's file
+    greyid demo [--out DIR]                            fit the bundled model to its bundled data
+
+MODEL is a model file (``.toml``), a saved fit (``.json``) or a library model's
+name; DATA is a CSV file, by default the one the model file names.  Exit codes:
+0 done, 1 done with a negative verdict (the fit did not converge, or a test
+rejects), 2 bad input (model, data or arguments; the message says which).
+"""
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.console import Console
+from rich.markup import escape
+
+from .errors import DataError, ModelError
+
+OK, VERDICT, BAD_INPUT = 0, 1, 2
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+                  help="Grey-box identification of physical systems with stochastic differential equations.")
+out = Console(highlight=False, soft_wrap=True, markup=False)
+err = Console(stderr=True, highlight=False, soft_wrap=True, markup=False)
 
 
-def demo() -> int:
-    """Fit the bundled building model to its bundled data and print the summary."""
-    from .datasets import TRUE_PARAMETERS, building_model, load_building_data
+class InputProblem(Exception):
+    """Bad input named by the message; the command exits with code 2."""
 
-    model = building_model()
-    data = load_building_data()
-    print(model)
-    print(f"data: {len(data)} rows, t from {data['t'].iloc[0]} to {data['t'].iloc[-1]} h")
-    start = time.perf_counter()
-    fit = model.fit(data, time="t", hold="zoh")
-    print(f"fitted in {time.perf_counter() - start:.2f} s\n")
-    print(fit.summary())
-    print()
-    print("physical characteristics (delta-method standard errors):")
-    print(fit.derived({"UA [kW/K]": "1/(Riw + Rwe)", "C_total [kWh/K]": "Ci + Cw"}).to_string())
-    truth = model.loglik(TRUE_PARAMETERS, data)
-    print(f"\nlog-likelihood at the simulation's true parameters: {truth:.4f}")
-    return 0 if fit.converged else 1
+
+# ---------------------------------------------------------------------- loading
+def load_model_or_fit(source: str):
+    """``(model, fit or None)`` from a model file, a saved fit or a library name."""
+    from . import library, load_fit
+    from .model import Model
+
+    path = Path(source)
+    if path.suffix == ".json":
+        if not path.is_file():
+            raise InputProblem(f"fit file '{path}' not found")
+        fit = load_fit(path)
+        return fit.model, fit
+    if path.suffix == ".toml" or path.exists():
+        return Model.from_toml(path), None
+    if source in library.names() or library._rc_states(source) is not None:
+        return library.load_model(source), None
+    raise InputProblem(f"'{source}' is neither a model file (.toml), a fit file (.json) nor a library model "
+                       f"(see 'greyid models')")
+
+
+def load_data(model, data: Optional[Path], fit=None):
+    """``(frame, path)``: DATA, else the fit's data file, else the model file's ``[data] file``."""
+    from .model.files import read_data
+
+    if data is None and fit is not None and fit.data_file and Path(fit.data_file).is_file():
+        data = Path(fit.data_file)
+    frame = read_data(model, data)
+    path = Path(data) if data is not None else Path(getattr(model, "source", "") or ".").parent / model.options["file"]
+    return frame, str(path.resolve())
+
+
+def _run(command) -> None:
+    """Run a command; turn bad input into a plain message and exit code 2."""
+    import warnings
+
+    from .estimate import FitWarning
+
+    try:
+        with warnings.catch_warnings():
+            # The CLI prints a fit's warnings itself, once, in its own place.
+            warnings.simplefilter("ignore", FitWarning)
+            code = command()
+    except (InputProblem, ModelError, DataError) as problem:
+        err.print(f"[bold red]error:[/] {escape(str(problem))}", markup=True)
+        raise typer.Exit(BAD_INPUT)
+    raise typer.Exit(code)
+
+
+def _print_warnings(fit) -> None:
+    for w in fit.warnings:
+        err.print(f"[yellow]warning:[/] {escape(w)}", markup=True)
+
+
+# ---------------------------------------------------------------------- commands
+@app.command()
+def fit(model: str = typer.Argument(..., help="model file (.toml) or library model name"),
+        data: Optional[Path] = typer.Argument(None, help="CSV data (default: the model file's [data] file)"),
+        out_dir: Optional[Path] = typer.Option(None, "--out", help="folder for fit.json, summary.txt, parameters.csv"),
+        method: Optional[str] = typer.Option(None, help="filter: kalman, ekf, iekf, ekf2, ukf"),
+        hold: Optional[str] = typer.Option(None, help="input hold between samples: zoh or foh"),
+        time_column: Optional[str] = typer.Option(None, "--time", help="name of the time column"),
+        starts: Optional[int] = typer.Option(None, help="number of starting points (random ones inside the bounds)"),
+        seed: Optional[int] = typer.Option(None, help="seed of the random starting points"),
+        report: bool = typer.Option(False, "--report", help="also write report.html into --out"),
+        quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress output")):
+    """Estimate the parameters of MODEL from DATA and print the summary."""
+
+    def command() -> int:
+        m, _ = load_model_or_fit(model)
+        frame, data_file = load_data(m, data)
+        if not quiet:
+            err.print(f"fitting '{m.name}' to {len(frame)} rows of {data_file}")
+        started = time.perf_counter()
+        result = m.fit(frame, time=time_column, hold=hold, method=method, starts=starts, seed=seed,
+                       progress=not quiet)
+        result.data_file = data_file
+        if not quiet:
+            err.print(f"fitted in {time.perf_counter() - started:.2f} s")
+        out.print(result.summary())
+        if m.derived:
+            out.print("\nderived quantities (delta-method standard errors):")
+            out.print(result.derived().to_string())
+        _print_warnings(result)
+        if out_dir is not None:
+            out_dir.mkdir(parents=True, exist_ok=True)
+            result.save(out_dir / "fit.json")
+            (out_dir / "summary.txt").write_text(result.summary() + "\n", encoding="utf-8")
+            result.params.to_csv(out_dir / "parameters.csv")
+            written = ["fit.json", "summary.txt", "parameters.csv"]
+            if report:
+                result.report(out_dir / "report.html")
+                written.append("report.html")
+            err.print(f"wrote {', '.join(written)} to {out_dir}")
+        elif report:
+            raise InputProblem("--report needs --out DIR to write the report into")
+        return OK if result.converged else VERDICT
+
+    _run(command)
+
+
+@app.command()
+def simulate(model: str = typer.Argument(..., help="model file, fit file (.json) or library model name"),
+             data: Optional[Path] = typer.Argument(None, help="CSV with the time column and the inputs"),
+             out_file: Optional[Path] = typer.Option(None, "--out", help="CSV to write (default: print)"),
+             paths: int = typer.Option(1, help="number of sample paths"),
+             seed: int = typer.Option(0, help="random seed"),
+             method: str = typer.Option("euler", help="euler, milstein, heun or exact (linear models)"),
+             substeps: int = typer.Option(10, help="integration steps per sampling interval"),
+             deterministic: bool = typer.Option(False, "--deterministic", help="the noise-free solution only")):
+    """Simulate MODEL (at a fit's estimates, or the model file's initial values) on DATA's times and inputs."""
+
+    def command() -> int:
+        m, saved = load_model_or_fit(model)
+        frame, _ = load_data(m, data, saved)
+        params = saved.values if saved is not None else m.initial_values()
+        sim = m.simulate(params, frame, n_paths=paths, seed=seed, method=method, substeps=substeps,
+                         noise=not deterministic)
+        table = sim.to_frame() if paths > 1 else sim.frame(0)
+        if out_file is None:
+            out.print(table.to_csv(index=False), end="")
+        else:
+            table.to_csv(out_file, index=False)
+            err.print(f"wrote {paths} path(s), {len(frame)} rows each, to {out_file}")
+        return OK
+
+    _run(command)
+
+
+def _fit_with_data(fit_file: Path, data: Optional[Path]):
+    from . import load_fit
+
+    if fit_file.suffix != ".json" or not fit_file.is_file():
+        raise InputProblem(f"'{fit_file}' is not a fit file; write one with 'greyid fit MODEL DATA --out DIR'")
+    saved = load_fit(fit_file)
+    frame, data_file = load_data(saved.model, data, saved)
+    return saved.with_data(frame, data_file)
+
+
+@app.command()
+def validate(fit_file: Path = typer.Argument(..., help="fit file written by 'greyid fit --out'"),
+             data: Optional[Path] = typer.Argument(None, help="the data (default: the data the fit used)"),
+             level: float = typer.Option(0.05, help="significance level of the tests")):
+    """Run the residual tests of chapter 5 on a saved fit; exit code 1 if any test rejects."""
+
+    def command() -> int:
+        result = _fit_with_data(fit_file, data).validate(level=level)
+        out.print(result.summary())
+        return VERDICT if len(result.rejected) else OK
+
+    _run(command)
+
+
+@app.command()
+def report(fit_file: Path = typer.Argument(..., help="fit file written by 'greyid fit --out'"),
+           data: Optional[Path] = typer.Argument(None, help="the data (default: the data the fit used)"),
+           out_file: Path = typer.Option(Path("report.html"), "--out", help="HTML file to write"),
+           level: float = typer.Option(0.05, help="significance level of the tests"),
+           steps: int = typer.Option(4, help="prediction horizon shown beside 1-step predictions")):
+    """Write a self-contained HTML report of a saved fit."""
+
+    def command() -> int:
+        _fit_with_data(fit_file, data).report(out_file, level=level, steps=steps)
+        err.print(f"wrote {out_file}")
+        return OK
+
+    _run(command)
+
+
+@app.command()
+def models(name: Optional[str] = typer.Argument(None, help="print this model's file")):
+    """List the model library, or print one model as a model file to start from."""
+    from . import library
+
+    def command() -> int:
+        if name is None:
+            for key, description in library.available().items():
+                out.print(f"[bold]{key:16s}[/] {escape(description)}", markup=True)
+            return OK
+        out.print(library.load_model(name).to_toml(), end="")
+        return OK
+
+    _run(command)
+
+
+@app.command()
+def demo(out_dir: Path = typer.Option(Path("greyid-demo"), "--out", help="folder for the fit and its report"),
+         report: bool = typer.Option(True, "--report/--no-report", help="write report.html"),
+         quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress output")):
+    """Fit the bundled building model to its bundled (simulated) data, print the summary, write a report."""
+
+    def command() -> int:
+        from .datasets import TRUE_PARAMETERS, building_model, load_building_data
+        from .datasets.building import model_file
+
+        model = building_model()
+        data = load_building_data()
+        out.print(model)
+        out.print(f"model file: {model_file()}")
+        out.print(f"data: {len(data)} rows, t from {data['t'].iloc[0]} to {data['t'].iloc[-1]} h")
+        started = time.perf_counter()
+        result = model.fit(data, progress=not quiet)
+        result.data_file = str(Path(str(model_file())).parent / model.options["file"])
+        out.print(f"fitted in {time.perf_counter() - started:.2f} s\n")
+        out.print(result.summary())
+        out.print("\nphysical characteristics (delta-method standard errors):")
+        out.print(result.derived().to_string())
+        truth = model.loglik(TRUE_PARAMETERS, data)
+        out.print(f"\nlog-likelihood at the simulation's true parameters: {truth:.4f}")
+        out_dir.mkdir(parents=True, exist_ok=True)
+        result.save(out_dir / "fit.json")
+        if report:
+            result.report(out_dir / "report.html")
+            out.print(f"report: {out_dir / 'report.html'}")
+        return OK if result.converged else VERDICT
+
+    _run(command)
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="greyid", description="Grey-box identification with SDEs")
-    sub = parser.add_subparsers(dest="command", required=True)
-    sub.add_parser("demo", help="fit the bundled building model to its bundled data and print the summary")
-    args = parser.parse_args(argv)
-    if args.command == "demo":
-        return demo()
-    return 2
+    """Entry point; returns the exit code (for tests and ``python -m greyid``)."""
+    try:
+        app(args=argv, prog_name="greyid")
+    except SystemExit as done:
+        return done.code if isinstance(done.code, int) else (OK if done.code is None else BAD_INPUT)
+    return OK
 
 
 if __name__ == "__main__":

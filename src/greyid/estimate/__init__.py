@@ -2,6 +2,6 @@
 
 from .criteria import GaussianPrior, log_criterion, squared_norm
 from .estimation import fit
-from .results import FitResult, load_fit
+from .results import FitResult, FitWarning, load_fit
 
-__all__ = ["fit", "FitResult", "load_fit", "GaussianPrior", "log_criterion", "squared_norm"]
+__all__ = ["fit", "FitResult", "FitWarning", "load_fit", "GaussianPrior", "log_criterion", "squared_norm"]

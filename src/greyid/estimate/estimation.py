@@ -20,6 +20,7 @@ import numpy as np
 from ..data.prepare import as_frames
 from ..errors import ModelError
 from ..filters.api import filter_options, prepare_datasets
+from ..progress import FitProgress
 from .criteria import GaussianPrior, check_robust
 from .objective import Problem, compiled
 from .transforms import Transform
@@ -59,7 +60,11 @@ def _starting_points(transform: Transform, theta0: np.ndarray, starts: int, seed
     return points
 
 
-def _bfgs(fun, z, f, g, inverse, maxiter: int, gtol: float = 1e-4):
+def _no_report(iteration: int, stage: str, f: float, g: np.ndarray) -> None:
+    pass
+
+
+def _bfgs(fun, z, f, g, inverse, maxiter: int, gtol: float = 1e-4, report=_no_report):
     """BFGS with a backtracking (Armijo) line search that tries the full step first.
 
     Near a well-scaled start the full quasi-Newton step is usually accepted, so
@@ -91,6 +96,7 @@ def _bfgs(fun, z, f, g, inverse, maxiter: int, gtol: float = 1e-4):
         sy = float(s @ y)
         decrease = f - f_new
         z, f, g = z + s, f_new, g_new
+        report(iteration, "bfgs", f, g)
         if sy > 1e-12 * np.linalg.norm(s) * np.linalg.norm(y):
             rho = 1.0 / sy
             A = eye - rho * np.outer(s, y)
@@ -105,7 +111,7 @@ def _bfgs(fun, z, f, g, inverse, maxiter: int, gtol: float = 1e-4):
     return z, f, g, maxiter, False, "maximum number of iterations reached"
 
 
-def _minimise(value_and_grad, hessian, z0: np.ndarray, maxiter: int) -> Optimum:
+def _minimise(value_and_grad, hessian, z0: np.ndarray, maxiter: int, report=_no_report) -> Optimum:
     """BFGS on exact gradients from the exact Hessian, then Newton steps on the exact Hessian."""
     evaluations = 0
     best = {"f": np.inf}
@@ -133,7 +139,8 @@ def _minimise(value_and_grad, hessian, z0: np.ndarray, maxiter: int) -> Optimum:
         w, V = np.linalg.eigh(0.5 * (H0 + H0.T))
         floor = max(np.max(np.abs(w)), 1e-8) * 1e-6
         inverse = (V / np.maximum(np.abs(w), floor)) @ V.T
-    z, f, g, iterations, bfgs_ok, message = _bfgs(fun, np.asarray(z0, dtype=float), f0, g0, inverse, maxiter)
+    z, f, g, iterations, bfgs_ok, message = _bfgs(fun, np.asarray(z0, dtype=float), f0, g0, inverse, maxiter,
+                                                  report=report)
     # Newton polish: quadratic convergence near the optimum, and its Hessian is needed anyway.
     H, H_is_current = None, False
     newton_converged = False
@@ -158,6 +165,7 @@ def _minimise(value_and_grad, hessian, z0: np.ndarray, maxiter: int) -> Optimum:
         z, f, g = z + step, f_new, g_new
         H_is_current = False
         iterations += 1
+        report(iterations, "newton", f, g)
     if not H_is_current:  # the uncertainty needs the Hessian at the final point
         H = np.asarray(hessian(jnp.asarray(z)))
     converged = newton_converged or bfgs_ok
@@ -167,7 +175,7 @@ def _minimise(value_and_grad, hessian, z0: np.ndarray, maxiter: int) -> Optimum:
 
 
 def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=None, robust=None,
-        horizon=1, starts=1, seed=0, init=None, time_unit=None, maxiter=1000, **filter_settings):
+        horizon=1, starts=1, seed=0, init=None, time_unit=None, maxiter=1000, progress=False, **filter_settings):
     """Estimate the free parameters of ``model`` from ``data``; see :meth:`Model.fit`."""
     from .results import FitResult, build_result
 
@@ -226,7 +234,18 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
         return hessian(z, *args, datasets)
 
     free_theta0 = theta0[list(free)]
-    optima = [_minimise(vg, hess, z0, maxiter) for z0 in _starting_points(transform, free_theta0, starts, seed)]
+    label = "log-likelihood" if criterion == "ml" and robust is None and horizon == 1 else "criterion"
+    optima = []
+    with FitProgress(progress, starts, label) as shown:
+        # The optimiser minimises −(criterion); progress shows the criterion itself.
+        def report(iteration, stage, f, g):
+            shown.iteration(iteration, stage, -f, float(np.max(np.abs(g))))
+
+        for i, z0 in enumerate(_starting_points(transform, free_theta0, starts, seed)):
+            shown.begin_start(i)
+            optimum = _minimise(vg, hess, z0, maxiter, report)
+            shown.end_start(-optimum.value, optimum.iterations, optimum.converged, optimum.message)
+            optima.append(optimum)
     best = min(optima, key=lambda o: o.value if np.isfinite(o.value) else np.inf)
     theta = np.asarray(theta_of_z(jnp.asarray(best.z), *args[:3]))
     settings = dict(time=time, hold=hold, method=options.method, form=options.form, substeps=options.substeps,

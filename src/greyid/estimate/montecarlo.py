@@ -16,6 +16,8 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
+from ..progress import track
+
 
 @dataclass
 class StudyResult:
@@ -56,19 +58,20 @@ class StudyResult:
 
 def run_study(model, truth: Mapping[str, float], data: pd.DataFrame, n_series: int, report: list[str],
               derived: Mapping[str, str] | None = None, seed: int = 0, simulate: Mapping | None = None,
-              fit: Mapping | None = None, progress: Callable[[int, int], None] | None = None) -> StudyResult:
+              fit: Mapping | None = None, progress: bool | Callable[[int, int], None] = False) -> StudyResult:
     """Simulate ``n_series`` series on ``data``'s times and inputs and fit each.
 
     ``report`` names the parameters for the table; ``derived`` adds functions of
     them (delta-method variances).  ``simulate`` and ``fit`` are keyword
-    arguments for :meth:`Model.simulate` and :meth:`Model.fit`.
+    arguments for :meth:`Model.simulate` and :meth:`Model.fit`.  ``progress=True``
+    shows a progress bar; a callable receives ``(done, total)``.
     """
     simulate = dict(simulate or {})
     fit_options = dict(fit or {})
     sims = model.simulate(dict(truth), data, n_paths=n_series, seed=seed, **simulate)
     derived = dict(derived or {})
     estimates, variances, converged, acf1 = [], [], [], []
-    for i in range(n_series):
+    for i in track(range(n_series), n_series, "Monte Carlo fits", progress):
         frame = data.copy()
         for j, name in enumerate(model.output_names):
             frame[name] = sims.outputs[i, :, j]
@@ -84,8 +87,6 @@ def run_study(model, truth: Mapping[str, float], data: pd.DataFrame, n_series: i
         converged.append(result.converged)
         res = result.residuals.iloc[:, 0].dropna().to_numpy()
         acf1.append(np.corrcoef(res[1:], res[:-1])[0, 1])
-        if progress is not None:
-            progress(i + 1, n_series)
     truth_all = {n: float(truth[n]) for n in report}
     if derived:
         from ..model.equations import parse_expression

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
+import warnings
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Mapping
 
@@ -24,6 +25,11 @@ from scipy import stats
 from ..errors import ModelError
 from ..model.equations import parse_expression
 from ..model.structure import lambdify_parameters
+
+class FitWarning(UserWarning):
+    """A fit finished with something to look at: an active bound, an ill-determined
+    direction, no convergence.  The message is also in ``fit.warnings``."""
+
 
 #: Eigenvalues of the scaled Hessian below this fraction of the largest are ill-determined.
 ILL_DETERMINED = 1e-8
@@ -47,6 +53,7 @@ class FitResult:
     ill_determined: list = field(default_factory=list)
     data: list | None = None
     start_values: list = field(default_factory=list)
+    data_file: str | None = None  # where the data came from, when read from a file
     _cache: dict = field(default_factory=dict, repr=False)
 
     # -------------------------------------------------------------- numbers
@@ -118,8 +125,14 @@ class FitResult:
         return f"<FitResult {self.model.name}: loglik={self.loglik:.4f}, k={self.n_params}, converged={self.converged}>"
 
     # -------------------------------------------------------------- derived quantities
-    def derived(self, expressions: Mapping[str, str]) -> pd.DataFrame:
-        """Functions of the parameters with delta-method standard errors (6.35)."""
+    def derived(self, expressions: Mapping[str, str] | None = None) -> pd.DataFrame:
+        """Functions of the parameters with delta-method standard errors (6.35).
+
+        Without ``expressions``, the quantities declared on the model
+        (``model.add_derived`` or a model file's ``[derived]``).
+        """
+        if expressions is None:
+            expressions = self.model.derived
         names = list(self.params.index)
         syms = [parse_expression(n, "parameter") for n in names]
         free = ~self.params["fixed"].to_numpy()
@@ -132,9 +145,18 @@ class FitResult:
             value, grad = jax.value_and_grad(lambda th: fn(th)[0])(theta)
             g = np.asarray(grad)[free]
             rows[label] = {"estimate": float(value), "std_error": float(np.sqrt(max(g @ cov @ g, 0.0)))}
-        return pd.DataFrame.from_dict(rows, orient="index")
+        return pd.DataFrame.from_dict(rows, orient="index", columns=["estimate", "std_error"])
 
     # -------------------------------------------------------------- filtering on the fitted model
+    def with_data(self, data, data_file: str | None = None) -> "FitResult":
+        """This fit with data attached (e.g. a loaded fit), so residuals and validation work."""
+        from ..data.prepare import as_frames
+        from ..model.options import rename_columns
+
+        frames = as_frames(rename_columns(data, self.model.options.get("columns")))
+        return replace(self, data=frames, data_file=data_file if data_file is not None else self.data_file,
+                       _cache={})
+
     def _data(self, data):
         if data is not None:
             return data
@@ -186,6 +208,19 @@ class FitResult:
 
         return validate(self, level=level, lags=lags, m=m)
 
+    def report(self, path=None, **options) -> str:
+        """The self-contained HTML report of this fit; written to ``path`` when given.
+
+        Options: ``level`` (tests), ``steps`` (prediction horizon shown),
+        ``n_paths`` (Monte Carlo band), ``seed``, ``title``.
+        """
+        from ..report import html_report
+
+        text = html_report(self, **options)
+        if path is not None:
+            Path(path).write_text(text, encoding="utf-8")
+        return text
+
     # -------------------------------------------------------------- saving
     def to_dict(self) -> dict:
         def clean(v):
@@ -209,6 +244,7 @@ class FitResult:
             "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.settings.items()},
             "warnings": list(self.warnings),
             "ill_determined": self.ill_determined,
+            "data_file": self.data_file,
         }
 
     def save(self, path) -> None:
@@ -257,7 +293,8 @@ def load_fit(path) -> FitResult:
     return FitResult(model=model, params=params, cov=cov, loglik=spec["loglik"],
                      criterion_value=spec["criterion_value"], n_obs=spec["n_obs"], converged=spec["converged"],
                      message=spec["message"], iterations=spec["iterations"], settings=settings,
-                     warnings=spec.get("warnings", []), ill_determined=spec.get("ill_determined", []), data=None)
+                     warnings=spec.get("warnings", []), ill_determined=spec.get("ill_determined", []), data=None,
+                     data_file=spec.get("data_file"))
 
 
 def build_result(model, frames, theta, problem, best, optima, settings) -> FitResult:
@@ -347,6 +384,8 @@ def build_result(model, frames, theta, problem, best, optima, settings) -> FitRe
     else:
         loglik = model.loglik(dict(zip(names, theta)), frames if len(frames) > 1 else frames[0],
                               **filter_settings(settings))
+    for message in warn:  # printed plainly once, and kept on the fit
+        warnings.warn(f"{model.name}: {message}", FitWarning, stacklevel=4)
     return FitResult(model=model, params=params, cov=pd.DataFrame(cov, index=free_names, columns=free_names),
                      loglik=float(loglik), criterion_value=float(criterion_value), n_obs=n_obs,
                      converged=bool(best.converged), message=best.message, iterations=best.iterations,

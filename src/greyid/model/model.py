@@ -26,6 +26,7 @@ from .equations import (
     parse_expression,
     parse_system_equation,
 )
+from .options import DATA_KEYS, ESTIMATION_KEYS, FILTER_KEYS, check_options, rename_columns, resolve
 from .parameters import Parameter
 from .structure import (
     LTI,
@@ -44,8 +45,9 @@ _COVARIANCE_KINDS = ("process", "stationary")
 class Model:
     """A continuous–discrete stochastic state-space model (thesis eq. 4.1–4.2)."""
 
-    def __init__(self, name: str = "model"):
+    def __init__(self, name: str = "model", description: str = ""):
         self.name = name
+        self.description = description
         self._system: list = []
         self._inputs: list[str] = []
         self._observations: list[tuple] = []
@@ -56,6 +58,9 @@ class Model:
         self._initial_scale: float = 1.0
         self._functions: dict | None = None
         self._structure: Structure | None = None
+        self._options: dict = {}
+        self._derived: dict[str, str] = {}
+        self.source = None  # the model file this model was read from, if any
 
     # ------------------------------------------------------------------ building
     def _changed(self) -> None:
@@ -118,17 +123,65 @@ class Model:
         lower: float | None = None,
         upper: float | None = None,
         fixed: bool = False,
+        prior: tuple[float, float] | None = None,
     ) -> "Model":
-        """Declare a parameter's initial value and bounds, or fix it (``fixed=True``)."""
+        """Declare a parameter's initial value and bounds, or fix it (``fixed=True``).
+
+        ``prior=(mean, sd)`` gives it a Gaussian prior for ``criterion="map"``.
+        """
         if not isinstance(name, str) or not name.isidentifier():
             raise ModelError(f"parameter name {name!r} is not a valid name")
-        self._parameters[name] = Parameter(name, init, lower, upper, fixed)
+        self._parameters[name] = Parameter(name, init, lower, upper, fixed, prior)
         self._changed()
         return self
 
     def fix_parameter(self, name: str, value: float) -> "Model":
         """Fix a parameter at a value (it is then not estimated)."""
         return self.set_parameter(name, init=value, fixed=True)
+
+    def set_options(self, **options) -> "Model":
+        """Default settings for data, filter and estimation calls.
+
+        Data: ``time`` (column), ``hold`` ("zoh"/"foh"), ``time_unit``,
+        ``columns`` (model name → data column).  Filter: ``method``, ``form``,
+        ``substeps``, ``iterations``.  Estimation: ``criterion``, ``robust``,
+        ``horizon``, ``starts``, ``seed``, ``maxiter``, ``prior_correlation``.
+        An argument given to ``fit``/``loglik``/... overrides the default.
+        """
+        self._options.update(check_options(options))
+        return self
+
+    @property
+    def options(self) -> dict:
+        """The model's default settings (see :meth:`set_options`)."""
+        return dict(self._options)
+
+    def add_derived(self, name: str, expression: str) -> "Model":
+        """Name a physical quantity computed from the parameters, e.g. ``UA = 1/(Ri+Ro)``.
+
+        ``fit.derived()`` reports it with a delta-method standard error (6.35).
+        """
+        if not isinstance(name, str) or not name.strip():
+            raise ModelError(f"derived quantity name {name!r} must be a non-empty string")
+        parse_expression(expression, f"derived quantity '{name}'")
+        self._derived[name] = expression
+        return self
+
+    @property
+    def derived(self) -> dict[str, str]:
+        """Derived physical quantities by name (expressions in the parameters)."""
+        return dict(self._derived)
+
+    def prior(self) -> dict | None:
+        """The Gaussian prior declared on the parameters (3.46), or ``None``."""
+        with_prior = {n: p.prior for n, p in self._parameters.items() if p.prior is not None and not p.fixed}
+        if not with_prior:
+            return None
+        spec = {"mean": {n: v[0] for n, v in with_prior.items()}, "sd": {n: v[1] for n, v in with_prior.items()}}
+        corr = self._options.get("prior_correlation")
+        if corr:
+            spec["corr"] = dict(corr)
+        return spec
 
     def set_initial_state(
         self,
@@ -448,77 +501,74 @@ class Model:
     # ------------------------------------------------------------------ saving
     def to_dict(self) -> dict:
         """Everything needed to rebuild this model (equations as text)."""
-        if self._functions is not None:
-            raise ModelError("a model defined by Python functions cannot be written out; rebuild it in code")
+        from .files import model_to_dict
 
-        def plain(value):
-            if isinstance(value, np.ndarray):
-                return [plain(v) for v in value.tolist()]
-            if isinstance(value, (list, tuple)):
-                return [plain(v) for v in value]
-            if isinstance(value, (np.floating, np.integer)):
-                return float(value)
-            return value
-
-        return {
-            "name": self.name,
-            "system": [e.text for e in self._system],
-            "inputs": list(self._inputs),
-            "observations": [{"equation": o[0].text, "variance": plain(o[2])} for o in self._observations],
-            "algebraic": [a.text for a in self._algebraics],
-            "parameters": {n: {"init": p.init, "lower": p.lower, "upper": p.upper, "fixed": p.fixed}
-                           for n, p in self._parameters.items()},
-            "initial_state": None if self._initial_mean is None else {
-                "mean": {k: plain(v) for k, v in self._initial_mean.items()},
-                "covariance": plain(self._initial_covariance),
-                "scale": self._initial_scale,
-            },
-        }
+        return model_to_dict(self)
 
     @classmethod
     def from_dict(cls, spec: Mapping) -> "Model":
         """Rebuild a model written by :meth:`to_dict`."""
-        m = cls(spec.get("name", "model"))
-        m.add_system(*spec["system"])
-        if spec.get("inputs"):
-            m.add_inputs(*spec["inputs"])
-        for a in spec.get("algebraic", []):
-            m.add_algebraic(a)
-        for o in spec["observations"]:
-            m.add_observation(o["equation"], variance=o["variance"])
-        for name, p in spec.get("parameters", {}).items():
-            m.set_parameter(name, init=p.get("init"), lower=p.get("lower"), upper=p.get("upper"),
-                            fixed=p.get("fixed", False))
-        init = spec.get("initial_state")
-        if init is not None:
-            m.set_initial_state(mean=init["mean"], covariance=init["covariance"], scale=init.get("scale", 1.0))
-        return m
+        from .files import model_from_dict
+
+        return model_from_dict(spec, cls)
+
+    @classmethod
+    def from_toml(cls, source) -> "Model":
+        """Read a model file (TOML; a path, or the text itself). See :mod:`greyid.model.files`."""
+        from .files import read_model
+
+        return read_model(source)
+
+    def to_toml(self, path=None) -> str:
+        """The model as a TOML model file; written to ``path`` when given."""
+        from .files import write_model
+
+        return write_model(self, path)
 
     # ------------------------------------------------------------------ public calls
-    def fit(self, data, time: str = "t", hold: str = "zoh", method: str | None = None, criterion: str = "ml",
-            prior=None, robust=None, horizon: int = 1, starts: int = 1, seed: int = 0, init=None, **options):
+    def _call_settings(self, data, given: dict, keys):
+        """The data renamed to model names and this call's settings (given, else the model's)."""
+        settings = resolve(self._options, given, keys)
+        columns = settings.pop("columns", None)
+        return rename_columns(data, columns), settings
+
+    def fit(self, data, time: str | None = None, hold: str | None = None, method: str | None = None,
+            criterion: str | None = None, prior=None, robust=None, horizon: int | None = None,
+            starts: int | None = None, seed: int | None = None, init=None, progress=False, **options):
         """Estimate the free parameters by maximum likelihood or MAP (chapter 3).
 
         ``criterion`` is ``"ml"`` or ``"map"`` (with ``prior={"mean": ..., "sd":
-        ..., "corr": ...}`` by parameter name, 3.46); ``robust`` is ``None``,
+        ..., "corr": ...}`` by parameter name, 3.46, or the priors declared with
+        ``set_parameter(..., prior=(mean, sd))``); ``robust`` is ``None``,
         ``("huber", c)`` or ``("tukey", c)`` (3.57–3.58); ``horizon`` > 1 uses
         k-step prediction errors (section 7.2); ``starts`` > 1 adds random
-        starting points inside the bounds.  Returns a
+        starting points inside the bounds.  ``progress=True`` prints the
+        optimiser's iterations (or pass a callable taking one dict per
+        iteration).  Settings not given come from :meth:`set_options`, then
+        from the defaults (time column "t", zero-order hold, ML).  Returns a
         :class:`~greyid.estimate.FitResult`.
         """
         from ..estimate.estimation import fit
 
-        return fit(self, data, time=time, hold=hold, method=method, criterion=criterion, prior=prior,
-                   robust=robust, horizon=horizon, starts=starts, seed=seed, init=init, **options)
+        given = dict(time=time, hold=hold, method=method, criterion=criterion, robust=robust, horizon=horizon,
+                     starts=starts, seed=seed, **options)
+        data, settings = self._call_settings(data, given, DATA_KEYS + FILTER_KEYS + ESTIMATION_KEYS)
+        settings.pop("prior_correlation", None)
+        if prior is None and settings.get("criterion") == "map":
+            prior = self.prior()
+        return fit(self, data, prior=prior, init=init, progress=progress, **settings)
 
-    def predict(self, params, data, steps: int = 1, time: str = "t", hold: str = "zoh", method: str | None = None,
-                **options):
+    def predict(self, params, data, steps: int = 1, time: str | None = None, hold: str | None = None,
+                method: str | None = None, **options):
         """``steps``-ahead output predictions with standard deviations (a DataFrame)."""
         from ..filters.api import predict_data
 
-        return predict_data(self, params, data, steps=steps, time=time, hold=hold, method=method, **options)
+        data, settings = self._call_settings(data, dict(time=time, hold=hold, method=method, **options),
+                                             DATA_KEYS + FILTER_KEYS)
+        return predict_data(self, params, data, steps=steps, **settings)
 
-    def loglik(self, params, data, time: str = "t", hold: str = "zoh", method: str | None = None, **options) -> float:
+    def loglik(self, params, data, time: str | None = None, hold: str | None = None, method: str | None = None,
+               **options) -> float:
         """Gaussian log-likelihood (3.18) of the data at the given parameters.
 
         ``data`` is a DataFrame or a list of DataFrames (independent experiments;
@@ -531,24 +581,34 @@ class Model:
         """
         from ..filters.api import loglik
 
-        return loglik(self, params, data, time=time, hold=hold, method=method, **options)
+        data, settings = self._call_settings(data, dict(time=time, hold=hold, method=method, **options),
+                                             DATA_KEYS + FILTER_KEYS)
+        return loglik(self, params, data, **settings)
 
-    def filter(self, params, data, time: str = "t", hold: str = "zoh", method: str | None = None, **options):
+    def filter(self, params, data, time: str | None = None, hold: str | None = None, method: str | None = None,
+               **options):
         """Run the filter and return a :class:`~greyid.filters.FilterResult`."""
         from ..filters.api import filter_data
 
-        return filter_data(self, params, data, time=time, hold=hold, method=method, **options)
+        data, settings = self._call_settings(data, dict(time=time, hold=hold, method=method, **options),
+                                             DATA_KEYS + FILTER_KEYS)
+        return filter_data(self, params, data, **settings)
 
-    def smooth(self, params, data, time: str = "t", hold: str = "zoh", method: str | None = None, **options):
+    def smooth(self, params, data, time: str | None = None, hold: str | None = None, method: str | None = None,
+               **options):
         """Rauch–Tung–Striebel smoothed states (linear and EKF cases)."""
         from ..filters.api import smooth_data
 
-        return smooth_data(self, params, data, time=time, hold=hold, method=method, **options)
+        data, settings = self._call_settings(data, dict(time=time, hold=hold, method=method, **options),
+                                             DATA_KEYS + FILTER_KEYS)
+        return smooth_data(self, params, data, **settings)
 
     def simulate(self, params, data_or_times, n_paths: int = 1, method: str = "euler", seed: int = 0, **options):
         """Sample paths of states and noisy observations (section 2.5)."""
         from ..simulate.simulate import simulate
 
+        data_or_times, settings = self._call_settings(data_or_times, options, ("time", "hold", "time_unit", "columns"))
+        options = {**options, **settings}
         return simulate(self, params, data_or_times, n_paths=n_paths, method=method, seed=seed, **options)
 
 

@@ -14,6 +14,8 @@ class Parameter:
 
     ``init`` is the starting value for estimation, or the value itself when
     ``fixed`` is true.  Bounds are optional (``None`` means unbounded).
+    ``prior`` is an optional Gaussian prior ``(mean, sd)`` used by MAP
+    estimation (3.46).
     """
 
     name: str
@@ -21,8 +23,15 @@ class Parameter:
     lower: float | None = None
     upper: float | None = None
     fixed: bool = False
+    prior: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
+        if self.prior is not None:
+            prior = self.prior
+            if not (isinstance(prior, (tuple, list)) and len(prior) == 2
+                    and all(isinstance(v, (int, float)) and math.isfinite(v) for v in prior) and prior[1] > 0):
+                raise ModelError(f"parameter '{self.name}': prior must be (mean, sd) with sd > 0, got {prior!r}")
+            object.__setattr__(self, "prior", (float(prior[0]), float(prior[1])))
         for label, value in (("init", self.init), ("lower", self.lower), ("upper", self.upper)):
             if value is not None and (not isinstance(value, (int, float)) or math.isnan(value)):
                 raise ModelError(f"parameter '{self.name}': {label} must be a number, got {value!r}")

@@ -1,0 +1,340 @@
+"""Model files: a model, its parameters and its settings as TOML, and as a dict.
+
+A model file holds what the Python API holds, readable at a glance::
+
+    [model]
+    name = "TiTe"
+    inputs = ["Ta", "Ps", "Ph"]
+    system = [
+      "dTi = (1/(Ci*Rie)*(Te-Ti) + Aw/Ci*Ps + Ph/Ci)*dt + exp(p11)*dw1",
+      "dTe = (1/(Ce*Rie)*(Ti-Te) + 1/(Ce*Rea)*(Ta-Te))*dt + exp(p22)*dw2",
+    ]
+    initial_covariance = "process"     # or a matrix, or a vector of variances
+
+    [model.observations]
+    yTi = { equation = "Ti", variance = "exp(e11)" }
+
+    [model.initial_state]
+    Ti = "Ti0"
+    Te = "Te0"
+
+    [parameters]
+    Ci = { init = 1.0, lower = 1e-3, upper = 20 }
+    Aw = { init = 5.0, fixed = true }
+    Rie = { init = 1.0, lower = 0.01, upper = 10, prior = { mean = 1.0, sd = 0.3 } }
+
+    [derived]
+    UA = "1/(Rie + Rea)"
+
+    [data]
+    file = "data.csv"       # optional, relative to this file
+    time = "t"
+    hold = "zoh"
+    [data.columns]          # model name = column in the data, where they differ
+    yTi = "T_indoor"
+
+    [filter]
+    method = "kalman"
+
+    [estimation]
+    criterion = "ml"
+    starts = 1
+
+:func:`read_model` and :func:`write_model` round-trip (``Model.from_toml`` /
+``model.to_toml``); :func:`read_data` reads the data a model file points to.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import tomllib
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+
+from ..errors import DataError, ModelError
+from .options import DATA_KEYS, ESTIMATION_KEYS, FILE_KEYS, FILTER_KEYS
+
+_SECTIONS = {
+    "model": ("name", "description", "inputs", "system", "algebraic", "observations", "initial_state",
+              "initial_covariance", "initial_covariance_scale"),
+    "parameters": None,
+    "derived": None,
+    "data": DATA_KEYS + FILE_KEYS,
+    "filter": FILTER_KEYS,
+    "estimation": ESTIMATION_KEYS,
+}
+_PARAMETER_KEYS = ("init", "lower", "upper", "fixed", "prior")
+
+
+# ---------------------------------------------------------------------- dict form
+def _plain(value):
+    if isinstance(value, np.ndarray):
+        return [_plain(v) for v in value.tolist()]
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, (np.floating, np.integer)):
+        return float(value)
+    return value
+
+
+def model_to_dict(model) -> dict:
+    """Everything needed to rebuild ``model`` (equations as text), JSON-ready."""
+    if model._functions is not None:
+        raise ModelError("a model defined by Python functions cannot be written out; rebuild it in code")
+
+    def parameter(p) -> dict:
+        out = {"init": p.init, "lower": p.lower, "upper": p.upper, "fixed": p.fixed}
+        if p.prior is not None:
+            out["prior"] = {"mean": p.prior[0], "sd": p.prior[1]}
+        return out
+
+    options = model.options
+    if "prior_correlation" in options:  # tuple keys survive neither JSON nor TOML
+        options["prior_correlation"] = {f"{a},{b}": r for (a, b), r in options["prior_correlation"].items()}
+    if "robust" in options:
+        options["robust"] = list(options["robust"])
+    return {
+        "name": model.name,
+        "description": model.description,
+        "system": [e.text for e in model._system],
+        "inputs": list(model._inputs),
+        "observations": [{"equation": o[0].text, "variance": _plain(o[2])} for o in model._observations],
+        "algebraic": [a.text for a in model._algebraics],
+        "parameters": {n: parameter(p) for n, p in model.parameters.items()},
+        "initial_state": None if model._initial_mean is None else {
+            "mean": {k: _plain(v) for k, v in model._initial_mean.items()},
+            "covariance": _plain(model._initial_covariance),
+            "scale": model._initial_scale,
+        },
+        "derived": model.derived,
+        "options": options,
+    }
+
+
+def model_from_dict(spec: Mapping, cls=None):
+    """Rebuild a model written by :func:`model_to_dict`."""
+    if cls is None:
+        from .model import Model as cls
+    m = cls(spec.get("name", "model"), spec.get("description", ""))
+    m.add_system(*spec["system"])
+    if spec.get("inputs"):
+        m.add_inputs(*spec["inputs"])
+    for a in spec.get("algebraic", []):
+        m.add_algebraic(a)
+    for o in spec["observations"]:
+        m.add_observation(o["equation"], variance=o["variance"])
+    for name, p in spec.get("parameters", {}).items():
+        prior = p.get("prior")
+        m.set_parameter(name, init=p.get("init"), lower=p.get("lower"), upper=p.get("upper"),
+                        fixed=p.get("fixed", False), prior=None if prior is None else (prior["mean"], prior["sd"]))
+    init = spec.get("initial_state")
+    if init is not None:
+        m.set_initial_state(mean=init["mean"], covariance=init["covariance"], scale=init.get("scale", 1.0))
+    for name, expr in spec.get("derived", {}).items():
+        m.add_derived(name, expr)
+    m.set_options(**spec.get("options", {}))
+    return m
+
+
+# ---------------------------------------------------------------------- reading TOML
+def _check_keys(table: Mapping, allowed, where: str) -> None:
+    for key in table:
+        if key not in allowed:
+            raise ModelError(f"unknown key '{key}' in {where}; allowed keys are {list(allowed)}")
+
+
+def _observation(name: str, value) -> dict:
+    if not isinstance(value, Mapping) or "equation" not in value or "variance" not in value:
+        raise ModelError(f"observation '{name}' must be a table {{ equation = \"...\", variance = ... }}")
+    _check_keys(value, ("equation", "variance"), f"[model.observations] {name}")
+    return {"equation": f"{name} = {value['equation']}", "variance": value["variance"]}
+
+
+def _parameter(name: str, value) -> dict:
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return {"init": float(value)}  # shorthand: `Ci = 1.0` gives the initial value only
+    if not isinstance(value, Mapping):
+        raise ModelError(f"parameter '{name}' must be a number or a table {{ init = ..., lower = ..., upper = ... }}")
+    _check_keys(value, _PARAMETER_KEYS, f"[parameters] {name}")
+    out = {k: value.get(k) for k in ("init", "lower", "upper")}
+    out["fixed"] = bool(value.get("fixed", False))
+    prior = value.get("prior")
+    if prior is not None:
+        if not isinstance(prior, Mapping) or set(prior) != {"mean", "sd"}:
+            raise ModelError(f"prior of parameter '{name}' must be {{ mean = ..., sd = ... }}")
+        out["prior"] = dict(prior)
+    return out
+
+
+def spec_from_toml(document: Mapping) -> dict:
+    """The :func:`model_to_dict` form of a parsed TOML model file."""
+    _check_keys(document, tuple(_SECTIONS), "the model file")
+    if "model" not in document:
+        raise ModelError("the model file has no [model] section")
+    for section, keys in _SECTIONS.items():
+        if keys is not None and section in document:
+            _check_keys(document[section], keys, f"[{section}]")
+    model = document["model"]
+    system = model.get("system")
+    if isinstance(system, str):
+        system = [system]
+    if not system:
+        raise ModelError("[model] needs system = [\"dx = ...*dt + ...*dw1\", ...]")
+    observations = model.get("observations")
+    if not observations:
+        raise ModelError("the model file has no [model.observations]; add e.g. y = { equation = \"x\", variance = \"s\" }")
+    initial = model.get("initial_state")
+    options = {}
+    for section in ("data", "filter", "estimation"):
+        options.update(document.get(section, {}))
+    return {
+        "name": model.get("name", "model"),
+        "description": model.get("description", ""),
+        "system": list(system),
+        "inputs": list(model.get("inputs", [])),
+        "algebraic": list(model.get("algebraic", [])),
+        "observations": [_observation(n, v) for n, v in observations.items()],
+        "parameters": {n: _parameter(n, v) for n, v in document.get("parameters", {}).items()},
+        "initial_state": None if initial is None else {
+            "mean": dict(initial),
+            "covariance": model.get("initial_covariance", "process"),
+            "scale": model.get("initial_covariance_scale", 1.0),
+        },
+        "derived": dict(document.get("derived", {})),
+        "options": options,
+    }
+
+
+def read_model(source):
+    """A :class:`Model` from a TOML model file (a path) or TOML text.
+
+    A relative ``[data] file`` is kept relative to the model file's folder.
+    """
+    path = None
+    if isinstance(source, Path) or (isinstance(source, str) and "\n" not in source and "=" not in source):
+        path = Path(source)
+        if not path.is_file():
+            raise ModelError(f"model file '{path}' not found")
+        text = path.read_text(encoding="utf-8")
+    elif isinstance(source, str):
+        text = source
+    else:
+        raise ModelError(f"a model file must be a path or TOML text, got {type(source).__name__}")
+    where = f"model file '{path}'" if path else "model text"
+    try:
+        document = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise ModelError(f"{where} is not valid TOML: {err}") from None
+    try:
+        model = model_from_dict(spec_from_toml(document))
+    except ModelError as err:
+        raise ModelError(f"{where}: {err}") from None
+    model.source = path
+    return model
+
+
+# ---------------------------------------------------------------------- writing TOML
+def _key(name: str) -> str:
+    return name if name.replace("_", "a").replace("-", "a").isalnum() else json.dumps(name)
+
+
+def _value(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return json.dumps(value, ensure_ascii=False)
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            raise ModelError(f"{value} cannot be written to a model file")
+        return repr(value)
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_value(v) for v in value) + "]"
+    if isinstance(value, Mapping):
+        return "{ " + ", ".join(f"{_key(k)} = {_value(v)}" for k, v in value.items()) + " }"
+    raise ModelError(f"cannot write {value!r} to a model file")
+
+
+def model_to_toml(model) -> str:
+    """The model file text for ``model``."""
+    spec = model_to_dict(model)
+    lines = ["# greyid model file", "[model]", f"name = {_value(spec['name'])}"]
+    if spec["description"]:
+        lines.append(f"description = {_value(spec['description'])}")
+    if spec["inputs"]:
+        lines.append(f"inputs = {_value(spec['inputs'])}")
+    lines += ["system = ["] + [f"  {_value(e)}," for e in spec["system"]] + ["]"]
+    if spec["algebraic"]:
+        lines += ["algebraic = ["] + [f"  {_value(e)}," for e in spec["algebraic"]] + ["]"]
+    initial = spec["initial_state"]
+    if initial is not None:
+        lines.append(f"initial_covariance = {_value(initial['covariance'])}")
+        if initial["scale"] != 1.0:
+            lines.append(f"initial_covariance_scale = {_value(initial['scale'])}")
+    lines += ["", "[model.observations]"]
+    for o in spec["observations"]:
+        name, rhs = (part.strip() for part in o["equation"].split("=", 1))
+        lines.append(f"{_key(name)} = {_value({'equation': rhs, 'variance': o['variance']})}")
+    if initial is not None:
+        lines += ["", "[model.initial_state]"] + [f"{_key(k)} = {_value(v)}" for k, v in initial["mean"].items()]
+    if spec["parameters"]:
+        lines += ["", "[parameters]"]
+        for name, p in spec["parameters"].items():
+            entry = {k: p[k] for k in ("init", "lower", "upper") if p.get(k) is not None}
+            if p["fixed"]:
+                entry = {"init": p["init"], "fixed": True}
+            if p.get("prior"):
+                entry["prior"] = p["prior"]
+            lines.append(f"{_key(name)} = {_value(entry)}")
+    if spec["derived"]:
+        lines += ["", "[derived]"] + [f"{_key(k)} = {_value(v)}" for k, v in spec["derived"].items()]
+    options = spec["options"]
+    for section, keys in (("data", DATA_KEYS + FILE_KEYS), ("filter", FILTER_KEYS), ("estimation", ESTIMATION_KEYS)):
+        simple = {k: options[k] for k in keys if k in options and not isinstance(options[k], Mapping)}
+        tables = {k: options[k] for k in keys if k in options and isinstance(options[k], Mapping)}
+        if simple or tables:
+            lines += ["", f"[{section}]"] + [f"{_key(k)} = {_value(v)}" for k, v in simple.items()]
+        for name, table in tables.items():
+            lines += [f"[{section}.{name}]"] + [f"{_key(k)} = {_value(v)}" for k, v in table.items()]
+    return "\n".join(lines) + "\n"
+
+
+def write_model(model, path=None) -> str:
+    """Write ``model`` as a TOML model file to ``path`` (when given); returns the text."""
+    text = model_to_toml(model)
+    if path is not None:
+        Path(path).write_text(text, encoding="utf-8")
+    return text
+
+
+# ---------------------------------------------------------------------- data
+def read_data(model, path=None):
+    """Read the CSV data for ``model``: ``path``, else the model file's ``[data] file``.
+
+    The separator is ``[data] separator`` when given, else detected.  Column
+    renaming by ``[data.columns]`` happens when the data are used.
+    """
+    import pandas as pd
+
+    options = model.options
+    if path is None:
+        if "file" not in options:
+            raise DataError("no data file given, and the model file names none ([data] file = \"...\")")
+        path = Path(options["file"])
+        source = getattr(model, "source", None)
+        if not path.is_absolute() and source is not None:
+            path = Path(source).parent / path
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"data file '{path}' not found")
+    separator = options.get("separator")
+    try:
+        if separator is None:
+            return pd.read_csv(path, sep=None, engine="python")
+        return pd.read_csv(path, sep=separator)
+    except (pd.errors.ParserError, UnicodeDecodeError, ValueError) as err:
+        raise DataError(f"data file '{path}' could not be read as CSV: {err}") from None

@@ -1,0 +1,91 @@
+"""Progress output for long work: optimiser iterations and loops over fits.
+
+Quiet by default in the Python API (``progress=False``); the command line turns
+it on.  ``progress=True`` writes to standard error through rich, so a bar
+redraws in a terminal and plain lines go to a log; a callable receives one
+dict per event instead, for notebooks or GUIs that show progress their own way.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Iterable, Iterator, TypeVar
+
+T = TypeVar("T")
+
+
+def _console():
+    from rich.console import Console
+
+    return Console(stderr=True, highlight=False, soft_wrap=True)
+
+
+class FitProgress:
+    """Reports a fit: each optimiser iteration (single start) or each finished start."""
+
+    def __init__(self, progress, starts: int, label: str = "log-likelihood"):
+        self.callback: Callable[[dict], None] | None = progress if callable(progress) else None
+        self.enabled = bool(progress) and self.callback is None
+        self.starts = starts
+        self.label = label
+        self._bar = None
+        self._task = None
+        self._start = 0
+
+    def __enter__(self) -> "FitProgress":
+        if self.enabled:
+            self.console = _console()
+            if self.starts > 1:
+                from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+                self._bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                                     TimeElapsedColumn(), console=self.console, transient=False)
+                self._bar.start()
+                self._task = self._bar.add_task("multi-start fit", total=self.starts)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._bar is not None:
+            self._bar.stop()
+
+    def begin_start(self, index: int) -> None:
+        self._start = index
+
+    def iteration(self, iteration: int, stage: str, value: float, gradient: float) -> None:
+        """One accepted step; ``value`` is the criterion to maximise (e.g. the log-likelihood)."""
+        info = dict(start=self._start, iteration=iteration, stage=stage, value=value, max_gradient=gradient)
+        if self.callback is not None:
+            self.callback(info)
+        elif self.enabled and self.starts == 1:
+            self.console.print(f"  {stage:6s} iter {iteration:4d}   {self.label} {value: .6f}   "
+                               f"max|gradient| {gradient:.2e}")
+
+    def end_start(self, value: float, iterations: int, converged: bool, message: str) -> None:
+        if self.callback is not None:
+            self.callback(dict(start=self._start, finished=True, value=value, iterations=iterations,
+                               converged=converged, message=message))
+        elif self.enabled:
+            where = f"start {self._start + 1}/{self.starts}: " if self.starts > 1 else ""
+            printer = self._bar.console if self._bar is not None else self.console
+            printer.print(f"  {where}{iterations} iterations, {self.label} {value:.6f}, {message}")
+            if self._bar is not None:
+                self._bar.advance(self._task)
+
+
+def track(items: Iterable[T], total: int, description: str, progress=False) -> Iterator[T]:
+    """Iterate with a progress bar when ``progress`` is true; a callable gets ``(done, total)``."""
+    if callable(progress):
+        for i, item in enumerate(items):
+            yield item
+            progress(i + 1, total)
+        return
+    if not progress:
+        yield from items
+        return
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=_console()) as bar:
+        task = bar.add_task(description, total=total)
+        for item in items:
+            yield item
+            bar.advance(task)

@@ -1,0 +1,58 @@
+"""The model's equations as MathML (rendered by the browser, no script or font needed)."""
+
+from __future__ import annotations
+
+import html
+
+import sympy as sp
+from sympy.printing.mathml import mathml
+
+
+def _math(expr: sp.Expr) -> str:
+    return mathml(expr, printer="presentation", mul_symbol="dot")
+
+
+def _differential(name: str) -> str:
+    return f"<mi>d</mi><mi>{html.escape(name)}</mi>"
+
+
+def _block(body: str) -> str:
+    return f'<math display="block"><mrow>{body}</mrow></math>'
+
+
+def system_equation(state: str, drift: sp.Expr, diffusion: dict[str, sp.Expr]) -> str:
+    """dx = f dt + Σ_j g_j dω_j (4.1) as a MathML block."""
+    parts = [f"<mo>(</mo>{_math(drift)}<mo>)</mo><mspace width='0.2em'/><mi>dt</mi>"]
+    for noise, g in diffusion.items():
+        if g != 0:
+            index = noise[2:] if noise.startswith("dw") else noise
+            parts.append(f"<mo>(</mo>{_math(g)}<mo>)</mo><mspace width='0.2em'/>"
+                         f"<mi>d</mi><msub><mi>&#969;</mi><mn>{html.escape(index)}</mn></msub>")
+    return _block(_differential(state) + "<mo>=</mo>" + "<mo>+</mo>".join(parts))
+
+
+def named_equation(name: str, expr: sp.Expr, noise: str | None = None) -> str:
+    """``name = expr`` (observation or algebraic), with ``+ e`` for measurement noise."""
+    body = f"<mi>{html.escape(name)}</mi><mo>=</mo>{_math(expr)}"
+    if noise is not None:
+        body += f"<mo>+</mo><msub><mi>e</mi><mi>{html.escape(noise)}</mi></msub>"
+    return _block(body)
+
+
+def variance_equation(name: str, expr: sp.Expr) -> str:
+    body = (f"<mi>Var</mi><mo>(</mo><msub><mi>e</mi><mi>{html.escape(name)}</mi></msub><mo>)</mo>"
+            f"<mo>=</mo>{_math(expr)}")
+    return _block(body)
+
+
+def model_equations(model) -> list[tuple[str, str]]:
+    """(MathML, plain text) for each equation of a model written as equations."""
+    out = []
+    for a in model._algebraics:
+        out.append((named_equation(a.lhs, a.rhs), a.text))
+    for e in model._system:
+        out.append((system_equation(e.state, e.drift, e.diffusion), e.text))
+    for eq, variance, given in model._observations:
+        out.append((named_equation(eq.lhs, eq.rhs, noise=eq.lhs), eq.text))
+        out.append((variance_equation(eq.lhs, variance), f"Var(e_{eq.lhs}) = {given}"))
+    return out

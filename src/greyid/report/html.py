@@ -1,0 +1,222 @@
+"""A self-contained HTML report of a fit: one file, figures embedded, no scripts.
+
+Sections: model (equations rendered from SymPy as MathML), data, estimation
+(criterion, log-likelihood, information criteria, warnings), parameters with
+standard errors, correlation matrix, derived quantities, the residual tests of
+chapter 5 with their verdicts, the residual dashboard and coherency of each
+output, measured versus simulated outputs, and k-step predictions.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import html
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from ..errors import ModelError
+from .equations import model_equations
+from .figures import data_figure, embedded_png
+
+#: Section ids, in order; a complete report has every one of them.
+SECTIONS = ("model", "data", "estimation", "parameters", "correlation", "derived", "validation",
+            "residuals", "simulation", "prediction")
+
+_CSS = """
+body { font-family: system-ui, -apple-system, "Segoe UI", Roboto, sans-serif; max-width: 1100px;
+       margin: 2em auto; padding: 0 1em; color: #1d1d1f; line-height: 1.45; }
+h1 { font-size: 1.7em; margin-bottom: 0.1em; } h2 { border-bottom: 2px solid #ddd; padding-bottom: 0.2em;
+     margin-top: 2em; } h3 { margin-bottom: 0.3em; }
+.subtitle { color: #666; margin-top: 0; }
+nav a { margin-right: 0.9em; color: #2a62b5; text-decoration: none; }
+table { border-collapse: collapse; margin: 0.6em 0; font-size: 0.9em; }
+th, td { border: 1px solid #ddd; padding: 0.25em 0.6em; text-align: right; }
+th { background: #f3f4f6; } td.name, th.name { text-align: left; font-family: ui-monospace, monospace; }
+.reject { background: #fde2e1; } .accept { background: #e3f5e6; }
+.warning { background: #fff4d6; border-left: 4px solid #e0a800; padding: 0.4em 0.8em; margin: 0.4em 0; }
+.ok { background: #e3f5e6; border-left: 4px solid #2e9b47; padding: 0.4em 0.8em; margin: 0.4em 0; }
+pre { background: #f6f8fa; padding: 0.6em; overflow-x: auto; font-size: 0.85em; }
+img.figure { max-width: 100%; display: block; margin: 0.6em 0; }
+math { font-size: 1.1em; margin: 0.3em 0; }
+dl.facts { display: grid; grid-template-columns: max-content auto; gap: 0.2em 1.2em; }
+dl.facts dt { color: #555; } dl.facts dd { margin: 0; font-family: ui-monospace, monospace; }
+"""
+
+
+def _esc(value) -> str:
+    return html.escape(str(value))
+
+
+def _number(value, digits: int = 4) -> str:
+    if value is None or (isinstance(value, (float, np.floating)) and not np.isfinite(value)):
+        return "–"
+    if isinstance(value, (bool, np.bool_)):
+        return "yes" if value else "no"
+    if isinstance(value, (int, np.integer)):
+        return str(value)
+    return f"{value:.{digits}g}"
+
+
+def _table(frame: pd.DataFrame, digits: int = 4, row_class=None, index_name: str = "") -> str:
+    head = f'<th class="name">{_esc(index_name)}</th>' + "".join(f"<th>{_esc(c)}</th>" for c in frame.columns)
+    rows = []
+    for name, row in frame.iterrows():
+        cls = f' class="{row_class(row)}"' if row_class else ""
+        cells = "".join(f"<td>{_esc(_number(v, digits)) if not isinstance(v, str) else _esc(v)}</td>"
+                        for v in row.to_numpy())
+        rows.append(f'<tr{cls}><td class="name">{_esc(name)}</td>{cells}</tr>')
+    return f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(rows)}</tbody></table>"
+
+
+def _correlation_table(corr: pd.DataFrame) -> str:
+    head = '<th class="name"></th>' + "".join(f'<th class="name">{_esc(c)}</th>' for c in corr.columns)
+    rows = []
+    for name, row in corr.iterrows():
+        cells = []
+        for col, v in row.items():
+            shade = 0 if name == col or not np.isfinite(v) else min(abs(v), 1.0)
+            color = f"rgba(214, 69, 65, {0.85 * shade:.2f})" if v > 0 else f"rgba(42, 98, 181, {0.85 * shade:.2f})"
+            cells.append(f'<td style="background:{color}">{_number(v, 2)}</td>')
+        rows.append(f'<tr><td class="name">{_esc(name)}</td>{"".join(cells)}</tr>')
+    return f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(rows)}</tbody></table>"
+
+
+def _facts(items) -> str:
+    return '<dl class="facts">' + "".join(f"<dt>{_esc(k)}</dt><dd>{_esc(v)}</dd>" for k, v in items) + "</dl>"
+
+
+def _section(sid: str, title: str, body: str) -> str:
+    return f'<section id="{sid}"><h2>{_esc(title)}</h2>\n{body}\n</section>'
+
+
+def _model_section(fit) -> str:
+    model = fit.model
+    parts = []
+    if model.description:
+        parts.append(f"<p>{_esc(model.description)}</p>")
+    if model._functions is not None:
+        parts.append("<p>This model is defined by Python functions; it has no equations to show.</p>")
+    else:
+        equations = model_equations(model)
+        parts += [math for math, _ in equations]
+        parts.append("<h3>As written</h3><pre>" + _esc("\n".join(text for _, text in equations)) + "</pre>")
+    s = model.structure
+    parts.append(_facts([("class", f"{s.kind} ({'exact Kalman filter' if s.is_linear else 'nonlinear'})"),
+                         ("states", ", ".join(s.state_names)), ("inputs", ", ".join(s.input_names) or "none"),
+                         ("outputs", ", ".join(s.output_names))]))
+    return _section("model", f"Model '{model.name}'", "\n".join(parts))
+
+
+def _data_section(fit, frames) -> str:
+    time_name = fit.settings["time"]
+    s = fit.model.structure
+    parts = []
+    for i, frame in enumerate(frames):
+        t = frame[time_name]
+        observed = {name: int(frame[name].notna().sum()) for name in s.output_names}
+        title = f"<h3>Data set {i + 1}</h3>" if len(frames) > 1 else ""
+        parts.append(title + _facts([("rows", len(frame)), ("time", f"{time_name} from {t.iloc[0]} to {t.iloc[-1]}"),
+                                     ("observed values", ", ".join(f"{k}: {v}" for k, v in observed.items())),
+                                     ("hold", fit.settings["hold"])]))
+        parts.append(embedded_png(data_figure(frame, time_name, s.output_names, s.input_names)))
+    if fit.data_file:
+        parts.insert(0, f"<p>Read from <code>{_esc(fit.data_file)}</code>.</p>")
+    return _section("data", "Data", "\n".join(parts))
+
+
+def _estimation_section(fit) -> str:
+    s = fit.settings
+    criterion = s["criterion"].upper() + (f", robust {s['robust'][0]} (c = {s['robust'][1]:g})" if s.get("robust")
+                                          else "") + (f", {s['horizon']}-step" if s.get("horizon", 1) > 1 else "")
+    facts = [("criterion", criterion), ("filter", f"{s['method']} ({s['form']})"),
+             ("log-likelihood", f"{fit.loglik:.6f}"), ("AIC", f"{fit.aic:.4f}"), ("BIC", f"{fit.bic:.4f}"),
+             ("observations", fit.n_obs), ("free parameters", fit.n_params),
+             ("optimiser", f"{fit.message} after {fit.iterations} iterations")]
+    if s.get("robust") or s.get("horizon", 1) > 1 or s["criterion"] == "map":
+        facts.insert(3, ("criterion value", f"{fit.criterion_value:.6f}"))
+    body = [_facts(facts)]
+    if fit.converged and not fit.warnings:
+        body.append('<div class="ok">Converged; no warnings.</div>')
+    if not fit.converged:
+        body.append('<div class="warning">The optimiser did not converge.</div>')
+    body += [f'<div class="warning">{_esc(w)}</div>' for w in fit.warnings]
+    return _section("estimation", "Estimation", "\n".join(body))
+
+
+def _parameters_section(fit) -> str:
+    columns = ["estimate", "std_error", "t_value", "p_value", "lower", "upper"]
+    table = fit.params[columns].copy()
+    table["note"] = ["fixed" if r["fixed"] else ("at bound" if r["at_bound"] else
+                                                 ("unreliable" if not r["reliable"] else ""))
+                     for _, r in fit.params.iterrows()]
+    return _section("parameters", "Parameters",
+                    _table(table, 5, row_class=lambda r: "reject" if r["note"] in ("at bound", "unreliable") else "")
+                    + "<p>Standard errors from the exact Hessian of the negative log-likelihood, mapped to the "
+                      "natural parameters.</p>")
+
+
+def _derived_section(fit) -> str:
+    if not fit.model.derived:
+        body = "<p>The model declares no derived quantities (<code>[derived]</code> in its model file).</p>"
+    else:
+        table = fit.derived().join(pd.Series(fit.model.derived, name="expression"))
+        body = _table(table, 5) + "<p>Standard errors by the delta method (6.35).</p>"
+    return _section("derived", "Derived quantities", body)
+
+
+def _validation_sections(fit, validation, steps: int, n_paths: int, seed: int) -> list[str]:
+    tests = validation.tests.set_index("test")
+    verdict = (f"{int(tests['reject'].sum())} of {len(tests)} tests reject at level {validation.level}.")
+    body = [f"<p>{_esc(verdict)}</p>",
+            _table(tests, 4, row_class=lambda r: "reject" if r["reject"] else "accept", index_name="test")]
+    for test, output, reason in validation.skipped:
+        body.append(f'<div class="warning">skipped {_esc(test)} for {_esc(output)}: {_esc(reason)}</div>')
+    sections = [_section("validation", "Residual tests (chapter 5)", "\n".join(body))]
+
+    residual_parts = []
+    for label in validation.residuals:
+        residual_parts.append(f"<h3>{_esc(label)}</h3>" + embedded_png(validation.plot(label)))
+        if fit.model.input_names:
+            try:
+                residual_parts.append(embedded_png(validation.plot_coherency(label)))
+            except (ModelError, ValueError, np.linalg.LinAlgError) as err:
+                residual_parts.append(f'<div class="warning">no coherency plot: {_esc(err)}</div>')
+    sections.append(_section("residuals", "Residual analysis", "\n".join(residual_parts)))
+    sections.append(_section("simulation", "Measured and simulated outputs",
+                             embedded_png(validation.plot_simulation(n_paths=n_paths, seed=seed))
+                             + "<p>The deterministic simulation from the estimated initial state, driven by the "
+                               "measured inputs alone, with a Monte Carlo band of the stochastic model.</p>"))
+    predictions = [embedded_png(validation.plot_prediction(steps=k)) for k in sorted({1, steps})]
+    sections.append(_section("prediction", "Predictions", "\n".join(predictions)))
+    return sections
+
+
+def html_report(fit, level: float = 0.05, steps: int = 4, n_paths: int = 100, seed: int = 0,
+                title: str | None = None) -> str:
+    """The report of ``fit`` as one HTML document (a string); see the module docstring."""
+    if fit.data is None:
+        raise ModelError("this fit carries no data (it was loaded from a file); attach it with fit.with_data(data)")
+    from .. import __version__
+
+    validation = fit.validate(level=level)
+    title = title or f"greyid report: {fit.model.name}"
+    stamp = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
+    sections = [_model_section(fit), _data_section(fit, fit.data), _estimation_section(fit),
+                _parameters_section(fit), _section("correlation", "Correlation of the estimates",
+                                                   _correlation_table(fit.corr)),
+                _derived_section(fit), *_validation_sections(fit, validation, steps, n_paths, seed)]
+    nav = "".join(f'<a href="#{sid}">{sid}</a>' for sid in SECTIONS)
+    return (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
+            f'<meta name="viewport" content="width=device-width, initial-scale=1">'
+            f"<title>{_esc(title)}</title><style>{_CSS}</style></head><body>"
+            f"<h1>{_esc(title)}</h1><p class='subtitle'>greyid {__version__}, {stamp}</p>"
+            f"<nav>{nav}</nav>\n" + "\n".join(sections) + "\n</body></html>\n")
+
+
+def write_report(fit, path, **options) -> Path:
+    """Write :func:`html_report` to ``path``; returns the path."""
+    path = Path(path)
+    path.write_text(html_report(fit, **options), encoding="utf-8")
+    return path
