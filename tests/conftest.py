@@ -120,3 +120,18 @@ def building():
     from greyid.datasets import TRUE_PARAMETERS, building_model, load_building_data
 
     return building_model(), TRUE_PARAMETERS, load_building_data()
+
+
+@pytest.fixture(scope="session")
+def demo_run(tmp_path_factory):
+    """``greyid demo --out DIR`` run once: (exit code, printed text, output folder)."""
+    import contextlib
+    import io
+
+    from greyid.cli import main
+
+    folder = tmp_path_factory.mktemp("demo")
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        code = main(["demo", "--out", str(folder), "--quiet"])
+    return code, printed.getvalue(), folder

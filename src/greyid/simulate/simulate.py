@@ -129,9 +129,11 @@ def simulate(model, params, data_or_times, n_paths: int = 1, method: str = "eule
         states = _exact_paths(structure, theta, series, HOLDS[hold], init, k_path, scale)
     else:
         fine_t, fine_u = _fine_grid(series, substeps, hold)
-        integrate = _compiled(structure, ("simulate", method, calculus),
-                              lambda: jax.jit(jax.vmap(make_integrator(structure.drift, structure.diffusion,
-                                                                       method, calculus),
+        # Without noise the paths solve the ODE dx = f dt: the Itô–Stratonovich and
+        # Milstein corrections belong to the noise and must go with it.
+        diffusion = structure.diffusion if noise else _no_diffusion(m)
+        integrate = _compiled(structure, ("simulate", method, calculus, bool(noise)),
+                              lambda: jax.jit(jax.vmap(make_integrator(structure.drift, diffusion, method, calculus),
                                                        in_axes=(None, 0, None, None, 0))))
         dt = np.diff(fine_t)
         dW = scale * jax.random.normal(k_path, (n_paths, len(dt), m)) * jnp.sqrt(jnp.asarray(dt))[None, :, None]
@@ -146,6 +148,13 @@ def simulate(model, params, data_or_times, n_paths: int = 1, method: str = "eule
     y = y_mean + scale * jnp.sqrt(S) * jax.random.normal(k_obs, y_mean.shape)
     return Simulation(series.times, series.inputs, np.asarray(states), np.asarray(y), series.time_name,
                       structure.input_names, structure.state_names, structure.output_names)
+
+
+def _no_diffusion(m: int):
+    def diffusion(x, u, t, theta):
+        return jnp.zeros((x.shape[0], m))
+
+    return diffusion
 
 
 def _make_observe(structure):

@@ -1,0 +1,67 @@
+"""Progress output and warnings of fits and studies."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pandas as pd
+import pytest
+
+import greyid
+from greyid.datasets import load_building_data
+from greyid.datasets.building import building_model
+from greyid.progress import track
+
+
+@pytest.fixture(scope="module")
+def short():
+    return building_model(), load_building_data().iloc[:300]
+
+
+def test_callable_progress_sees_every_iteration(short):
+    model, data = short
+    events = []
+    fit = model.fit(data, progress=events.append)
+    steps = [e for e in events if "iteration" in e]
+    assert [e["iteration"] for e in steps] == list(range(1, len(steps) + 1))
+    assert events[-1]["finished"] and events[-1]["value"] == pytest.approx(fit.loglik, rel=1e-12)
+    values = [e["value"] for e in steps]
+    assert all(b >= a - 1e-9 for a, b in zip(values, values[1:]))  # accepted steps never go down
+    assert fit.iterations == len(steps)
+
+
+def test_quiet_by_default_and_printed_when_asked(short, capsys):
+    model, data = short
+    model.fit(data)
+    assert capsys.readouterr().err == ""
+    model.fit(data, progress=True)
+    err = capsys.readouterr().err
+    assert "iter    1   log-likelihood" in err and "converged" in err
+    model.fit(data, progress=True, starts=2, seed=1)
+    err = capsys.readouterr().err
+    assert "start 1/2:" in err and "start 2/2:" in err
+
+
+def test_warnings_are_issued_and_stored():
+    m = greyid.Model("bounded")
+    m.add_system("dx = -a*x*dt + s*dw1")
+    m.add_observation("y = x", variance="v")
+    m.set_initial_state(mean={"x": 0.0}, covariance=[1.0])
+    m.set_parameter("a", init=0.5, lower=0.1, upper=0.6)  # the truth, 2, lies beyond the upper bound
+    m.set_parameter("s", init=1.0, lower=1e-3, upper=10)
+    m.set_parameter("v", init=0.1, lower=1e-4, upper=10)
+    t = np.arange(200) * 0.1
+    sim = m.simulate({"a": 2.0, "s": 1.0, "v": 0.01}, t, seed=3)
+    with pytest.warns(greyid.FitWarning, match="'a' is at a bound"):
+        fit = m.fit(pd.DataFrame({"t": t, "y": sim.outputs[0, :, 0]}))
+    assert any("'a' is at a bound" in w for w in fit.warnings)
+
+
+def test_track_reports_to_a_callable():
+    seen = []
+    assert list(track(range(4), 4, "x", progress=lambda d, n: seen.append((d, n)))) == [0, 1, 2, 3]
+    assert seen == [(1, 4), (2, 4), (3, 4), (4, 4)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert list(track(range(2), 2, "x")) == [0, 1]

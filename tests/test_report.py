@@ -1,0 +1,81 @@
+"""The HTML report: complete, self-contained, and readable in a browser (headless Chromium)."""
+
+from __future__ import annotations
+
+import base64
+import re
+import shutil
+import subprocess
+
+import pytest
+
+import greyid
+from greyid.datasets import load_building_data
+from greyid.report import SECTIONS
+
+
+@pytest.fixture(scope="module")
+def report(demo_run):
+    code, _, folder = demo_run
+    return (folder / "report.html").read_text(encoding="utf-8"), folder
+
+
+def test_every_section_is_present_in_order(report):
+    text, _ = report
+    positions = [text.find(f'<section id="{sid}">') for sid in SECTIONS]
+    assert all(p > 0 for p in positions), dict(zip(SECTIONS, positions))
+    assert positions == sorted(positions)
+
+
+def test_figures_are_embedded_pngs_and_nothing_is_fetched(report):
+    text, _ = report
+    sources = re.findall(r'<img[^>]*src="([^"]+)"', text)
+    # data overview, residual dashboard, coherency, simulation, 1- and 4-step predictions
+    assert len(sources) == 6
+    for src in sources:
+        assert src.startswith("data:image/png;base64,")
+        assert base64.b64decode(src.split(",", 1)[1])[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "<script" not in text and "<link" not in text and "http" not in text.replace("http-equiv", "")
+
+
+def test_content_matches_the_fit(report):
+    text, folder = report
+    fit = greyid.load_fit(folder / "fit.json")
+    assert f"{fit.loglik:.6f}" in text
+    for name in fit.params.index:
+        assert f'<td class="name">{name}</td>' in text
+    for label in fit.model.derived:
+        assert label in text
+    assert text.count('<math display="block">') == 2 + 2  # two states, one observation and its variance
+    assert "dTi = (1/(Ci*Riw)*(Tw-Ti)" in text  # the equations as written
+    assert "ljung_box" in text and "cumulative_periodogram" in text
+
+
+def test_loaded_fit_needs_its_data(report):
+    _, folder = report
+    fit = greyid.load_fit(folder / "fit.json")
+    with pytest.raises(greyid.ModelError, match="with_data"):
+        fit.report()
+    assert fit.with_data(load_building_data()).residuals.shape == (len(load_building_data()), 1)
+
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="no Chromium on this machine (apt-get install chromium)")
+def test_report_renders_in_headless_chromium(report, tmp_path):
+    _, folder = report
+    url = (folder / "report.html").resolve().as_uri()
+    flags = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars"]
+    dom = subprocess.run(flags + ["--dump-dom", url], capture_output=True, text=True, timeout=120).stdout
+    for sid in SECTIONS:
+        assert f'id="{sid}"' in dom
+    shot = tmp_path / "shot.png"
+    subprocess.run(flags + ["--window-size=1200,1600", f"--screenshot={shot}", url], capture_output=True,
+                   timeout=120)
+    import numpy as np
+    from PIL import Image
+
+    image = np.asarray(Image.open(shot).convert("L"))
+    assert image.shape == (1600, 1200)
+    assert np.mean(image < 128) > 0.01  # text, equations and the data figure were drawn
