@@ -56,6 +56,10 @@ def test_warnings_are_issued_and_stored():
     with pytest.warns(greyid.FitWarning, match="'a' is at a bound"):
         fit = m.fit(pd.DataFrame({"t": t, "y": sim.outputs[0, :, 0]}))
     assert any("'a' is at a bound" in w for w in fit.warnings)
+    # a quantity free of the parameter at its bound keeps its standard error
+    derived = fit.derived({"inverse noise": "1/s", "with a": "a*s"})
+    assert np.isfinite(derived.loc["inverse noise", "std_error"])
+    assert np.isnan(derived.loc["with a", "std_error"])
 
 
 def test_track_reports_to_a_callable():

@@ -77,18 +77,13 @@ def _run(command) -> None:
 
     try:
         with warnings.catch_warnings():
-            # The CLI prints a fit's warnings itself, once, in its own place.
+            # A fit's warnings are printed once, at the end of its summary.
             warnings.simplefilter("ignore", FitWarning)
             code = command()
     except (InputProblem, ModelError, DataError) as problem:
         err.print(f"[bold red]error:[/] {escape(str(problem))}", markup=True)
         raise typer.Exit(BAD_INPUT)
     raise typer.Exit(code)
-
-
-def _print_warnings(fit) -> None:
-    for w in fit.warnings:
-        err.print(f"[yellow]warning:[/] {escape(w)}", markup=True)
 
 
 # ---------------------------------------------------------------------- commands
@@ -120,7 +115,6 @@ def fit(model: str = typer.Argument(..., help="model file (.toml) or library mod
         if m.derived:
             out.print("\nderived quantities (delta-method standard errors):")
             out.print(result.derived().to_string())
-        _print_warnings(result)
         if out_dir is not None:
             out_dir.mkdir(parents=True, exist_ok=True)
             result.save(out_dir / "fit.json")

@@ -144,7 +144,11 @@ class FitResult:
             fn = lambdify_parameters([expr], syms, (1,))
             value, grad = jax.value_and_grad(lambda th: fn(th)[0])(theta)
             g = np.asarray(grad)[free]
-            rows[label] = {"estimate": float(value), "std_error": float(np.sqrt(max(g @ cov @ g, 0.0)))}
+            # Parameters the quantity does not depend on do not enter its variance, even
+            # when their own variance is unknown (NaN, e.g. at a bound).
+            used = g != 0
+            variance = g[used] @ cov[np.ix_(used, used)] @ g[used]
+            rows[label] = {"estimate": float(value), "std_error": float(np.sqrt(max(variance, 0.0)))}
         return pd.DataFrame.from_dict(rows, orient="index", columns=["estimate", "std_error"])
 
     # -------------------------------------------------------------- filtering on the fitted model
