@@ -13,7 +13,7 @@ G(x,u,t,θ)dω and y_k = h(x_k,u_k,t_k,θ) + e_k with e_k ~ N(0, S).
 
 from __future__ import annotations
 
-from typing import Callable, Iterable, Mapping, Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 import sympy as sp
@@ -418,52 +418,9 @@ class Model:
         return mean, rows
 
     def _build_from_functions(self) -> Structure:
-        import jax.numpy as jnp
+        from .functions import build_from_functions
 
-        spec = self._functions
-        states, params = spec["states"], spec["parameters"]
-        param_syms = [sp.Symbol(p, real=True) for p in params]
-        mean, rows = self._initial_state_expressions(list(states))
-        used = {s.name for e in mean for s in e.free_symbols}
-        if isinstance(rows, list):
-            used |= {s.name for r in rows for e in r for s in e.free_symbols}
-        extra = used - set(params)
-        if extra:
-            raise ModelError(f"initial state refers to '{sorted(extra)[0]}', which is not a declared parameter")
-
-        def wrap(fn):
-            def model_function(x, u, t, theta):
-                p = {name: theta[i] for i, name in enumerate(params)}
-                return jnp.asarray(fn(x, u, t, p), dtype=jnp.float64)
-
-            return model_function
-
-        n = len(states)
-        if isinstance(rows, str):
-            initial_cov = InitialCovariance(rows, scale=self._initial_scale)
-        else:
-            initial_cov = InitialCovariance("matrix", matrix=lambdify_parameters(
-                [e for r in rows for e in r], param_syms, (n, n)))
-        import jax
-
-        g_shape = jax.eval_shape(wrap(spec["diffusion"]), jnp.zeros(n), jnp.zeros(len(spec["inputs"])),
-                                 jnp.zeros(()), jnp.ones(len(params)))
-        if len(g_shape.shape) != 2 or g_shape.shape[0] != n:
-            raise ModelError(f"diffusion must return an array of shape ({n}, m), got {g_shape.shape}")
-        return Structure(
-            state_names=tuple(states),
-            input_names=tuple(spec["inputs"]),
-            output_names=tuple(spec["outputs"]),
-            parameter_names=tuple(params),
-            noise_names=tuple(f"dw{j + 1}" for j in range(g_shape.shape[1])),
-            kind=spec["kind"],
-            drift=wrap(spec["drift"]),
-            diffusion=wrap(spec["diffusion"]),
-            observation=wrap(spec["observation"]),
-            observation_variance=wrap(spec["observation_variance"]),
-            initial_mean=lambdify_parameters(mean, param_syms, (n,)),
-            initial_covariance=initial_cov,
-        )
+        return build_from_functions(self)
 
     # ------------------------------------------------------------------ parameters
     def parameter_vector(self, params: Mapping[str, float] | None = None) -> np.ndarray:
