@@ -60,13 +60,11 @@ def load_model_or_fit(source: str):
 
 def load_data(model, data: Optional[Path], fit=None):
     """``(frame, path)``: DATA, else the fit's data file, else the model file's ``[data] file``."""
-    from .model.files import read_data
+    from .model.files import data_path, read_data
 
     if data is None and fit is not None and fit.data_file and Path(fit.data_file).is_file():
         data = Path(fit.data_file)
-    frame = read_data(model, data)
-    path = Path(data) if data is not None else Path(getattr(model, "source", "") or ".").parent / model.options["file"]
-    return frame, str(path.resolve())
+    return read_data(model, data), str(data_path(model, data).resolve())
 
 
 def _run(command) -> None:
@@ -223,17 +221,16 @@ def demo(out_dir: Path = typer.Option(Path("greyid-demo"), "--out", help="folder
     """Fit the bundled building model to its bundled (simulated) data, print the summary, write a report."""
 
     def command() -> int:
-        from .datasets import TRUE_PARAMETERS, building_model, load_building_data
-        from .datasets.building import model_file
+        from .datasets import TRUE_PARAMETERS, building_model
 
         model = building_model()
-        data = load_building_data()
+        data, data_file = load_data(model, None)
         out.print(model)
-        out.print(f"model file: {model_file()}")
+        out.print(f"model file: {model.source}")
         out.print(f"data: {len(data)} rows, t from {data['t'].iloc[0]} to {data['t'].iloc[-1]} h")
         started = time.perf_counter()
         result = model.fit(data, progress=not quiet)
-        result.data_file = str(Path(str(model_file())).parent / model.options["file"])
+        result.data_file = data_file
         out.print(f"fitted in {time.perf_counter() - started:.2f} s\n")
         out.print(result.summary())
         out.print("\nphysical characteristics (delta-method standard errors):")

@@ -65,8 +65,7 @@ class FitProgress:
                                converged=converged, message=message))
         elif self.enabled:
             where = f"start {self._start + 1}/{self.starts}: " if self.starts > 1 else ""
-            printer = self._bar.console if self._bar is not None else self.console
-            printer.print(f"  {where}{iterations} iterations, {self.label} {value:.6f}, {message}")
+            self.console.print(f"  {where}{iterations} iterations, {self.label} {value:.6f}, {message}")
             if self._bar is not None:
                 self._bar.advance(self._task)
 

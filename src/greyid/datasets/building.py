@@ -9,6 +9,7 @@ simulated from this model at :data:`TRUE_PARAMETERS` by
 from __future__ import annotations
 
 from importlib import resources
+from pathlib import Path
 
 import pandas as pd
 
@@ -23,14 +24,12 @@ TRUE_PARAMETERS = {
 
 def building_model() -> Model:
     """The two-state model dTi, dTw with inputs Te, Gv, Qi and output yTi (``building.toml``)."""
-    model = Model.from_toml(resources.files(__package__).joinpath("building.toml").read_text(encoding="utf-8"))
-    model.source = model_file()
-    return model
+    return Model.from_toml(model_file())
 
 
-def model_file():
+def model_file() -> Path:
     """Path of the bundled model file (its ``[data] file`` is the bundled CSV)."""
-    return resources.files(__package__).joinpath("building.toml")
+    return Path(str(resources.files(__package__).joinpath("building.toml")))
 
 
 def load_building_data() -> pd.DataFrame:

@@ -26,6 +26,7 @@ from ..errors import ModelError
 from ..model.equations import parse_expression
 from ..model.structure import lambdify_parameters
 
+
 class FitWarning(UserWarning):
     """A fit finished with something to look at: an active bound, an ill-determined
     direction, no convergence.  The message is also in ``fit.warnings``."""

@@ -312,26 +312,32 @@ def write_model(model, path=None) -> str:
 
 
 # ---------------------------------------------------------------------- data
+def data_path(model, path=None) -> Path:
+    """Where the data for ``model`` are: ``path``, else the model file's ``[data] file``
+    (relative to the model file)."""
+    if path is not None:
+        return Path(path)
+    options = model.options
+    if "file" not in options:
+        raise DataError("no data file given, and the model file names none ([data] file = \"...\")")
+    path = Path(options["file"])
+    if not path.is_absolute() and model.source is not None:
+        path = Path(model.source).parent / path
+    return path
+
+
 def read_data(model, path=None):
-    """Read the CSV data for ``model``: ``path``, else the model file's ``[data] file``.
+    """Read the CSV data for ``model`` from :func:`data_path`.
 
     The separator is ``[data] separator`` when given, else detected.  Column
     renaming by ``[data.columns]`` happens when the data are used.
     """
     import pandas as pd
 
-    options = model.options
-    if path is None:
-        if "file" not in options:
-            raise DataError("no data file given, and the model file names none ([data] file = \"...\")")
-        path = Path(options["file"])
-        source = getattr(model, "source", None)
-        if not path.is_absolute() and source is not None:
-            path = Path(source).parent / path
-    path = Path(path)
+    path = data_path(model, path)
     if not path.is_file():
         raise DataError(f"data file '{path}' not found")
-    separator = options.get("separator")
+    separator = model.options.get("separator")
     try:
         if separator is None:
             return pd.read_csv(path, sep=None, engine="python")

@@ -565,8 +565,7 @@ class Model:
         from ..simulate.simulate import simulate
 
         data_or_times, settings = self._call_settings(data_or_times, options, ("time", "hold", "time_unit", "columns"))
-        options = {**options, **settings}
-        return simulate(self, params, data_or_times, n_paths=n_paths, method=method, seed=seed, **options)
+        return simulate(self, params, data_or_times, n_paths=n_paths, method=method, seed=seed, **settings)
 
 
 def _zero_diffusion(n: int):
