@@ -21,6 +21,7 @@ os.environ["GREYID_CACHE_DIR"] = "off"
 import jax
 import jax.numpy as jnp
 import numpy as np
+from greyid.compiler import jit
 from greyid.filters.api import compiled_filter, filter_inputs, filter_options
 from greyid.data import prepare_series
 from greyid.datasets import thesis
@@ -47,8 +48,8 @@ def bench(name, model, params, df, options, repeat):
     data = filter_inputs(series, "zoh")
     theta = jnp.asarray(model.parameter_vector(params))
     run = compiled_filter(s, opts, keep_outputs=False)
-    value = jax.jit(lambda th: run(th, data)[0].loglik.sum())
-    grad = jax.jit(jax.value_and_grad(lambda th: run(th, data)[0].loglik.sum()))
+    value = jit(lambda th: run(th, data)[0].loglik.sum())
+    grad = jit(jax.value_and_grad(lambda th: run(th, data)[0].loglik.sum()))
     rows = []
     for label, fn in (("loglik", value), ("loglik+grad", grad)):
         start = time.perf_counter()

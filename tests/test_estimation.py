@@ -7,7 +7,6 @@ import pandas as pd
 import pytest
 
 import greyid
-from greyid.estimate.estimation import _minimise
 from conftest import dense_reference, random_linear_parameters
 from test_kalman_dense import random_data
 
@@ -196,16 +195,6 @@ def test_active_bound_is_reported(ou):
     assert fit.params.loc["a", "at_bound"] and fit.values["a"] == pytest.approx(1.2, abs=1e-3)
     assert np.isnan(fit.params.loc["a", "std_error"])
     assert any("'a' is at a bound" in w for w in fit.warnings)
-
-
-def test_non_finite_evaluation_is_a_rejected_step():
-    def f(z):  # z − log z, undefined (NaN) for z < 0, minimum at z = 1
-        return jnp.sum(z - jnp.log(z))
-
-    vg = jax.jit(jax.value_and_grad(f))
-    hess = jax.jit(jax.hessian(f))
-    opt = _minimise(vg, hess, np.array([6.0]), maxiter=100)
-    assert opt.converged and opt.z[0] == pytest.approx(1.0, abs=1e-6)
 
 
 def test_several_experiments_and_multistart(ou):

@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..compiler import jit
 from ..errors import ModelError
 from ..filters.api import compiled_filter, filter_options, prepare_datasets
 from .criteria import log_criterion
@@ -69,9 +70,9 @@ def _compiled(structure, options, index: tuple[int, ...]):
             second = 0.5 * jnp.einsum("nabi,nbaj->ij", A, A)
             return first + second
 
-        structure.cache[key] = (jax.jit(jax.value_and_grad(total)),
-                                jax.jit(jax.jacfwd(jax.jacfwd(total))),
-                                jax.jit(jax.jacfwd(step_logliks)), jax.jit(fisher))
+        structure.cache[key] = (jit(jax.value_and_grad(total)),
+                                jit(jax.jacfwd(jax.jacfwd(total))),
+                                jit(jax.jacfwd(step_logliks)), jit(fisher))
     return structure.cache[key]
 
 

@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
-from scipy import stats
+from scipy import special
 
 from ..errors import ModelError
 from ..model.equations import parse_expression
@@ -336,8 +336,9 @@ def build_result(model, frames, theta, problem, best, optima, settings) -> FitRe
         bad = w <= ILL_DETERMINED * max(w.max(), 1e-300)
         inner_names = [n for n, b in zip(free_names, inner) if b]
         for j in np.flatnonzero(bad):
-            vec = V[:, j] / scale
-            vec = vec / np.max(np.abs(vec))
+            # Loadings in standardized units (each parameter scaled by its curvature), so
+            # that a ridge such as a·b = const names both a and b wherever along it the fit ends.
+            vec = V[:, j] / np.max(np.abs(V[:, j]))
             loading = {inner_names[i]: float(vec[i]) for i in np.argsort(-np.abs(vec)) if abs(vec[i]) > 0.05}
             ill.append({"eigenvalue": float(w[j]), "direction": loading})
             for name in loading:
@@ -359,7 +360,7 @@ def build_result(model, frames, theta, problem, best, optima, settings) -> FitRe
     n_obs = int(sum(int(np.sum(~np.isnan(df[list(model.output_names)].to_numpy(dtype=float)))) for df in frames))
     dof = max(n_obs - len(free), 1)
     tval = theta_free / se
-    pval = 2 * stats.t.sf(np.abs(tval), dof)
+    pval = 2 * special.stdtr(dof, -np.abs(tval))  # two-sided Student-t p-value
     if not best.converged:
         warn.append(f"the optimiser did not converge: {best.message}")
 

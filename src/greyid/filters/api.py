@@ -16,6 +16,7 @@ import numpy as np
 import pandas as pd
 
 from ..data.prepare import Series, as_frames, prepare_series
+from ..compiler import jit
 from ..errors import DataError, ModelError
 from ..model.structure import Structure
 from .core import EKF, EKF2, KALMAN, FilterInputs, FilterOptions, initial_state, make_ahead, make_filter
@@ -97,7 +98,7 @@ def check_at_parameters(structure: Structure, theta: np.ndarray, series: Series,
             S = jax.vmap(lambda u, t: structure.observation_variance(x0, u, t, theta))(data.u_cur, data.t)
             return S, P0
 
-        structure.cache[key] = jax.jit(checks)
+        structure.cache[key] = jit(checks)
     S, P0 = structure.cache[key](jnp.asarray(theta), data)
     S = np.asarray(S)[: series.n_rows]
     bad = np.argwhere(~(S > 0))

@@ -16,6 +16,7 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from ..compiler import jit
 from ..errors import ModelError
 from ..model.structure import LTI, Structure
 from .discretize import discretize, stationary_covariance
@@ -236,7 +237,7 @@ def make_filter(structure: Structure, options: FilterOptions, keep_outputs: bool
     def run(theta, data: FilterInputs):
         return scan_rows(build(theta, data), data.t.shape[0], collect)
 
-    return jax.jit(run)
+    return jit(run)
 
 
 def scan_rows(parts: FilterSteps, n_rows: int, collect: Callable):
@@ -301,4 +302,4 @@ def make_ahead(structure: Structure, options: FilterOptions, horizon: int):
         y, R, x, P, terms = jax.vmap(ahead)(rows)
         return AheadOutput(y, R, x, P, terms)
 
-    return jax.jit(run)
+    return jit(run)

@@ -16,8 +16,10 @@ import jax
 import jax.numpy as jnp
 from jax.scipy.linalg import cho_factor, cho_solve
 
+from ..compiler import jit
 
-@jax.jit
+
+@jit
 def rts_smooth(filtered_mean, filtered_cov, predicted_mean, predicted_cov, transitions):
     """Smoothed means and covariances, arrays shaped like the filtered ones."""
 

@@ -18,6 +18,7 @@ import numpy as np
 import pandas as pd
 
 from ..data.prepare import check_times, prepare_series
+from ..compiler import jit
 from ..errors import DataError, ModelError
 from ..filters.api import HOLDS, filter_inputs
 from ..filters.core import initial_state
@@ -117,7 +118,7 @@ def simulate(model, params, data_or_times, n_paths: int = 1, method: str = "eule
     series = _series(structure, data_or_times, time, time_unit)
     inputs = filter_inputs(series, hold)
     start = _compiled(structure, ("simulate", "initial"),
-                      lambda: jax.jit(lambda theta, inputs: initial_state(structure, theta, inputs)))
+                      lambda: jit(lambda theta, inputs: initial_state(structure, theta, inputs)))
     x0, P0 = start(theta, inputs)
     key = jax.random.PRNGKey(seed)
     k_init, k_path, k_obs = jax.random.split(key, 3)
@@ -133,7 +134,7 @@ def simulate(model, params, data_or_times, n_paths: int = 1, method: str = "eule
         # Milstein corrections belong to the noise and must go with it.
         diffusion = structure.diffusion if noise else _no_diffusion(m)
         integrate = _compiled(structure, ("simulate", method, calculus, bool(noise)),
-                              lambda: jax.jit(jax.vmap(make_integrator(structure.drift, diffusion, method, calculus),
+                              lambda: jit(jax.vmap(make_integrator(structure.drift, diffusion, method, calculus),
                                                        in_axes=(None, 0, None, None, 0))))
         dt = np.diff(fine_t)
         dW = scale * jax.random.normal(k_path, (n_paths, len(dt), m)) * jnp.sqrt(jnp.asarray(dt))[None, :, None]
@@ -141,7 +142,7 @@ def simulate(model, params, data_or_times, n_paths: int = 1, method: str = "eule
         states = np.asarray(fine)[:, ::substeps, :]
 
     u, t = jnp.asarray(series.inputs), jnp.asarray(series.times)
-    observe = _compiled(structure, ("simulate", "observe"), lambda: jax.jit(_make_observe(structure)))
+    observe = _compiled(structure, ("simulate", "observe"), lambda: jit(_make_observe(structure)))
     y_mean, S = observe(theta, jnp.asarray(states), u, t)
     if np.any(np.asarray(S) < 0):
         raise ModelError("an observation variance is negative along the simulated paths")
@@ -177,7 +178,7 @@ def _psd_sqrt(P):
 def _exact_paths(structure, theta, series, foh, init, key, scale=1.0):
     """x_{k+1} = Φx_k + Γb_k + Υ(b_{k+1} − b_k) + Λ^½ z_k for linear models."""
     z = scale * jax.random.normal(key, (init.shape[0], len(series.times) - 1, structure.n_states))
-    run = _compiled(structure, ("simulate", "exact"), lambda: jax.jit(_make_exact(structure)))
+    run = _compiled(structure, ("simulate", "exact"), lambda: jit(_make_exact(structure)))
     return np.asarray(run(theta, jnp.asarray(series.times), jnp.asarray(series.inputs), foh, init, z))
 
 

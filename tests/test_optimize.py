@@ -1,0 +1,88 @@
+"""The minimiser: trust-region subproblem, Newton steps, rejected steps, honest convergence."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.optimize import minimize
+
+from greyid.estimate.optimize import newton_trust_region, trust_region_step
+
+
+def derivatives(f):
+    return jax.jit(lambda z: (f(z), jax.grad(f)(z), jax.hessian(f)(z)))
+
+
+def rosenbrock(z):
+    return jnp.sum(100.0 * (z[1:] - z[:-1] ** 2) ** 2 + (1.0 - z[:-1]) ** 2)
+
+
+def test_trust_region_step_solves_the_subproblem():
+    """The step's model value is the constrained minimum (reference: SLSQP from many starts)."""
+    rng = np.random.default_rng(3)
+    for case in range(12):
+        n = int(rng.integers(2, 6))
+        B = rng.normal(size=(n, n))
+        H = B + B.T + (case % 3 - 1) * 2.0 * np.eye(n)  # indefinite, mixed and positive cases
+        g = rng.normal(size=n)
+        radius = float(rng.uniform(0.1, 3.0))
+        w, V = np.linalg.eigh(H)
+        p = trust_region_step(w, V, g, radius)
+
+        def model(q):
+            return g @ q + 0.5 * q @ H @ q
+
+        best = min(
+            minimize(model, rng.normal(size=n) * radius / np.sqrt(n), method="SLSQP",
+                     constraints=[{"type": "ineq", "fun": lambda q: radius**2 - q @ q}]).fun
+            for _ in range(8))
+        assert np.linalg.norm(p) <= radius * (1 + 1e-5)
+        assert model(p) <= best + 1e-6 * max(1.0, abs(best))
+
+
+def test_hard_case_leaves_a_saddle_point():
+    """At a saddle the gradient vanishes: the step follows the negative curvature."""
+    H = np.diag([-2.0, 1.0])
+    w, V = np.linalg.eigh(H)
+    p = trust_region_step(w, V, np.zeros(2), 0.5)
+    assert abs(p[0]) == pytest.approx(0.5) and p[1] == pytest.approx(0.0)
+
+    opt = newton_trust_region(derivatives(lambda z: z[1] ** 2 - z[0] ** 2 + z[0] ** 4), np.zeros(2))
+    assert opt.converged and abs(opt.z[0]) == pytest.approx(np.sqrt(0.5), abs=1e-8)
+    assert opt.value == pytest.approx(-0.25, abs=1e-12)
+
+
+@pytest.mark.parametrize("n", [2, 3])  # (n ≥ 4 has a second local minimum)
+def test_newton_finds_the_rosenbrock_minimum(n):
+    opt = newton_trust_region(derivatives(rosenbrock), np.tile([-1.2, 1.0], n)[:n], maxiter=200)
+    assert opt.converged, opt.message
+    assert opt.z == pytest.approx(np.ones(n), abs=1e-6)
+    assert opt.iterations < 40
+    assert opt.hessian == pytest.approx(np.asarray(jax.hessian(rosenbrock)(jnp.asarray(opt.z))))
+
+
+def test_badly_scaled_problem_takes_no_more_steps():
+    """The scaled trust region makes the steps independent of the parameters' units."""
+    def scaled(z):
+        return rosenbrock(z * jnp.array([1e3, 1e-3]))
+
+    plain = newton_trust_region(derivatives(rosenbrock), np.array([-1.2, 1.0]))
+    stretched = newton_trust_region(derivatives(scaled), np.array([-1.2e-3, 1e3]))
+    assert stretched.converged and stretched.z == pytest.approx([1e-3, 1e3], rel=1e-8)
+    assert stretched.iterations <= plain.iterations + 2
+
+
+def test_non_finite_evaluation_is_a_rejected_step():
+    def f(z):  # z − log z, undefined (NaN) for z < 0, minimum at z = 1
+        return jnp.sum(z - jnp.log(z))
+
+    # From z = 6 the first Newton step lands at z = −24, where f is NaN.
+    opt = newton_trust_region(derivatives(f), np.array([6.0]), maxiter=100)
+    assert opt.converged and opt.z[0] == pytest.approx(1.0, abs=1e-8)
+    assert opt.evaluations > opt.iterations + 1  # at least one step was rejected
+
+
+def test_stopping_early_is_not_called_converged():
+    opt = newton_trust_region(derivatives(rosenbrock), np.array([-1.2, 1.0]), maxiter=3)
+    assert not opt.converged and "maximum number of iterations" in opt.message
+    assert opt.iterations == 3
