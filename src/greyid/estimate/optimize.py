@@ -145,10 +145,10 @@ def newton_trust_region(evaluate: Callable, z0: np.ndarray, maxiter: int = 500,
         return d, *np.linalg.eigh(Hs)
 
     d, w, V = eigen(H)
-    # The first region admits the full Newton step, or else a step as long as the
-    # scaled gradient (in scaled units, the steepest-descent step of a unit Hessian).
+    # The first region admits the full Newton step (or, where H is indefinite, a step
+    # as long as the scaled gradient) up to a length of 10 in scaled units.
     a = V.T @ (g / d)
-    radius = max(1.0, float(np.linalg.norm(a / w) if w[0] > 0 else np.linalg.norm(a)))
+    radius = float(np.clip(np.linalg.norm(a / w) if w[0] > 0 else np.linalg.norm(a), 1.0, 10.0))
     iterations = 0  # accepted steps
     converged, message = False, "maximum number of iterations reached"
     while iterations < maxiter:
@@ -165,7 +165,7 @@ def newton_trust_region(evaluate: Callable, z0: np.ndarray, maxiter: int = 500,
         if rho < 0.25:
             radius = 0.25 * step
         elif rho > 0.75 and step >= 0.99 * radius:
-            radius = 4.0 * radius
+            radius = 2.0 * radius
         if rho > 1e-4:
             z, f, g, H = z + p, float(f_new), g_new, H_new
             d, w, V = eigen(H)
