@@ -94,33 +94,28 @@ def build(structure, problem: Problem):
             total = total + _log_prior(theta, problem.prior_index, prior_mean, prior_chol)
         return -total
 
-    def forward_over_forward(z, rows, *args):
-        def value(z):
-            v = negative(z, *args)
-            return v, v
-
-        def gradient(z):
-            g, v = jax.jacfwd(value, has_aux=True)(z)
-            return g, v
-
+    def hessian_rows(gradient, z, rows):
+        """(f, g, rows · H): ``gradient(z) -> (g, f)`` pushed forward along each row."""
         def row(u):
             g, Hu, v = jax.jvp(gradient, (z,), (u,), has_aux=True)
             return v, g, Hu
 
         v, g, H_rows = jax.vmap(row)(rows)
         return v[0], g[0], H_rows
+
+    def forward_over_forward(z, rows, *args):
+        def value(z):
+            v = negative(z, *args)
+            return v, v
+
+        return hessian_rows(lambda z: jax.jacfwd(value, has_aux=True)(z), z, rows)
 
     def forward_over_reverse(z, rows, *args):
         def gradient(z):
             v, g = jax.value_and_grad(negative)(z, *args)
             return g, v
 
-        def row(u):
-            g, Hu, v = jax.jvp(gradient, (z,), (u,), has_aux=True)
-            return v, g, Hu
-
-        v, g, H_rows = jax.vmap(row)(rows)
-        return v[0], g[0], H_rows
+        return hessian_rows(gradient, z, rows)
 
     small = problem.options.method == KALMAN and len(problem.free) <= FORWARD_HESSIAN_MAX
     return jit(forward_over_forward if small else forward_over_reverse), jit(theta_of_z), negative
