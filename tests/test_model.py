@@ -170,6 +170,12 @@ def test_structural_errors():
         m.loglik({"a": 1.0, "s": 1.0, "r": 0.1, "b": 2.0}, df)
     with pytest.raises(ModelError, match="variance of observation 'y' is -0.1 at row 0"):
         m.loglik({"a": 1.0, "s": 1.0, "r": -0.1}, df)
+    # fit checks only when the criterion is not finite at the start, and then says why
+    m.set_parameter("s", init=1.0)
+    m.set_parameter("r", init=-0.1)
+    with pytest.raises(ModelError, match="variance of observation 'y' is -0.1 at row 0"):
+        m.fit(df, init={"a": 0.5})
+    m.set_parameter("r", init=0.1)
     with pytest.raises(ModelError, match="unknown filter method 'pf'"):
         m.loglik({"a": 1.0, "s": 1.0, "r": 0.1}, df, method="pf")
     m.fix_parameter("s", 0.5)

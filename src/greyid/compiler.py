@@ -34,6 +34,7 @@ class Jitted:
         functools.update_wrapper(self, fun)
         self.top = jax.jit(fun, compiler_options=compiler_options(), **kwargs)
         self.nested = jax.jit(fun, **kwargs)
+        self.compiled_for: set = set()  # signatures callers have compiled (see Derivatives)
 
     def __call__(self, *args, **kwargs):
         traced = any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves((args, kwargs)))

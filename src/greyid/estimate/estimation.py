@@ -18,11 +18,11 @@ import numpy as np
 
 from ..data.prepare import as_frames
 from ..errors import ModelError
-from ..filters.api import filter_options, prepare_datasets
+from ..filters.api import check_at_parameters, filter_options, prepare_datasets
 from ..progress import FitProgress
 from .criteria import GaussianPrior, check_robust
 from .objective import Derivatives, Problem, compiled
-from .optimize import newton_trust_region
+from .optimize import NotFiniteError, newton_trust_region
 from .transforms import Transform
 
 CRITERIA = ("ml", "map")
@@ -46,6 +46,10 @@ def _starting_points(transform: Transform, theta0: np.ndarray, starts: int, seed
                 theta[i] = theta0[i] + rng.uniform(-1, 1) * max(abs(theta0[i]), 1.0)
         points.append(transform.to_z(theta))
     return points
+
+
+def _describe(names, theta, free) -> str:
+    return ", ".join(f"{names[i]}={theta[i]:.6g}" for i in free)
 
 
 def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=None, robust=None,
@@ -96,7 +100,10 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
                       () if gaussian_prior is None else tuple(names.index(n) for n in gaussian_prior.names))
 
     frames = as_frames(data)
-    datasets = [inputs for _, inputs in prepare_datasets(structure, theta0, frames, time, hold, time_unit)]
+    # The checks at θ₀ (positive variances, a valid P₀) cost a compilation of their
+    # own; they run only if the criterion is not finite at the start, to say why.
+    prepared = prepare_datasets(structure, theta0, frames, time, hold, time_unit, check=False)
+    datasets = [inputs for _, inputs in prepared]
 
     program, theta_of_z, _ = compiled(structure, problem)
     args = problem.arguments(theta0)
@@ -111,7 +118,15 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
 
         for i, z0 in enumerate(_starting_points(transform, free_theta0, starts, seed)):
             shown.begin_start(i)
-            optimum = newton_trust_region(vgh, z0, maxiter, report)
+            try:
+                optimum = newton_trust_region(vgh, z0, maxiter, report)
+            except NotFiniteError:
+                theta_start = np.asarray(theta_of_z(jnp.asarray(z0), *args[:3]))
+                for series, inputs in prepared:
+                    check_at_parameters(structure, theta_start, series, inputs)
+                raise ModelError("the criterion or its derivatives are not finite at the "
+                                 f"{'initial values' if i == 0 else f'random start {i + 1}'} "
+                                 f"({_describe(names, theta_start, free)}); check the initial parameter values")
             shown.end_start(-optimum.value, optimum.iterations, optimum.converged, optimum.message)
             optima.append(optimum)
     best = min(optima, key=lambda o: o.value if np.isfinite(o.value) else np.inf)

@@ -145,22 +145,22 @@ class Derivatives:
         workers = min(worker_count() if workers is None else workers, n, 8)
         size = -(-n // workers)
         eye = np.eye(n)
-        self.blocks = [np.vstack([eye[i:i + size], np.zeros((size - len(eye[i:i + size]), n))])
+        self.blocks = [jnp.asarray(np.vstack([eye[i:i + size], np.zeros((size - len(eye[i:i + size]), n))]))
                        for i in range(0, n, size)]
         self.n, self.program, self.arguments = n, program, arguments
         self.pool = ThreadPoolExecutor(len(self.blocks)) if len(self.blocks) > 1 else None
-        self.ready = False
+        self.signature = (size, tuple(np.shape(a) for a in jax.tree_util.tree_leaves(arguments)))
 
     def _block(self, z, rows):
         return jax.block_until_ready(self.program(z, rows, *self.arguments))
 
     def __call__(self, z):
         z = jnp.asarray(z)
-        if self.pool is None or not self.ready:  # the first call compiles, once
-            parts = [self._block(z, jnp.asarray(rows)) for rows in self.blocks]
-            self.ready = True
+        if self.pool is None or self.signature not in self.program.compiled_for:
+            parts = [self._block(z, rows) for rows in self.blocks]  # compiles once
+            self.program.compiled_for.add(self.signature)
         else:
-            parts = list(self.pool.map(lambda rows: self._block(z, jnp.asarray(rows)), self.blocks))
+            parts = list(self.pool.map(lambda rows: self._block(z, rows), self.blocks))
         value, gradient = parts[0][0], parts[0][1]
         H = np.concatenate([np.asarray(p[2]) for p in parts])[:self.n]
         return value, gradient, H

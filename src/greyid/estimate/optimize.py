@@ -33,6 +33,10 @@ GRADIENT_TOLERANCE = 1e-6
 COLLAPSE_GRADIENT = 1e-4
 
 
+class NotFiniteError(ModelError):
+    """The criterion or its derivatives are not finite where the search starts."""
+
+
 @dataclass
 class Optimum:
     z: np.ndarray
@@ -132,8 +136,7 @@ def newton_trust_region(evaluate: Callable, z0: np.ndarray, maxiter: int = 500,
     z = np.asarray(z0, dtype=float)
     (f, g, H), finite = run(z)
     if not finite:
-        raise ModelError("the criterion or its derivatives are not finite at the starting values; "
-                         "check the initial parameter values")
+        raise NotFiniteError("the criterion or its derivatives are not finite at the starting values")
     f = float(f)
     scale = np.zeros(len(z))
 

@@ -116,15 +116,16 @@ def check_at_parameters(structure: Structure, theta: np.ndarray, series: Series,
         )
 
 
-def prepare_datasets(structure: Structure, theta: np.ndarray, data, time, hold, time_unit):
-    """Check every data set against the model at θ; ``[(series, filter inputs), ...]``."""
+def prepare_datasets(structure: Structure, theta: np.ndarray, data, time, hold, time_unit, check: bool = True):
+    """Check every data set against the model (and, with ``check``, at θ); ``[(series, filter inputs), ...]``."""
     prepared = []
     for df in as_frames(data):
         series = prepare_series(df, structure.input_names, structure.output_names, time, time_unit)
         inputs = filter_inputs(series, hold)
         if structure.initial_covariance.kind == "process" and series.n_rows < 2:
             raise DataError("a data set with one row has no sampling interval for the 'process' initial covariance")
-        check_at_parameters(structure, theta, series, inputs)
+        if check:
+            check_at_parameters(structure, theta, series, inputs)
         prepared.append((series, inputs))
     return prepared
 
