@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import math
 
-import jax.numpy as jnp
 import numpy as np
 
 from ..data.prepare import as_frames
@@ -121,7 +120,7 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
             try:
                 optimum = newton_trust_region(vgh, z0, maxiter, report)
             except NotFiniteError:
-                theta_start = np.asarray(theta_of_z(jnp.asarray(z0), *args[:3]))
+                theta_start = np.asarray(theta_of_z(z0, *args[:3]))
                 for series, inputs in prepared:
                     check_at_parameters(structure, theta_start, series, inputs)
                 raise ModelError("the criterion or its derivatives are not finite at the "
@@ -130,7 +129,7 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
             shown.end_start(-optimum.value, optimum.iterations, optimum.converged, optimum.message)
             optima.append(optimum)
     best = min(optima, key=lambda o: o.value if np.isfinite(o.value) else np.inf)
-    theta = np.asarray(theta_of_z(jnp.asarray(best.z), *args[:3]))
+    theta = np.asarray(theta_of_z(best.z, *args[:3]))
     settings = dict(time=time, hold=hold, method=options.method, form=options.form, substeps=options.substeps,
                     iterations=options.iterations, criterion=criterion, robust=robust, horizon=int(horizon),
                     starts=starts, time_unit=time_unit, prior=prior)

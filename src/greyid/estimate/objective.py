@@ -47,11 +47,11 @@ class Problem:
     def arguments(self, base_theta):
         """The non-static arguments of the compiled functions."""
         if self.prior is None:
-            mean, chol = jnp.zeros(0), jnp.zeros((0, 0))
+            mean, chol = np.zeros(0), np.zeros((0, 0))
         else:
-            mean, chol = jnp.asarray(self.prior.mean), jnp.asarray(np.linalg.cholesky(self.prior.covariance))
-        return (jnp.asarray(base_theta), jnp.asarray(self.transform.lower), jnp.asarray(self.transform.upper),
-                mean, chol)
+            mean, chol = self.prior.mean, np.linalg.cholesky(self.prior.covariance)
+        arrays = (base_theta, self.transform.lower, self.transform.upper, mean, chol)
+        return tuple(jax.device_put(np.asarray(a, dtype=np.float64)) for a in arrays)
 
 
 def _log_prior(theta, index, mean, chol):
@@ -145,7 +145,7 @@ class Derivatives:
         workers = min(worker_count() if workers is None else workers, n, 8)
         size = -(-n // workers)
         eye = np.eye(n)
-        self.blocks = [jnp.asarray(np.vstack([eye[i:i + size], np.zeros((size - len(eye[i:i + size]), n))]))
+        self.blocks = [jax.device_put(np.vstack([eye[i:i + size], np.zeros((size - len(eye[i:i + size]), n))]))
                        for i in range(0, n, size)]
         self.n, self.program, self.arguments = n, program, arguments
         self.pool = ThreadPoolExecutor(len(self.blocks)) if len(self.blocks) > 1 else None
@@ -155,7 +155,7 @@ class Derivatives:
         return jax.block_until_ready(self.program(z, rows, *self.arguments))
 
     def __call__(self, z):
-        z = jnp.asarray(z)
+        z = np.asarray(z, dtype=np.float64)  # transferred by the call, without a compiled conversion
         if self.pool is None or self.signature not in self.program.compiled_for:
             parts = [self._block(z, rows) for rows in self.blocks]  # compiles once
             self.program.compiled_for.add(self.signature)

@@ -62,13 +62,12 @@ def filter_inputs(series: Series, hold: str) -> FilterInputs:
     unique, index = np.unique(rounded, return_inverse=True)
     unique = np.concatenate([unique, np.zeros(bucket(len(unique), 4) - len(unique))])
     first = series.times[1] - series.times[0] if n_rows > 1 else 0.0
-    return FilterInputs(
-        t=jnp.asarray(t), t_prev=jnp.asarray(t_prev), dt=jnp.asarray(dt),
-        u_prev=jnp.asarray(u_prev), u_cur=jnp.asarray(u),
-        y=jnp.asarray(np.where(mask, y, 0.0)), mask=jnp.asarray(mask, dtype=jnp.float64),
-        dt_index=jnp.asarray(index.reshape(-1), dtype=jnp.int32), unique_dt=jnp.asarray(unique),
-        first_interval=jnp.asarray(first), foh=jnp.asarray(HOLDS[hold]),
-    )
+    # Every array is made in NumPy with its final dtype and transferred as it is:
+    # jnp.asarray would compile a small program per shape, which a first fit waits for.
+    arrays = dict(t=t, t_prev=t_prev, dt=dt, u_prev=u_prev, u_cur=u, y=np.where(mask, y, 0.0),
+                  mask=mask.astype(np.float64), dt_index=index.reshape(-1).astype(np.int32), unique_dt=unique,
+                  first_interval=np.float64(first), foh=np.float64(HOLDS[hold]))
+    return FilterInputs(**{name: jax.device_put(np.asarray(a)) for name, a in arrays.items()})
 
 
 def filter_options(structure: Structure, method: str | None, **options) -> FilterOptions:
