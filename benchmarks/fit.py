@@ -84,6 +84,7 @@ def scaling(lengths: list[int]) -> None:
     import numpy as np
 
     from greyid.compiler import jit
+    from greyid.estimate.objective import forward_value_and_grad
     from greyid.data import prepare_series
     from greyid.datasets import thesis
     from greyid.filters.api import compiled_filter, filter_inputs, filter_options
@@ -92,7 +93,9 @@ def scaling(lengths: list[int]) -> None:
     s = model.structure
     theta = jnp.asarray(model.parameter_vector(thesis.TEST_CELL_PARAMETERS))
     run = compiled_filter(s, filter_options(s, None), keep_outputs=False)
-    value_grad = jit(jax.value_and_grad(lambda th, d: run(th, d)[0].loglik.sum()))
+    loglik = lambda th, d: run(th, d)[0].loglik.sum()  # noqa: E731
+    # Forward mode, as greyid's score computations use (estimate/information.py).
+    value_grad = jit(forward_value_and_grad(loglik))
     print(f"  {'samples':>9s} {'compile+run [s]':>16s} {'run [s]':>9s} {'per sample [us]':>16s}")
     for n in lengths:
         data = thesis.test_cell_inputs(n)

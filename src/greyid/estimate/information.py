@@ -26,6 +26,7 @@ from ..compiler import jit
 from ..errors import ModelError
 from ..filters.api import compiled_filter, filter_options, prepare_datasets
 from .criteria import log_criterion
+from .objective import forward_value_and_grad
 
 INFORMATION_KINDS = ("fisher", "hessian", "opg")
 
@@ -70,7 +71,7 @@ def _compiled(structure, options, index: tuple[int, ...]):
             second = 0.5 * jnp.einsum("nabi,nbaj->ij", A, A)
             return first + second
 
-        structure.cache[key] = (jit(jax.value_and_grad(total)),
+        structure.cache[key] = (jit(forward_value_and_grad(total)),
                                 jit(jax.jacfwd(jax.jacfwd(total))),
                                 jit(jax.jacfwd(step_logliks)), jit(fisher))
     return structure.cache[key]
