@@ -234,3 +234,15 @@ def test_validation_figures(nested):
     assert len(figures[0].axes) == 7
     with pytest.raises(ModelError, match="no residuals named"):
         val.plot("nope")
+
+
+def test_fit_from_a_plateau_start_reaches_the_optimum(models, one_state_data):
+    """Started with e11 = −3, the BFGS search of earlier versions stopped on a plateau
+    (measurement variance → 0) and called it converged; the trust-region Newton search
+    reaches the optimum of the default start."""
+    m = models["one"]
+    best = m.fit(one_state_data)
+    fit = m.fit(one_state_data, init={"e11": -3.0})
+    assert best.converged and fit.converged
+    assert fit.loglik == pytest.approx(best.loglik, abs=1e-6)
+    assert fit.loglik >= m.loglik(ONE_STATE_TRUE, one_state_data)
