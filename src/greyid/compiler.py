@@ -10,14 +10,13 @@ and compile time is most of a first fit.
 from __future__ import annotations
 
 import functools
-import os
 
 import jax
 
 
 @functools.cache
 def compiler_options() -> dict:
-    if jax.default_backend() == "cpu" and not os.environ.get("GREYID_NOFLAG"):
+    if jax.default_backend() == "cpu":
         return {"xla_cpu_use_fusion_emitters": False}
     return {}
 
@@ -39,12 +38,6 @@ class Jitted:
     def __call__(self, *args, **kwargs):
         traced = any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves((args, kwargs)))
         return (self.nested if traced else self.top)(*args, **kwargs)
-
-    def trace(self, *args, **kwargs):
-        return self.top.trace(*args, **kwargs)
-
-    def lower(self, *args, **kwargs):
-        return self.top.lower(*args, **kwargs)
 
 
 def jit(fun, **kwargs) -> Jitted:

@@ -26,7 +26,7 @@ from ..compiler import jit
 from ..errors import ModelError
 from ..filters.api import compiled_filter, filter_options, prepare_datasets
 from .criteria import log_criterion
-from .objective import forward_value_and_grad
+from .objective import forward_hessian, forward_value_and_grad, hessian_rows
 
 INFORMATION_KINDS = ("fisher", "hessian", "opg")
 
@@ -71,8 +71,10 @@ def _compiled(structure, options, index: tuple[int, ...]):
             second = 0.5 * jnp.einsum("nabi,nbaj->ij", A, A)
             return first + second
 
+        hessian = hessian_rows(total, forward_hessian(options.method, len(index)))
+        eye = jnp.eye(len(index))
         structure.cache[key] = (jit(forward_value_and_grad(total)),
-                                jit(jax.jacfwd(jax.jacfwd(total))),
+                                jit(lambda sub, base, data: hessian(sub, eye, base, data)[2]),
                                 jit(jax.jacfwd(step_logliks)), jit(fisher))
     return structure.cache[key]
 

@@ -112,33 +112,36 @@ def build(structure, problem: Problem):
             total = total + _log_prior(theta, problem.prior_index, prior_mean, prior_chol)
         return -total
 
-    def hessian_rows(gradient, z, rows):
-        """(f, g, rows · H): ``gradient(z) -> (g, f)`` pushed forward along each row."""
+    forward = forward_hessian(problem.options.method, len(problem.free))
+    return jit(hessian_rows(negative, forward)), jit(theta_of_z), negative
+
+
+def forward_hessian(method: str, n_parameters: int) -> bool:
+    """Whether to take the Hessian forward over forward (see :func:`build`)."""
+    return method == KALMAN and n_parameters <= FORWARD_HESSIAN_MAX
+
+
+def hessian_rows(fun, forward: bool):
+    """``(x, rows, *args) -> (f, g, rows · H)`` for a scalar ``fun(x, *args)``.
+
+    The gradient — forward or reverse mode — is pushed forward along each row,
+    so a block of rows of the Hessian comes with the value and the gradient.
+    """
+    value_and_grad = forward_value_and_grad(fun) if forward else jax.value_and_grad(fun)
+
+    def evaluate(x, rows, *args):
+        def gradient(x):
+            v, g = value_and_grad(x, *args)
+            return g, v
+
         def row(u):
-            g, Hu, v = jax.jvp(gradient, (z,), (u,), has_aux=True)
+            g, Hu, v = jax.jvp(gradient, (x,), (u,), has_aux=True)
             return v, g, Hu
 
         v, g, H_rows = jax.vmap(row)(rows)
         return v[0], g[0], H_rows
 
-    def forward_over_forward(z, rows, *args):
-        value_and_grad = forward_value_and_grad(negative)
-
-        def gradient(z):
-            v, g = value_and_grad(z, *args)
-            return g, v
-
-        return hessian_rows(gradient, z, rows)
-
-    def forward_over_reverse(z, rows, *args):
-        def gradient(z):
-            v, g = jax.value_and_grad(negative)(z, *args)
-            return g, v
-
-        return hessian_rows(gradient, z, rows)
-
-    small = problem.options.method == KALMAN and len(problem.free) <= FORWARD_HESSIAN_MAX
-    return jit(forward_over_forward if small else forward_over_reverse), jit(theta_of_z), negative
+    return evaluate
 
 
 def worker_count() -> int:
@@ -164,9 +167,9 @@ class Derivatives:
     def __init__(self, program, n: int, arguments: tuple, workers: int | None = None):
         workers = min(worker_count() if workers is None else workers, n, 8)
         size = -(-n // workers)
-        eye = np.eye(n)
-        self.blocks = [jax.device_put(np.vstack([eye[i:i + size], np.zeros((size - len(eye[i:i + size]), n))]))
-                       for i in range(0, n, size)]
+        count = -(-n // size)
+        directions = np.vstack([np.eye(n), np.zeros((count * size - n, n))])
+        self.blocks = [jax.device_put(block) for block in np.split(directions, count)]
         self.n, self.program, self.arguments = n, program, arguments
         self.pool = ThreadPoolExecutor(len(self.blocks)) if len(self.blocks) > 1 else None
         self.signature = (size, tuple(np.shape(a) for a in jax.tree_util.tree_leaves(arguments)))

@@ -15,8 +15,8 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
-from ..data.prepare import Series, as_frames, prepare_series
 from ..compiler import jit
+from ..data.prepare import Series, as_frames, prepare_series
 from ..errors import DataError, ModelError
 from ..model.structure import Structure
 from .core import EKF, EKF2, KALMAN, FilterInputs, FilterOptions, initial_state, make_ahead, make_filter
