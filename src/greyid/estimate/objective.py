@@ -73,7 +73,7 @@ def forward_value_and_grad(fun):
 
 
 def _log_prior(theta, index, mean, chol):
-    x = theta[jnp.asarray(index)] - mean
+    x = jnp.stack([theta[i] for i in index]) - mean
     z = jax.scipy.linalg.solve_triangular(chol, x, lower=True)
     return -0.5 * (z @ z + 2 * jnp.sum(jnp.log(jnp.diag(chol))) + len(index) * jnp.log(2 * jnp.pi))
 
@@ -100,10 +100,13 @@ def build(structure, problem: Problem):
             return ahead(theta, data).terms
 
     kinds = problem.transform.kind
-    free = jnp.asarray(problem.free, dtype=jnp.int32)
+    position = {index: j for j, index in enumerate(problem.free)}
 
     def theta_of_z(z, base, lower, upper):
-        return base.at[free].set(Transform(kinds, lower, upper).to_theta(z))
+        # Assembled element by element: a scatter into base would become a loop
+        # per derivative order in the compiled Hessian program.
+        free_theta = Transform(kinds, lower, upper).to_theta(z)
+        return jnp.stack([free_theta[position[i]] if i in position else base[i] for i in range(base.shape[0])])
 
     def negative(z, base, lower, upper, prior_mean, prior_chol, datasets):
         theta = theta_of_z(z, base, lower, upper)

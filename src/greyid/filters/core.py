@@ -19,7 +19,7 @@ import jax.numpy as jnp
 from ..compiler import jit
 from ..errors import ModelError
 from ..model.structure import LTI, Structure
-from .discretize import discretize, stationary_covariance
+from .discretize import discretize, discretize_each, stationary_covariance
 from .predictors import (
     Interval,
     extended_predict,
@@ -156,7 +156,7 @@ def filter_steps(structure: Structure, options: FilterOptions):
             u0, t0 = data.u_cur[0], data.t[0]
             A = jac_f(zeros, u0, t0, theta)
             g = G(zeros, u0, t0, theta)
-            cache = jax.vmap(discretize, in_axes=(None, None, 0))(A, g @ g.T, data.unique_dt)
+            cache = discretize_each(A, g @ g.T, data.unique_dt)
             return cache, b_prev, b_cur
 
         def per_row(u, t, dt):

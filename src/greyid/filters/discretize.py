@@ -95,6 +95,19 @@ def discretize(A: jnp.ndarray, Q: jnp.ndarray, tau: jnp.ndarray) -> Discretizati
     return Discretization(phi, gamma, ramp, 0.5 * (lam + lam.T))
 
 
+def discretize_each(A: jnp.ndarray, Q: jnp.ndarray, taus: jnp.ndarray) -> Discretization:
+    """:func:`discretize` for each of the steps ``taus`` (leading axis of the result).
+
+    One step after the other rather than vectorized: the number of doublings
+    then stays a scalar, so each step runs only the doublings it needs, and the
+    zero-length steps that pad ``taus`` cost nothing.
+    """
+    n = A.shape[0]
+    zero = jnp.zeros((n, n))
+    identity = Discretization(jnp.eye(n), zero, zero, zero)
+    return jax.lax.map(lambda tau: jax.lax.cond(tau > 0, discretize, lambda *_: identity, A, Q, tau), taus)
+
+
 def stationary_covariance(A: jnp.ndarray, Q: jnp.ndarray) -> jnp.ndarray:
     """Solution P of A P + P Aᵀ + Q = 0 (stable A), by the Kronecker form."""
     n = A.shape[0]

@@ -79,11 +79,24 @@ class Structure:
 
 
 def _vector_function(exprs: list[sp.Expr], args: list, shape: tuple[int, ...]) -> ModelFunction:
-    """Lambdify a list of expressions into a JAX function returning ``shape``."""
-    raw = lambdify(args, exprs, modules="jax")
+    """Lambdify a list of expressions into a JAX function returning ``shape``.
+
+    ``args`` lists the function's arguments: a list of symbols for a vector, a
+    symbol for a scalar.  Only the elements the expressions use are taken out
+    of the vectors: the model functions are called many times in a filter, and
+    each element taken out is an operation to trace and differentiate.
+    """
+    used = set().union(*(sp.sympify(e).free_symbols for e in exprs)) if exprs else set()
+    picks = []  # (argument position, element index or None for a scalar, symbol)
+    for position, arg in enumerate(args):
+        if isinstance(arg, (list, tuple)):
+            picks += [(position, i, sym) for i, sym in enumerate(arg) if sym in used]
+        elif arg in used:
+            picks.append((position, None, arg))
+    raw = lambdify([sym for _, _, sym in picks], exprs, modules="jax")
 
     def function(*values):
-        out = raw(*values)
+        out = raw(*(values[p] if i is None else values[p][i] for p, i, _ in picks))
         return jnp.reshape(jnp.stack([jnp.asarray(v, dtype=jnp.float64) for v in out]), shape)
 
     return function
