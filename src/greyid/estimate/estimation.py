@@ -104,7 +104,7 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
     prepared = prepare_datasets(structure, theta0, frames, time, hold, time_unit, check=False)
     datasets = [inputs for _, inputs in prepared]
 
-    program, theta_of_z, _ = compiled(structure, problem)
+    program, _ = compiled(structure, problem)
     args = problem.arguments(theta0)
 
     free_theta0 = theta0[list(free)]
@@ -120,7 +120,7 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
             try:
                 optimum = newton_trust_region(vgh, z0, maxiter, report)
             except NotFiniteError:
-                theta_start = np.asarray(theta_of_z(z0, *args[:3]))
+                theta_start = problem.theta(z0, theta0)
                 for series, inputs in prepared:
                     check_at_parameters(structure, theta_start, series, inputs)
                 raise ModelError("the criterion or its derivatives are not finite at the "
@@ -129,7 +129,7 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
             shown.end_start(-optimum.value, optimum.iterations, optimum.converged, optimum.message)
             optima.append(optimum)
     best = min(optima, key=lambda o: o.value if np.isfinite(o.value) else np.inf)
-    theta = np.asarray(theta_of_z(best.z, *args[:3]))
+    theta = problem.theta(best.z, theta0)
     settings = dict(time=time, hold=hold, method=options.method, form=options.form, substeps=options.substeps,
                     iterations=options.iterations, criterion=criterion, robust=robust, horizon=int(horizon),
                     starts=starts, time_unit=time_unit, prior=prior)

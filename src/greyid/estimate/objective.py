@@ -53,6 +53,12 @@ class Problem:
         arrays = (base_theta, self.transform.lower, self.transform.upper, mean, chol)
         return tuple(jax.device_put(np.asarray(a, dtype=np.float64)) for a in arrays)
 
+    def theta(self, z, base_theta) -> np.ndarray:
+        """θ at z, the fixed parameters taken from ``base_theta`` (NumPy, nothing to compile)."""
+        theta = np.array(base_theta, dtype=np.float64)
+        theta[list(self.free)] = self.transform.to_theta(np.asarray(z, dtype=np.float64), np)
+        return theta
+
 
 def forward_value_and_grad(fun):
     """``(value, gradient)`` of a scalar ``fun(x, *args)`` by forward-mode differentiation.
@@ -79,7 +85,7 @@ def _log_prior(theta, index, mean, chol):
 
 
 def build(structure, problem: Problem):
-    """``(derivatives, theta_of_z, negative)`` for this problem (the first two jitted).
+    """``(derivatives, negative)`` for this problem, the first jitted.
 
     ``derivatives(z, ...) -> (value, gradient, Hessian)`` is one compiled
     program.  For the exact Kalman filter with up to FORWARD_HESSIAN_MAX free
@@ -116,7 +122,7 @@ def build(structure, problem: Problem):
         return -total
 
     forward = forward_hessian(problem.options.method, len(problem.free))
-    return jit(hessian_rows(negative, forward)), jit(theta_of_z), negative
+    return jit(hessian_rows(negative, forward)), negative
 
 
 def forward_hessian(method: str, n_parameters: int) -> bool:

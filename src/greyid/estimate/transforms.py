@@ -30,14 +30,16 @@ class Transform:
         kind = np.where(np.isnan(lo), np.where(np.isnan(hi), NONE, UPPER), np.where(np.isnan(hi), LOWER, BOTH))
         return cls(kind.astype(int), np.nan_to_num(lo), np.nan_to_num(hi))
 
-    def to_theta(self, z):
-        z = jnp.asarray(z)
+    def to_theta(self, z, xp=jnp):
+        """θ at z; ``xp`` is the array module (``jax.numpy`` in compiled code, or NumPy)."""
+        z = xp.asarray(z)
         width = self.upper - self.lower
-        return jnp.select(
-            [self.kind == NONE, self.kind == LOWER, self.kind == UPPER],
-            [z, self.lower + jnp.exp(z), self.upper - jnp.exp(z)],
-            self.lower + width / (1.0 + jnp.exp(-z)),
-        )
+        with np.errstate(over="ignore"):  # NumPy: e^z = inf gives the bound, as in JAX
+            return xp.select(
+                [self.kind == NONE, self.kind == LOWER, self.kind == UPPER],
+                [z, self.lower + xp.exp(z), self.upper - xp.exp(z)],
+                self.lower + width / (1.0 + xp.exp(-z)),
+            )
 
     def to_z(self, theta) -> np.ndarray:
         theta = np.asarray(theta, dtype=np.float64)

@@ -15,6 +15,7 @@ from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..compiler import jit
 from ..errors import ModelError
@@ -146,7 +147,7 @@ def filter_steps(structure: Structure, options: FilterOptions):
     n = structure.n_states
     weights = sigma_weights(n, options.alpha, options.beta, options.kappa) if method == UKF else None
     jac_f = jax.jacfwd(f, argnums=0)
-    zeros = jnp.zeros(n)
+    zeros = np.zeros(n)  # a constant of the traced code; NumPy, so nothing compiles here
 
     def linear_terms(theta, data):
         """Discretizations and affine drift terms b = f(0, u, t) for the exact filter."""

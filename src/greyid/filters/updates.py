@@ -14,12 +14,13 @@ likelihood (3.18) and the Gaussian constant counts only observed elements.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import jax.numpy as jnp
 from . import small
 
-LOG_2PI = float(jnp.log(2.0 * jnp.pi))
+LOG_2PI = math.log(2.0 * math.pi)
 PLAIN = "plain"
 SQRT = "sqrt"
 FORMS = (PLAIN, SQRT)
