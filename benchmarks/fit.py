@@ -6,8 +6,9 @@ Prints, on this machine:
 * the Armadillo fit (pySIP's TwTi_RoRi, first-order hold, 232 rows; data from
   ../shared/data) and the test-cell fit (model 7.43, 1512 samples): the first fit
   in a fresh process (import + compile + fit, measured as a subprocess, with an
-  empty and with a warm persistent compilation cache) and the fit with compiled
-  functions (seven more fits in the same process: median and fastest);
+  empty and with a warm persistent compilation cache; median and range over
+  ``--repeats`` processes) and the fit with compiled functions (seven more fits
+  in the same process: median and fastest);
 * log-likelihood + gradient time of the test-cell model against series length.
 """
 
@@ -63,19 +64,28 @@ def test_cell_data() -> Path:
     return path
 
 
-def fit_case(case: str, data: Path) -> None:
-    cache = tempfile.mkdtemp(prefix="greyid-bench-cache-")
-    env = dict(os.environ, GREYID_CACHE_DIR=cache)
-    for label in ("cold cache", "warm cache"):
-        start = time.perf_counter()
-        out = subprocess.run([sys.executable, "-c", FIT_SCRIPT, case, str(data)], env=env, check=True,
-                             capture_output=True, text=True).stdout.split()
-        total = time.perf_counter() - start
-        setup, first, median, fastest, loglik, iterations = out
-        print(f"  {label}: first fit in a fresh process {float(setup) + float(first):5.2f} s (import + data + model "
-              f"{float(setup):.2f} s, fit {float(first):.2f} s; interpreter start adds {total - float(setup) - float(first) - 7 * float(median):.2f} s); "
-              f"compiled fit {float(median):.3f} s (median of 7, fastest {float(fastest):.3f} s); "
-              f"loglik {loglik}, {iterations} iterations")
+def fit_case(case: str, data: Path, repeats: int) -> None:
+    """First fits with an empty and a warm compilation cache, ``repeats`` times each (median, range)."""
+    runs = {"cold cache": [], "warm cache": []}
+    for _ in range(repeats):
+        env = dict(os.environ, GREYID_CACHE_DIR=tempfile.mkdtemp(prefix="greyid-bench-cache-"))
+        for label, results in runs.items():
+            start = time.perf_counter()
+            out = subprocess.run([sys.executable, "-c", FIT_SCRIPT, case, str(data)], env=env, check=True,
+                                 capture_output=True, text=True).stdout.split()
+            total = time.perf_counter() - start
+            setup, first, median, fastest = (float(v) for v in out[:4])
+            results.append(dict(setup=setup, first=setup + first, start=total - setup - first - 7 * median,
+                                median=median, fastest=fastest, loglik=out[4], iterations=out[5]))
+    for label, results in runs.items():
+        def stat(key, fmt):
+            values = sorted(r[key] for r in results)
+            return f"{values[len(values) // 2]:{fmt}} ({values[0]:{fmt}}–{values[-1]:{fmt}})"
+        print(f"  {label}: first fit in a fresh process {stat('first', '.2f')} s, of which import + data + model "
+              f"{stat('setup', '.2f')} s; interpreter start adds {stat('start', '.2f')} s; compiled fit "
+              f"{stat('median', '.3f')} s (medians of 7 fits per process; fastest single fit "
+              f"{min(r['fastest'] for r in results):.3f} s); loglik {results[0]['loglik']}, "
+              f"{results[0]['iterations']} iterations")
 
 
 def scaling(lengths: list[int]) -> None:
@@ -113,14 +123,15 @@ def scaling(lengths: list[int]) -> None:
 def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--lengths", default="1000,10000,100000,1000000")
+    parser.add_argument("--repeats", type=int, default=3, help="fresh processes per case and cache state")
     args = parser.parse_args()
     if ARMADILLO.exists():
         print("Armadillo fit (TwTi_RoRi, foh, 232 rows):")
-        fit_case("armadillo", ARMADILLO)
+        fit_case("armadillo", ARMADILLO, args.repeats)
     else:
         print(f"Armadillo data not found at {ARMADILLO}; skipped")
     print("Test-cell fit (7.43, 1512 samples):")
-    fit_case("testcell", test_cell_data())
+    fit_case("testcell", test_cell_data(), args.repeats)
     print("Test-cell log-likelihood + gradient against series length:")
     scaling([int(v) for v in args.lengths.split(",")])
 
