@@ -263,3 +263,32 @@ def test_save_and_load_reproduce_the_fit(ou, tmp_path):
     np.testing.assert_allclose(loaded.predict(df)["y"], fit.predict()["y"], rtol=1e-12)
     with pytest.raises(greyid.ModelError, match="carries no data"):
         loaded.residuals
+
+
+def test_bound_transforms_agree_in_numpy_and_jax():
+    """θ(z) after a fit is taken in NumPy; it must be the compiled objective's θ(z)."""
+    from greyid.estimate.transforms import Transform
+
+    t = Transform.from_bounds([None, 0.0, None, -25.0], [None, None, 3.0, 5.0])
+    for z in (np.array([-1.3, 0.4, 2.0, -0.7]), np.array([40.0, -40.0, 30.0, -800.0])):
+        np.testing.assert_allclose(t.to_theta(z, np), np.asarray(t.to_theta(jnp.asarray(z))), rtol=1e-15)
+
+
+def test_model_functions_with_unused_parameters_and_inputs():
+    """Model functions take out only the elements they use; values and derivatives still match."""
+    m = greyid.Model("sparse")
+    m.add_system("dx = (-x/tau + b*u2)*dt + exp(p)*dw")
+    m.add_inputs("u1", "u2", "u3")
+    m.add_observation("y = x", variance="exp(e)")
+    m.set_initial_state(mean={"x": "x0"}, covariance=[[1.0]])
+    s = m.structure
+    theta = jnp.arange(1.0, len(s.parameter_names) + 1)
+    values = dict(zip(s.parameter_names, np.asarray(theta)))
+    x, u = jnp.array([0.7]), jnp.array([10.0, -2.0, 30.0])
+    expected = -0.7 / values["tau"] + values["b"] * -2.0
+    np.testing.assert_allclose(s.drift(x, u, 0.0, theta), [expected], rtol=1e-14)
+    d_theta = jax.grad(lambda th: s.drift(x, u, 0.0, th)[0])(theta)
+    index = {n: i for i, n in enumerate(s.parameter_names)}
+    assert d_theta[index["tau"]] == pytest.approx(0.7 / values["tau"] ** 2, rel=1e-14)
+    assert d_theta[index["b"]] == pytest.approx(-2.0, rel=1e-14)
+    assert d_theta[index["p"]] == 0.0 and d_theta[index["e"]] == 0.0
