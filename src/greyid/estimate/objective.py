@@ -53,11 +53,18 @@ class Problem:
         arrays = (base_theta, self.transform.lower, self.transform.upper, mean, chol)
         return tuple(jax.device_put(np.asarray(a, dtype=np.float64)) for a in arrays)
 
-    def theta(self, z, base_theta) -> np.ndarray:
-        """θ at z, the fixed parameters taken from ``base_theta`` (NumPy, nothing to compile)."""
-        theta = np.array(base_theta, dtype=np.float64)
-        theta[list(self.free)] = self.transform.to_theta(np.asarray(z, dtype=np.float64), np)
-        return theta
+    def theta(self, z, base_theta, transform: Transform | None = None, xp=np):
+        """θ at z: the free parameters from z, the fixed ones from ``base_theta``.
+
+        In NumPy (``xp=np``, nothing to compile) or in the compiled objective
+        (``xp=jax.numpy``, with the bounds passed as arguments in ``transform``).
+        θ is assembled element by element: a scatter into ``base_theta`` would
+        become a loop per derivative order in the compiled Hessian program.
+        """
+        free_theta = (transform or self.transform).to_theta(z, xp)
+        position = {index: j for j, index in enumerate(self.free)}
+        return xp.stack([free_theta[position[i]] if i in position else base_theta[i]
+                         for i in range(len(base_theta))])
 
 
 def forward_value_and_grad(fun):
@@ -106,16 +113,9 @@ def build(structure, problem: Problem):
             return ahead(theta, data).terms
 
     kinds = problem.transform.kind
-    position = {index: j for j, index in enumerate(problem.free)}
-
-    def theta_of_z(z, base, lower, upper):
-        # Assembled element by element: a scatter into base would become a loop
-        # per derivative order in the compiled Hessian program.
-        free_theta = Transform(kinds, lower, upper).to_theta(z)
-        return jnp.stack([free_theta[position[i]] if i in position else base[i] for i in range(base.shape[0])])
 
     def negative(z, base, lower, upper, prior_mean, prior_chol, datasets):
-        theta = theta_of_z(z, base, lower, upper)
+        theta = problem.theta(z, base, Transform(kinds, lower, upper), jnp)
         total = sum(log_criterion(terms(theta, d), problem.robust) for d in datasets)
         if problem.prior is not None:
             total = total + _log_prior(theta, problem.prior_index, prior_mean, prior_chol)

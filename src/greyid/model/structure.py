@@ -86,7 +86,7 @@ def _vector_function(exprs: list[sp.Expr], args: list, shape: tuple[int, ...]) -
     of the vectors: the model functions are called many times in a filter, and
     each element taken out is an operation to trace and differentiate.
     """
-    used = set().union(*(sp.sympify(e).free_symbols for e in exprs)) if exprs else set()
+    used = set().union(*(sp.sympify(e).free_symbols for e in exprs))
     picks = []  # (argument position, element index or None for a scalar, symbol)
     for position, arg in enumerate(args):
         if isinstance(arg, (list, tuple)):
