@@ -212,6 +212,40 @@ def test_active_bound_is_reported(ou):
     assert any("'a' is at a bound" in w for w in fit.warnings)
 
 
+def test_wide_bounds_keep_standard_errors(ou):
+    """CTSM-style bounds [1e-6, 1e6] leave interior estimates interior: same optimum, same SEs."""
+    m, df, fit = ou
+    wide = ou_model()
+    for name in ("a", "s", "r"):
+        wide.set_parameter(name, init=wide.parameters[name].init, lower=1e-6, upper=1e6)
+    wide_fit = wide.fit(df)
+    assert not wide_fit.params["at_bound"].any()
+    assert not any("at a bound" in w for w in wide_fit.warnings)
+    for name in TRUE:
+        assert wide_fit.values[name] == pytest.approx(fit.values[name], rel=1e-4, abs=1e-6)
+        # Standard errors in natural parameters do not depend on the transform.
+        assert wide_fit.bse[name] == pytest.approx(fit.bse[name], rel=1e-3)
+
+
+def test_tiny_variance_above_zero_bound_keeps_its_standard_error():
+    """A thermometer's variance of 4e-6 K² with lower=0 is an interior estimate, not 'at bound'."""
+    m = ou_model()
+    m.set_parameter("r", init=1e-3, lower=0.0)
+    m.set_parameter("s", init=0.1, lower=0.0)
+    rng = np.random.default_rng(0)
+    df = pd.DataFrame({"t": np.arange(300) * 0.5, "u": np.repeat(rng.choice([0.0, 1.0], 30), 10)})
+    truth = dict(TRUE, s=0.01, r=4e-6)
+    df["y"] = m.simulate(truth, df, method="exact", seed=5).outputs[0, :, 0]
+    fit = m.fit(df)
+    assert fit.converged and not fit.params["at_bound"].any()
+    se = fit.bse
+    assert np.all(np.isfinite(se.to_numpy()))
+    assert abs(fit.values["r"] - 4e-6) < 4 * se["r"] and se["r"] < 4e-6
+    # The SE of s accounts for its correlation with r (dropping r understated it by a third).
+    assert abs(fit.values["s"] - 0.01) < 4 * se["s"]
+    assert se["s"] > 6e-4
+
+
 def test_several_experiments_and_multistart(ou):
     m, df, fit = ou
     a, b = df.iloc[:150].reset_index(drop=True), df.iloc[150:].reset_index(drop=True)

@@ -311,7 +311,7 @@ def build_result(model, frames, theta, problem, best, optima, settings) -> FitRe
     d1 = transform.derivative(best.z)
     theta_free = theta[free]
     warn = []
-    at_bound = transform.near_bound(theta_free) | (np.abs(d1) < 1e-10)
+    at_bound = transform.at_bound(best.z, best.gradient, np.diag(best.hessian))
     g_theta = np.where(at_bound, np.nan, best.gradient / np.where(at_bound, 1.0, d1))
     # H_z = J H_θ J + diag(g_θ θ''); at the optimum g_θ = 0 for interior parameters, so
     # H_θ = J⁻¹ H_z J⁻¹.  (Keeping the g_θ θ'' term would only add the optimiser's
