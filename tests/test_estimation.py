@@ -49,7 +49,7 @@ def test_fit_recovers_parameters_and_reports(ou):
     assert fit.n_params == 5 and fit.n_obs == 300
     assert fit.aic == pytest.approx(-2 * fit.loglik + 10)
     assert fit.bic == pytest.approx(-2 * fit.loglik + 5 * np.log(300))
-    assert list(fit.params.columns[:7]) == ["estimate", "std_error", "t_value", "p_value", "lower", "upper", "fixed"]
+    assert list(fit.params.columns[:7]) == ["estimate", "std_error", "t_value", "p_value", "lower_bound", "upper_bound", "fixed"]
     np.testing.assert_allclose(np.diag(fit.corr), 1.0)
     text = fit.summary()
     assert "log-likelihood" in text and "x0" in text and "AIC" in text

@@ -46,9 +46,14 @@ def squared_norm(r, robust: tuple[str, float] | None):
     return (c**2 / 3.0) * (1.0 - (1.0 - u) ** 3)
 
 
+def step_criterion(terms, robust=None):
+    """−½(s_k log 2π + log det R_k + Σ_i ρ(r_ki)) for each step k: the summands of :func:`log_criterion`."""
+    return -0.5 * (terms.n_obs * LOG_2PI + terms.logdet + jnp.sum(squared_norm(terms.whitened, robust), -1))
+
+
 def log_criterion(terms, robust=None):
     """Σ_k −½(s_k log 2π + log det R_k + Σ_i ρ(r_ki)): (3.18), robust if asked."""
-    return -0.5 * jnp.sum(terms.n_obs * LOG_2PI + terms.logdet + jnp.sum(squared_norm(terms.whitened, robust), -1))
+    return jnp.sum(step_criterion(terms, robust))
 
 
 @dataclass(frozen=True)

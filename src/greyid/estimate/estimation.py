@@ -20,7 +20,8 @@ from ..errors import ModelError
 from ..filters.api import check_at_parameters, filter_options, prepare_datasets
 from ..progress import FitProgress
 from .criteria import GaussianPrior, check_robust
-from .objective import Derivatives, Problem, compiled
+from .covariance import check_cov_type, default_cov_type, score_covariance
+from .objective import Derivatives, Problem, compiled, step_scores
 from .optimize import NotFiniteError, newton_trust_region
 from .transforms import Transform
 
@@ -52,7 +53,8 @@ def _describe(names, theta, free) -> str:
 
 
 def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=None, robust=None,
-        horizon=1, starts=1, seed=0, init=None, time_unit=None, maxiter=500, progress=False, **filter_settings):
+        horizon=1, starts=1, seed=0, init=None, time_unit=None, maxiter=500, progress=False, cov_type=None,
+        **filter_settings):
     """Estimate the free parameters of ``model`` from ``data``; see :meth:`Model.fit`."""
     from .results import FitResult, build_result
 
@@ -64,6 +66,7 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
     if criterion == "ml" and prior is not None:
         raise ModelError("a prior was given with criterion='ml'; use criterion='map'")
     robust = check_robust(robust)
+    cov_type = default_cov_type(robust, int(horizon)) if cov_type is None else check_cov_type(cov_type)
     if not isinstance(starts, int) or starts < 1:
         raise ModelError(f"starts must be a positive integer, got {starts!r}")
     options = filter_options(structure, method, **filter_settings)
@@ -104,7 +107,7 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
     prepared = prepare_datasets(structure, theta0, frames, time, hold, time_unit, check=False)
     datasets = [inputs for _, inputs in prepared]
 
-    program, _ = compiled(structure, problem)
+    program = compiled(structure, problem)[0]
     args = problem.arguments(theta0)
 
     free_theta0 = theta0[list(free)]
@@ -130,7 +133,10 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
             optima.append(optimum)
     best = min(optima, key=lambda o: o.value if np.isfinite(o.value) else np.inf)
     theta = problem.theta(best.z, theta0)
+    scores = None
+    if cov_type != "hessian":
+        scores = score_covariance(step_scores(structure, problem, best.z, args, datasets), int(horizon))
     settings = dict(time=time, hold=hold, method=options.method, form=options.form, substeps=options.substeps,
                     iterations=options.iterations, criterion=criterion, robust=robust, horizon=int(horizon),
-                    starts=starts, time_unit=time_unit, prior=prior)
-    return build_result(model, frames, theta, problem, best, optima, settings)
+                    starts=starts, time_unit=time_unit, prior=prior, cov_type=cov_type)
+    return build_result(model, frames, theta, problem, best, optima, settings, scores)

@@ -19,7 +19,7 @@ import numpy as np
 from ..compiler import jit
 from ..filters.api import compiled_filter
 from ..filters.core import KALMAN, FilterOptions, make_ahead
-from .criteria import GaussianPrior, log_criterion
+from .criteria import GaussianPrior, log_criterion, step_criterion
 from .transforms import Transform
 
 
@@ -92,7 +92,7 @@ def _log_prior(theta, index, mean, chol):
 
 
 def build(structure, problem: Problem):
-    """``(derivatives, negative)`` for this problem, the first jitted.
+    """``(derivatives, negative, step_scores)`` for this problem, the first and last jitted.
 
     ``derivatives(z, ...) -> (value, gradient, Hessian)`` is one compiled
     program.  For the exact Kalman filter with up to FORWARD_HESSIAN_MAX free
@@ -121,8 +121,13 @@ def build(structure, problem: Problem):
             total = total + _log_prior(theta, problem.prior_index, prior_mean, prior_chol)
         return -total
 
+    def contributions(z, base, lower, upper, data):
+        theta = problem.theta(z, base, Transform(kinds, lower, upper), jnp)
+        return step_criterion(terms(theta, data), problem.robust)
+
     forward = forward_hessian(problem.options.method, len(problem.free))
-    return jit(hessian_rows(negative, forward)), negative
+    # Per-step scores (rows: steps, columns: ∂/∂z), forward mode: nothing stored per step.
+    return jit(hessian_rows(negative, forward)), negative, jit(jax.jacfwd(contributions))
 
 
 def forward_hessian(method: str, n_parameters: int) -> bool:
@@ -209,7 +214,15 @@ class Derivatives:
 
 
 def compiled(structure, problem: Problem):
+    """``(derivatives, negative, step_scores)`` of :func:`build`, built once per problem."""
     key = problem.key()
     if key not in structure.cache:
         structure.cache[key] = build(structure, problem)
     return structure.cache[key]
+
+
+def step_scores(structure, problem: Problem, z, arguments, datasets) -> list[np.ndarray]:
+    """∂(criterion term of step k)/∂z for every step of every data set (padding rows are 0)."""
+    scores = compiled(structure, problem)[2]
+    base, lower, upper = arguments[:3]
+    return [np.asarray(scores(np.asarray(z, dtype=np.float64), base, lower, upper, d)) for d in datasets]

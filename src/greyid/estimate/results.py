@@ -25,6 +25,7 @@ from scipy import special
 from ..errors import ModelError
 from ..model.equations import parse_expression
 from ..model.structure import lambdify_parameters
+from .covariance import FEW_STEPS, parameter_covariance
 
 
 class FitWarning(UserWarning):
@@ -79,6 +80,53 @@ class FitResult:
         return self.cov / np.outer(sd, sd)
 
     @property
+    def llf(self) -> float:
+        """The Gaussian log-likelihood at the estimates (statsmodels' name for ``loglik``)."""
+        return self.loglik
+
+    @property
+    def nobs(self) -> int:
+        """Number of observed output values (statsmodels' name for ``n_obs``)."""
+        return self.n_obs
+
+    @property
+    def tvalues(self) -> pd.Series:
+        """Estimates over standard errors (NaN for fixed parameters)."""
+        return self.params["t_value"]
+
+    @property
+    def pvalues(self) -> pd.Series:
+        """Two-sided p-values of the t-values (Student t, N − k degrees of freedom)."""
+        return self.params["p_value"]
+
+    @property
+    def cov_type(self) -> str:
+        """How ``cov`` was computed: ``"hessian"``, ``"opg"`` or ``"sandwich"`` (see :mod:`.covariance`)."""
+        return self.settings.get("cov_type", "hessian")
+
+    def cov_params(self) -> pd.DataFrame:
+        """Covariance matrix of the free parameters' estimates."""
+        return self.cov.copy()
+
+    @property
+    def df_resid(self) -> int:
+        """Degrees of freedom of the t-values: observations less free parameters (at least 1)."""
+        return max(self.n_obs - self.n_params, 1)
+
+    def conf_int(self, level: float = 0.95, method: str = "wald") -> pd.DataFrame:
+        """Confidence intervals ``lower``, ``upper`` per parameter: estimate ± t_{N−k} quantile × SE.
+
+        NaN where there is no standard error (fixed parameters, estimates at a bound).
+        """
+        if method != "wald":
+            raise ModelError(f"confidence intervals by method {method!r} are not available; use method='wald'")
+        if not 0 < level < 1:
+            raise ModelError(f"level must lie between 0 and 1, got {level!r}")
+        q = float(special.stdtrit(self.df_resid, 0.5 + level / 2))
+        est, se = self.params["estimate"], self.params["std_error"]
+        return pd.DataFrame({"lower": est - q * se, "upper": est + q * se}, index=self.params.index)
+
+    @property
     def aic(self) -> float:
         """Akaike's information criterion, −2 log L + 2k (5.7)."""
         return -2.0 * self.loglik + 2.0 * self.n_params
@@ -88,9 +136,14 @@ class FitResult:
         """Bayesian information criterion, −2 log L + k log N (5.8)."""
         return -2.0 * self.loglik + self.n_params * math.log(self.n_obs)
 
+    @property
+    def hqic(self) -> float:
+        """Hannan–Quinn information criterion, −2 log L + 2k log log N."""
+        return -2.0 * self.loglik + 2.0 * self.n_params * math.log(math.log(max(self.n_obs, 3)))
+
     # -------------------------------------------------------------- report
-    def summary(self) -> str:
-        """A readable table of the fit, like statsmodels' summary."""
+    def summary(self, level: float = 0.95) -> str:
+        """A readable table of the fit, like statsmodels' summary, with ``level`` confidence intervals."""
         s = self.settings
         crit = s["criterion"].upper()
         if s.get("robust"):
@@ -103,20 +156,31 @@ class FitResult:
             f"criterion: {crit:32s} filter: {s['method']} ({s['form']}), hold {s['hold']}",
             f"log-likelihood: {self.loglik:<16.6f} observations: {self.n_obs:<10d} parameters: {self.n_params}",
             f"AIC: {self.aic:<16.4f} BIC: {self.bic:<16.4f} converged: {self.converged} ({self.iterations} iterations)",
+            f"covariance: {self.cov_type}",
         ]
         if s.get("robust") or s.get("horizon", 1) > 1 or s["criterion"] == "map":
             lines.append(f"criterion value (log scale): {self.criterion_value:.6f}")
         lines.append("-" * 78)
-        header = f"{'':12s} {'estimate':>13s} {'std_error':>11s} {'t_value':>9s} {'p_value':>9s} {'lower':>10s} {'upper':>10s}"
-        lines.append(header)
+        tail = (1 - level) / 2
+        lines.append(f"{'':12s} {'estimate':>13s} {'std_error':>11s} {'t_value':>9s} {'p_value':>9s} "
+                     f"{f'[{tail:.3g}':>11s} {f'{1 - tail:.3g}]':>11s}")
+        fmt = lambda v, w, p: f"{v:{w}.{p}g}" if v is not None and np.isfinite(v) else " " * (w - 1) + "-"
+        intervals = self.conf_int(level)
         for name, row in self.params.iterrows():
-            fmt = lambda v, w, p: f"{v:{w}.{p}g}" if v is not None and np.isfinite(v) else " " * (w - 1) + "-"
             flag = " fixed" if row["fixed"] else (" at bound" if row["at_bound"] else "")
             if not row["fixed"] and not row["reliable"]:
                 flag += " (unreliable)"
+            ci = intervals.loc[name]
             lines.append(f"{name:12.12s} {fmt(row['estimate'], 13, 6)} {fmt(row['std_error'], 11, 4)} "
-                         f"{fmt(row['t_value'], 9, 4)} {fmt(row['p_value'], 9, 3)} {fmt(row['lower'], 10, 4)} "
-                         f"{fmt(row['upper'], 10, 4)}{flag}")
+                         f"{fmt(row['t_value'], 9, 4)} {fmt(row['p_value'], 9, 3)} {fmt(ci['lower'], 11, 5)} "
+                         f"{fmt(ci['upper'], 11, 5)}{flag}")
+        bounded = self.params[self.params["lower_bound"].notna() | self.params["upper_bound"].notna()]
+        if len(bounded):
+            lines.append("-" * 78)
+            lines.append(f"{'bounds':12s} {'lower':>13s} {'upper':>11s}")
+            for name, row in bounded.iterrows():
+                lines.append(f"{name:12.12s} {fmt(row['lower_bound'], 13, 6)} {fmt(row['upper_bound'], 11, 6)}"
+                             f"{' at bound' if row['at_bound'] else ''}")
         lines.append("=" * 78)
         for w in self.warnings:
             lines.append(f"warning: {w}")
@@ -283,7 +347,9 @@ def load_fit(path) -> FitResult:
         raise ModelError(f"{path} is not a greyid fit file")
     model = Model.from_dict(spec["model"])
     params = pd.DataFrame.from_dict(spec["params"], orient="index")
-    for col in ("estimate", "std_error", "t_value", "p_value", "lower", "upper", "gradient"):
+    # Files written before greyid 0.2 named the bounds "lower" and "upper".
+    params = params.rename(columns={"lower": "lower_bound", "upper": "upper_bound"})
+    for col in ("estimate", "std_error", "t_value", "p_value", "lower_bound", "upper_bound", "gradient"):
         if col in params:
             params[col] = params[col].astype(float)
     for col in ("fixed", "at_bound", "reliable"):
@@ -302,8 +368,12 @@ def load_fit(path) -> FitResult:
                      data_file=spec.get("data_file"))
 
 
-def build_result(model, frames, theta, problem, best, optima, settings) -> FitResult:
-    """Map the optimum back to natural parameters and compute the uncertainty."""
+def build_result(model, frames, theta, problem, best, optima, settings, scores=None) -> FitResult:
+    """Map the optimum back to natural parameters and compute the uncertainty.
+
+    ``scores`` is the :class:`~.covariance.ScoreCovariance` of the per-step scores in z,
+    needed for ``cov_type`` "opg" and "sandwich".
+    """
     names = list(model.parameter_names)
     free = list(problem.free)
     free_names = [names[i] for i in free]
@@ -347,18 +417,21 @@ def build_result(model, frames, theta, problem, best, optima, settings) -> FitRe
             warn.append(f"the Hessian is {'singular' if w[j] > -1e-12 else 'not positive definite'} in the "
                         f"direction {desc}: these parameters are not determined by the data, "
                         "their standard errors are unreliable")
-        if bad.any():
-            cov_inner = np.linalg.pinv(H)
-        else:
-            cov_inner = np.linalg.inv(H)
-        cov_inner = 0.5 * (cov_inner + cov_inner.T)
+        J = None if scores is None else scores.matrix[np.ix_(inner, inner)] * np.outer(Jinv, Jinv)
+        if scores is not None:
+            for name, steps in zip(inner_names, scores.effective_steps[inner]):
+                if steps < FEW_STEPS:
+                    reliable[free_names.index(name)] = False
+                    warn.append(f"the {settings['cov_type']} standard error of '{name}' rests on about "
+                                f"{steps:.1f} observations' scores (an initial state?); it is unreliable")
+        cov_inner = parameter_covariance(H, J, settings.get("cov_type", "hessian"), bool(bad.any()))
 
     cov = np.full((len(free), len(free)), np.nan)
     idx = np.flatnonzero(inner)
     cov[np.ix_(idx, idx)] = cov_inner
     se = np.sqrt(np.where(np.diag(cov) >= 0, np.diag(cov), np.nan))
     n_obs = int(sum(int(np.sum(~np.isnan(df[list(model.output_names)].to_numpy(dtype=float)))) for df in frames))
-    dof = max(n_obs - len(free), 1)
+    dof = max(n_obs - len(free), 1)  # as FitResult.df_resid
     tval = theta_free / se
     pval = 2 * special.stdtr(dof, -np.abs(tval))  # two-sided Student-t p-value
     if not best.converged:
@@ -373,14 +446,14 @@ def build_result(model, frames, theta, problem, best, optima, settings) -> FitRe
         if i in free:
             j = free.index(i)
             rows.append(dict(name=name, estimate=theta[i], std_error=se[j], t_value=tval[j], p_value=pval[j],
-                             lower=lower, upper=upper, fixed=False, at_bound=bool(at_bound[j]),
+                             lower_bound=lower, upper_bound=upper, fixed=False, at_bound=bool(at_bound[j]),
                              reliable=bool(reliable[j] and not at_bound[j]), gradient=-g_theta[j]))
         else:
             rows.append(dict(name=name, estimate=theta[i], std_error=np.nan, t_value=np.nan, p_value=np.nan,
-                             lower=lower, upper=upper, fixed=True, at_bound=False, reliable=True, gradient=np.nan))
+                             lower_bound=lower, upper_bound=upper, fixed=True, at_bound=False, reliable=True, gradient=np.nan))
     params = pd.DataFrame(rows).set_index("name")
     params.index.name = None
-    for col in ("lower", "upper"):
+    for col in ("lower_bound", "upper_bound"):
         params[col] = params[col].astype(float)
 
     criterion_value = -best.value

@@ -501,7 +501,10 @@ class Model:
         k-step prediction errors (section 7.2); ``starts`` > 1 adds random
         starting points inside the bounds.  ``progress=True`` prints the
         optimiser's iterations (or pass a callable taking one dict per
-        iteration).  Settings not given come from :meth:`set_options`, then
+        iteration).  ``cov_type`` chooses the covariance of the estimates:
+        ``"hessian"`` (the default for ML and MAP), ``"sandwich"`` H⁻¹JH⁻¹ (the
+        default for k-step and robust criteria, which are not likelihoods) or
+        ``"opg"`` (see :mod:`greyid.estimate.covariance`).  Settings not given come from :meth:`set_options`, then
         from the defaults (time column "t", zero-order hold, ML).  Returns a
         :class:`~greyid.estimate.FitResult`.
         """

@@ -17,7 +17,7 @@ DATA_KEYS = ("time", "hold", "time_unit", "columns")
 #: Filter settings (see :func:`greyid.filters.api.filter_options`).
 FILTER_KEYS = ("method", "form", "substeps", "iterations", "alpha", "beta", "kappa")
 #: Estimation settings of :meth:`Model.fit`.
-ESTIMATION_KEYS = ("criterion", "robust", "horizon", "starts", "seed", "maxiter", "prior_correlation")
+ESTIMATION_KEYS = ("criterion", "robust", "horizon", "starts", "seed", "maxiter", "prior_correlation", "cov_type")
 #: Where the data live, for the command line: a CSV file (relative to the model
 #: file) and its field separator.
 FILE_KEYS = ("file", "separator")
@@ -46,6 +46,8 @@ def check_options(options: Mapping) -> dict:
             raise ModelError(f"setting 'form' must be 'sqrt' or 'plain', got {value!r}")
         if key == "criterion" and value not in ("ml", "map"):
             raise ModelError(f"setting 'criterion' must be 'ml' or 'map', got {value!r}")
+        if key == "cov_type" and value not in ("hessian", "opg", "sandwich"):
+            raise ModelError(f"setting 'cov_type' must be 'hessian', 'opg' or 'sandwich', got {value!r}")
         if key in ("horizon", "starts", "substeps", "iterations", "maxiter") and not (
             isinstance(value, int) and not isinstance(value, bool) and value >= 1
         ):

@@ -146,7 +146,7 @@ def _estimation_section(fit) -> str:
 
 
 def _parameters_section(fit) -> str:
-    columns = ["estimate", "std_error", "t_value", "p_value", "lower", "upper"]
+    columns = ["estimate", "std_error", "t_value", "p_value", "lower_bound", "upper_bound"]
     table = fit.params[columns].copy()
     table["note"] = ["fixed" if r["fixed"] else ("at bound" if r["at_bound"] else
                                                  ("unreliable" if not r["reliable"] else ""))

@@ -87,8 +87,8 @@ def parameter_bootstrap(fit, data=None, n_samples: int = 100, seed: int = 0, lev
         raise ModelError("some parameters have no covariance (at a bound or not determined); "
                          "the parametric bootstrap needs all of them")
     mean = fit.params.loc[free, "estimate"].to_numpy(dtype=np.float64)
-    lower = fit.params.loc[free, "lower"].to_numpy(dtype=np.float64)
-    upper = fit.params.loc[free, "upper"].to_numpy(dtype=np.float64)
+    lower = fit.params.loc[free, "lower_bound"].to_numpy(dtype=np.float64)
+    upper = fit.params.loc[free, "upper_bound"].to_numpy(dtype=np.float64)
     lower, upper = np.where(np.isnan(lower), -np.inf, lower), np.where(np.isnan(upper), np.inf, upper)
     rng = np.random.default_rng(seed)
     chol = np.linalg.cholesky(0.5 * (cov + cov.T) + 1e-300 * np.eye(len(free)))

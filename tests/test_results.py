@@ -1,0 +1,129 @@
+"""FitResult as statsmodels users read it; covariance types; forecasting past the data."""
+
+import numpy as np
+import pandas as pd
+import pytest
+from scipy import stats
+
+from test_estimation import TRUE, ou_model
+
+FREE = ["a", "b", "s", "r", "x0"]
+
+
+@pytest.fixture(scope="module")
+def ou_case():
+    m = ou_model()
+    rng = np.random.default_rng(0)
+    df = pd.DataFrame({"t": np.arange(300) * 0.5, "u": np.repeat(rng.choice([0.0, 1.0], 30), 10)})
+    df["y"] = m.simulate(TRUE, df, method="exact", seed=5).outputs[0, :, 0]
+    return m, df, m.fit(df)
+
+
+def test_statsmodels_names(ou_case):
+    m, df, fit = ou_case
+    assert fit.llf == fit.loglik and fit.nobs == fit.n_obs == 300
+    assert isinstance(fit.bse, pd.Series) and isinstance(fit.tvalues, pd.Series) and isinstance(fit.pvalues, pd.Series)
+    est = fit.params["estimate"]
+    np.testing.assert_allclose(fit.tvalues[FREE], est[FREE] / fit.bse[FREE])
+    k, n = 5, 300
+    np.testing.assert_allclose(fit.pvalues[FREE], 2 * stats.t.sf(np.abs(fit.tvalues[FREE]), n - k))
+    assert fit.hqic == pytest.approx(-2 * fit.llf + 2 * k * np.log(np.log(n)))
+    pd.testing.assert_frame_equal(fit.cov_params(), fit.cov)
+    assert fit.cov_type == "hessian"
+
+
+def test_conf_int_is_a_student_t_wald_interval(ou_case):
+    m, df, fit = ou_case
+    ci = fit.conf_int(0.9)
+    q = stats.t.ppf(0.95, fit.nobs - 5)
+    est, se = fit.params["estimate"], fit.bse
+    np.testing.assert_allclose(ci.loc[FREE, "lower"], est[FREE] - q * se[FREE])
+    np.testing.assert_allclose(ci.loc[FREE, "upper"], est[FREE] + q * se[FREE])
+    assert (fit.conf_int(0.99)["upper"] - fit.conf_int(0.99)["lower"] > ci["upper"] - ci["lower"])[FREE].all()
+    with pytest.raises(Exception, match="level"):
+        fit.conf_int(1.5)
+
+
+def test_summary_shows_intervals_and_bounds_apart(ou_case):
+    m, df, fit = ou_case
+    text = fit.summary()
+    assert "[0.025" in text and "0.975]" in text and "covariance: hessian" in text
+    header, bounds = text.split("bounds", 1)
+    a_line = next(line for line in header.splitlines() if line.startswith("a "))
+    ci = fit.conf_int().loc["a"]
+    assert f"{ci['lower']:.5g}" in a_line and f"{ci['upper']:.5g}" in a_line
+    assert "10" not in a_line.split()[-1]  # the upper bound of a is no longer in the estimate's row
+    assert any(line.split()[:3] == ["a", "0", "10"] for line in bounds.splitlines())
+    assert list(fit.params.columns[:7]) == ["estimate", "std_error", "t_value", "p_value", "lower_bound",
+                                            "upper_bound", "fixed"]
+
+
+def test_sandwich_equals_finite_difference_scores(ou_case):
+    """H⁻¹JH⁻¹ with J from central differences of the filter's per-step log-likelihood terms."""
+    m, df, fit = ou_case
+    sandwich = m.fit(df, cov_type="sandwich")
+    opg = m.fit(df, cov_type="opg")
+    theta = fit.values
+    scores = []
+    for name in FREE:
+        h = 1e-6 * max(abs(theta[name]), 1.0)
+        up = m.filter(dict(theta, **{name: theta[name] + h}), df).loglik_terms.to_numpy()
+        down = m.filter(dict(theta, **{name: theta[name] - h}), df).loglik_terms.to_numpy()
+        scores.append((up - down) / (2 * h))
+    S = np.array(scores).T
+    J = S.T @ S
+    cov_h = fit.cov.loc[FREE, FREE].to_numpy()
+    expected = cov_h @ J @ cov_h
+    np.testing.assert_allclose(sandwich.cov.loc[FREE, FREE].to_numpy(), expected, rtol=2e-4,
+                               atol=1e-6 * np.max(np.abs(expected)))
+    np.testing.assert_allclose(opg.cov.loc[FREE, FREE].to_numpy(), np.linalg.inv(J), rtol=2e-4)
+    assert sandwich.cov_type == "sandwich" and "covariance: sandwich" in sandwich.summary()
+    # x0 is informed by the first observations only: its score-based SE is flagged.
+    assert not sandwich.params.loc["x0", "reliable"] and any("'x0'" in w for w in sandwich.warnings)
+    with pytest.raises(Exception, match="cov_type"):
+        m.fit(df, cov_type="robust")
+
+
+def test_k_step_sandwich_is_calibrated():
+    """Monte Carlo (small; studies/table_7_1.py --horizon 4 at full size): with the 4-step
+    criterion the Hessian's standard errors are too small, the sandwich's are right."""
+    m = ou_model()
+    rng = np.random.default_rng(0)
+    df = pd.DataFrame({"t": np.arange(600) * 0.5, "u": np.repeat(rng.choice([0.0, 1.0], 60), 10)})
+    n = 30
+    sims = m.simulate(TRUE, df, method="exact", seed=11, n_paths=n).outputs[:, :, 0]
+    estimates, se_sandwich, se_hessian = [], [], []
+    for i in range(n):
+        data = df.assign(y=sims[i])
+        fit = m.fit(data, horizon=4)
+        assert fit.cov_type == "sandwich"
+        estimates.append(fit.params["estimate"])
+        se_sandwich.append(fit.bse)
+        se_hessian.append(m.fit(data, horizon=4, cov_type="hessian", init=fit.values).bse)
+    spread = pd.DataFrame(estimates).std()
+    rms = lambda se: np.sqrt((pd.DataFrame(se) ** 2).mean())
+    for name in ("a", "b"):
+        assert 0.7 < spread[name] / rms(se_sandwich)[name] < 1.3, name
+        assert spread[name] / rms(se_hessian)[name] > 1.2, name
+
+
+def test_forecast_past_the_data_equals_closed_form(ou_case):
+    """Rows with inputs but no outputs are forecast from the last observation (OU closed form)."""
+    m, df, fit = ou_case
+    future = pd.DataFrame({"t": df["t"].iloc[-1] + 0.5 * np.arange(1, 21), "u": 1.0, "y": np.nan})
+    extended = pd.concat([df, future], ignore_index=True)
+    forecast = fit.predict(extended)
+    same = m.predict(fit.values, extended, steps=1)
+    pd.testing.assert_frame_equal(forecast, same)
+    last = fit.filter(df)
+    x, P = last.filtered["x"].iloc[-1], last.filtered_cov[-1, 0, 0]
+    p = fit.values
+    h = future["t"].to_numpy() - df["t"].iloc[-1]
+    decay = np.exp(-p["a"] * h)
+    mean = decay * x + p["b"] / p["a"] * (1 - decay)
+    var = decay**2 * P + p["s"] ** 2 / (2 * p["a"]) * (1 - decay**2) + p["r"]
+    tail = forecast.iloc[len(df):]
+    np.testing.assert_allclose(tail["y"].to_numpy(), mean, rtol=1e-9)
+    np.testing.assert_allclose(tail["y_sd"].to_numpy(), np.sqrt(var), rtol=1e-9)
+    # Within the data the forecast frame holds the usual one-step predictions.
+    np.testing.assert_allclose(forecast["y"].iloc[:len(df)], fit.predict(df)["y"], rtol=1e-12)
