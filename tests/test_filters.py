@@ -161,21 +161,6 @@ def test_stationary_and_process_initial_covariance():
     assert res.predicted_cov[0, 0, 0] == pytest.approx(3.0 * (1 - np.exp(-2 * 2.0 * 0.5)) / (2 * 2.0), rel=1e-12)
 
 
-def test_time_varying_kalman_equals_ekf_with_held_inputs():
-    m = greyid.Model("ltv")
-    m.add_system("dx1 = (-k*(1 + u^2)*x1 + x2 + u)*dt + s*dw1")
-    m.add_system("dx2 = (-0.3*x2 + 0.1*sin(t))*dt + s*dw2")
-    m.add_inputs("u")
-    m.add_observation("y = x1 + x2", variance="r")
-    m.set_initial_state(mean={"x1": 1.0, "x2": 0.0}, covariance=[0.5, 0.5])
-    assert m.kind == "ltv"
-    rng = np.random.default_rng(2)
-    t = np.cumsum(rng.uniform(0.3, 1.0, 50))
-    df = pd.DataFrame({"t": t, "u": rng.normal(size=50), "y": rng.normal(size=50)})
-    p = dict(k=0.8, s=0.5, r=0.2)
-    assert m.loglik(p, df, method="ekf") == pytest.approx(m.loglik(p, df), rel=1e-10)
-
-
 def test_loglik_gradient_matches_finite_differences(building):
     import jax
     import jax.numpy as jnp

@@ -12,11 +12,13 @@ mapped back to the natural parameters.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
 from ..data.prepare import as_frames
 from ..errors import ModelError
+from ..filters.accuracy import LOGLIK_TOLERANCE, MAX_SUBSTEPS, SubstepChoice, needs_substeps
 from ..filters.api import check_at_parameters, filter_options, prepare_datasets
 from ..progress import FitProgress
 from .criteria import GaussianPrior, check_robust
@@ -46,6 +48,36 @@ def _starting_points(transform: Transform, theta0: np.ndarray, starts: int, seed
                 theta[i] = theta0[i] + rng.uniform(-1, 1) * max(abs(theta0[i]), 1.0)
         points.append(transform.to_z(theta))
     return points
+
+
+#: Newton decrement gᵀH⁻¹g on doubling the sub-steps below which the estimates stay:
+#: a shift of the estimates by about a tenth of a standard error.
+SHIFT_TOLERANCE = 0.01
+
+
+def _accurate_substeps(structure, problem, best, args, datasets, optimize):
+    """Double the filter's sub-steps until the fit no longer depends on them (see filters.accuracy).
+
+    At the optimum for m sub-steps, the criterion and its gradient with 2m tell
+    the change of the log-likelihood and, through the Newton decrement with the
+    Hessian already at hand, how far the estimates would move; when either is
+    too large the fit is repeated with 2m from the current optimum.
+    """
+    while True:
+        m = problem.options.substeps
+        finer = replace(problem, options=replace(problem.options, substeps=2 * m))
+        value, gradient = compiled(structure, finer)[3](best.z, *args, datasets)
+        change = abs(float(value) - best.value)
+        shift = float(gradient @ np.linalg.pinv(0.5 * (best.hessian + best.hessian.T)) @ gradient)
+        if change <= LOGLIK_TOLERANCE and abs(shift) <= SHIFT_TOLERANCE:
+            return problem, best, SubstepChoice(m, change, True)
+        if 2 * m >= MAX_SUBSTEPS:
+            previous = best.iterations
+            best = optimize(finer, best.z)
+            return finer, replace(best, iterations=best.iterations + previous), SubstepChoice(2 * m, change, False)
+        previous = best.iterations
+        problem, best = finer, optimize(finer, best.z)
+        best = replace(best, iterations=best.iterations + previous)
 
 
 def _describe(names, theta, free) -> str:
@@ -107,36 +139,46 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
     prepared = prepare_datasets(structure, theta0, frames, time, hold, time_unit, check=False)
     datasets = [inputs for _, inputs in prepared]
 
-    program = compiled(structure, problem)[0]
     args = problem.arguments(theta0)
-
     free_theta0 = theta0[list(free)]
     label = "log-likelihood" if criterion == "ml" and robust is None and horizon == 1 else "criterion"
     optima = []
-    with FitProgress(progress, starts, label) as shown, Derivatives(program, len(free), (*args, datasets)) as vgh:
+    with FitProgress(progress, starts, label) as shown:
         # The optimiser minimises −(criterion); progress shows the criterion itself.
         def report(iteration, stage, f, g):
             shown.iteration(iteration, stage, -f, float(np.max(np.abs(g))))
 
+        def optimize(problem, z0, i):
+            program = compiled(structure, problem)[0]
+            with Derivatives(program, len(free), (*args, datasets)) as vgh:
+                shown.begin_start(i)
+                try:
+                    optimum = newton_trust_region(vgh, z0, maxiter, report)
+                except NotFiniteError:
+                    theta_start = problem.theta(z0, theta0)
+                    for series, inputs in prepared:
+                        check_at_parameters(structure, theta_start, series, inputs)
+                    raise ModelError("the criterion or its derivatives are not finite at the "
+                                     f"{'initial values' if i == 0 else f'random start {i + 1}'} "
+                                     f"({_describe(names, theta_start, free)}); check the initial parameter values")
+                shown.end_start(-optimum.value, optimum.iterations, optimum.converged, optimum.message)
+            return optimum
+
         for i, z0 in enumerate(_starting_points(transform, free_theta0, starts, seed)):
-            shown.begin_start(i)
-            try:
-                optimum = newton_trust_region(vgh, z0, maxiter, report)
-            except NotFiniteError:
-                theta_start = problem.theta(z0, theta0)
-                for series, inputs in prepared:
-                    check_at_parameters(structure, theta_start, series, inputs)
-                raise ModelError("the criterion or its derivatives are not finite at the "
-                                 f"{'initial values' if i == 0 else f'random start {i + 1}'} "
-                                 f"({_describe(names, theta_start, free)}); check the initial parameter values")
-            shown.end_start(-optimum.value, optimum.iterations, optimum.converged, optimum.message)
-            optima.append(optimum)
-    best = min(optima, key=lambda o: o.value if np.isfinite(o.value) else np.inf)
+            optima.append(optimize(problem, z0, i))
+        best = min(optima, key=lambda o: o.value if np.isfinite(o.value) else np.inf)
+        substep_choice = None
+        if filter_settings.get("substeps") is None and needs_substeps(structure):
+            problem, best, substep_choice = _accurate_substeps(structure, problem, best, args, datasets,
+                                                               lambda p, z: optimize(p, z, len(optima)))
     theta = problem.theta(best.z, theta0)
+    options = problem.options
     scores = None
     if cov_type != "hessian":
         scores = score_covariance(step_scores(structure, problem, best.z, args, datasets), int(horizon))
     settings = dict(time=time, hold=hold, method=options.method, form=options.form, substeps=options.substeps,
                     iterations=options.iterations, criterion=criterion, robust=robust, horizon=int(horizon),
-                    starts=starts, time_unit=time_unit, prior=prior, cov_type=cov_type)
+                    starts=starts, time_unit=time_unit, prior=prior, cov_type=cov_type,
+                    substep_note=None if substep_choice is None else substep_choice.describe(),
+                    substeps_accurate=None if substep_choice is None else substep_choice.accurate)
     return build_result(model, frames, theta, problem, best, optima, settings, scores)

@@ -92,7 +92,7 @@ def _log_prior(theta, index, mean, chol):
 
 
 def build(structure, problem: Problem):
-    """``(derivatives, negative, step_scores)`` for this problem, the first and last jitted.
+    """``(derivatives, negative, step_scores, value_and_grad)`` for this problem, all but the second jitted.
 
     ``derivatives(z, ...) -> (value, gradient, Hessian)`` is one compiled
     program.  For the exact Kalman filter with up to FORWARD_HESSIAN_MAX free
@@ -127,7 +127,8 @@ def build(structure, problem: Problem):
 
     forward = forward_hessian(problem.options.method, len(problem.free))
     # Per-step scores (rows: steps, columns: ∂/∂z), forward mode: nothing stored per step.
-    return jit(hessian_rows(negative, forward)), negative, jit(jax.jacfwd(contributions))
+    return (jit(hessian_rows(negative, forward)), negative, jit(jax.jacfwd(contributions)),
+            jit(forward_value_and_grad(negative)))
 
 
 def forward_hessian(method: str, n_parameters: int) -> bool:
@@ -214,7 +215,7 @@ class Derivatives:
 
 
 def compiled(structure, problem: Problem):
-    """``(derivatives, negative, step_scores)`` of :func:`build`, built once per problem."""
+    """``(derivatives, negative, step_scores, value_and_grad)`` of :func:`build`, built once per problem."""
     key = problem.key()
     if key not in structure.cache:
         structure.cache[key] = build(structure, problem)

@@ -158,6 +158,10 @@ class FitResult:
             f"AIC: {self.aic:<16.4f} BIC: {self.bic:<16.4f} converged: {self.converged} ({self.iterations} iterations)",
             f"covariance: {self.cov_type}",
         ]
+        if s.get("substep_note"):
+            lines.append(f"filter accuracy: {s['substep_note']}")
+        elif self.model.kind != "lti":
+            lines.append(f"filter accuracy: {s.get('substeps', 1)} sub-steps per interval (as set)")
         if s.get("robust") or s.get("horizon", 1) > 1 or s["criterion"] == "map":
             lines.append(f"criterion value (log scale): {self.criterion_value:.6f}")
         lines.append("-" * 78)
@@ -436,6 +440,8 @@ def build_result(model, frames, theta, problem, best, optima, settings, scores=N
     pval = 2 * special.stdtr(dof, -np.abs(tval))  # two-sided Student-t p-value
     if not best.converged:
         warn.append(f"the optimiser did not converge: {best.message}")
+    if settings.get("substeps_accurate") is False:
+        warn.append(f"the filter is not accurate between samples: {settings['substep_note']}")
 
     declared = model.parameters
     rows = []

@@ -19,6 +19,7 @@ from ..compiler import jit
 from ..data.prepare import Series, as_frames, prepare_series
 from ..errors import DataError, ModelError
 from ..model.structure import Structure
+from .accuracy import choose_substeps, needs_substeps
 from .core import EKF, EKF2, KALMAN, FilterInputs, FilterOptions, initial_state, make_ahead, make_filter
 from .result import FilterResult, SmootherResult
 from .smoother import rts_smooth
@@ -77,7 +78,25 @@ def filter_options(structure: Structure, method: str | None, **options) -> Filte
     unknown = set(options) - {"form", "substeps", "iterations", "alpha", "beta", "kappa"}
     if unknown:
         raise ModelError(f"unknown filter option '{sorted(unknown)[0]}'")
-    return FilterOptions(method=method, **options)
+    return FilterOptions(method=method, **{k: v for k, v in options.items() if v is not None})
+
+
+def accurate_options(structure: Structure, theta, prepared, method, **options):
+    """``(FilterOptions, SubstepChoice or None)``: with ``substeps`` unset, as many as accuracy needs.
+
+    See :mod:`.accuracy`; the choice is made on the log-likelihood at ``theta``.
+    """
+    if options.get("substeps") is not None or not needs_substeps(structure):
+        return filter_options(structure, method, **options), None
+    rest = {k: v for k, v in options.items() if k != "substeps"}
+    theta = jnp.asarray(theta)
+
+    def loglik_at(substeps):
+        run = compiled_filter(structure, filter_options(structure, method, substeps=substeps, **rest), False)
+        return float(sum(jnp.sum(run(theta, inputs)[0].loglik) for _, inputs in prepared))
+
+    choice = choose_substeps(loglik_at)
+    return filter_options(structure, method, substeps=choice.substeps, **rest), choice
 
 
 def compiled_filter(structure: Structure, options: FilterOptions, keep_outputs: bool):
@@ -146,7 +165,8 @@ def loglik(model, params, data, time="t", hold="zoh", method=None, time_unit=Non
 
     robust = check_robust(robust)
     structure, theta, prepared = _prepare(model, params, data, time, hold, time_unit)
-    run = compiled_filter(structure, filter_options(structure, method, **options), keep_outputs=False)
+    run = compiled_filter(structure, accurate_options(structure, theta, prepared, method, **options)[0],
+                          keep_outputs=False)
     return float(sum(log_criterion(run(jnp.asarray(theta), inputs)[0], robust) for _, inputs in prepared))
 
 
@@ -179,7 +199,7 @@ def _result(structure: Structure, method: str, series: Series, terms, outputs) -
 def filter_data(model, params, data, time="t", hold="zoh", method=None, time_unit=None, **options):
     """Filter result(s): one :class:`FilterResult`, or a list for a list of data sets."""
     structure, theta, prepared = _prepare(model, params, data, time, hold, time_unit)
-    opts = filter_options(structure, method, **options)
+    opts = accurate_options(structure, theta, prepared, method, **options)[0]
     run = compiled_filter(structure, opts, keep_outputs=True)
     results = [_result(structure, opts.method, series, *run(jnp.asarray(theta), inputs)) for series, inputs in prepared]
     return results[0] if isinstance(data, pd.DataFrame) else results
@@ -211,7 +231,7 @@ def predict_data(model, params, data, steps=1, time="t", hold="zoh", method=None
     the data up to row k − steps (the first rows are predicted from the prior).
     """
     structure, theta, prepared = _prepare(model, params, data, time, hold, time_unit)
-    opts = filter_options(structure, method, **options)
+    opts = accurate_options(structure, theta, prepared, method, **options)[0]
     key = ("ahead", opts, int(steps))
     if key not in structure.cache:
         structure.cache[key] = make_ahead(structure, opts, int(steps))

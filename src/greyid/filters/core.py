@@ -20,7 +20,8 @@ import numpy as np
 from ..compiler import jit
 from ..errors import ModelError
 from ..model.structure import LTI, Structure
-from .discretize import discretize, discretize_each, stationary_covariance
+from . import small
+from .discretize import discretize, discretize_each, stationary_covariance, time_varying_step
 from .predictors import (
     Interval,
     extended_predict,
@@ -31,7 +32,7 @@ from .predictors import (
     unscented_predict,
     unscented_update,
 )
-from .updates import FORMS, StepTerms, from_matrix, linear_update, to_matrix
+from .updates import FORMS, StepTerms, from_matrix, linear_update, propagate, to_matrix
 
 KALMAN, EKF, IEKF, UKF, EKF2 = "kalman", "ekf", "iekf", "ukf", "ekf2"
 METHODS = (KALMAN, EKF, IEKF, UKF, EKF2)
@@ -119,7 +120,7 @@ class Row(NamedTuple):
     dt_index: jnp.ndarray
     b_prev: jnp.ndarray | None = None  # f(0, u, t) at both ends (exact filter)
     b_cur: jnp.ndarray | None = None
-    discretization: object = None  # per-row Φ, Γ, Υ, Λ (time-varying exact filter)
+    foh: jnp.ndarray | None = None  # the hold flag, where a step needs it with the row
 
 
 class FilterSteps(NamedTuple):
@@ -160,32 +161,36 @@ def filter_steps(structure: Structure, options: FilterOptions):
             cache = discretize_each(A, g @ g.T, data.unique_dt)
             return cache, b_prev, b_cur
 
-        def per_row(u, t, dt):
-            g = G(zeros, u, t, theta)
-            return discretize(jac_f(zeros, u, t, theta), g @ g.T, dt)
+        return None, b_prev, b_cur
 
-        return jax.vmap(per_row)(data.u_prev, data.t_prev, data.dt), b_prev, b_cur
+    def time_varying(theta, row: Row):
+        """The interval's Φ, offset and Λ of a time-varying linear model (sub-stepped)."""
+        def matrices(u, t):
+            g = G(zeros, u, t, theta)
+            return jac_f(zeros, u, t, theta), small.mm(g, g.T)
+
+        return time_varying_step(matrices, lambda u, t: f(zeros, u, t, theta), row.t_prev, row.dt,
+                                 row.u_prev, row.u_cur, row.foh, options.substeps)
 
     def steps(theta, data: FilterInputs) -> FilterSteps:
         first_noise = None
         rows = Row(data.t, data.t_prev, data.dt, data.u_prev, data.u_cur, data.y, data.mask, data.dt_index)
         if method == KALMAN:
             cache, b_prev, b_cur = linear_terms(theta, data)
+            rows = rows._replace(b_prev=b_prev, b_cur=b_cur)
             if structure.kind == LTI:  # the first interval's Λ is in the cache already
                 first_noise = cache.noise_covariance[data.dt_index[1]]
-                rows = rows._replace(b_prev=b_prev, b_cur=b_cur)
-            else:
-                rows = rows._replace(b_prev=b_prev, b_cur=b_cur, discretization=cache)
         x0, P0 = initial_state(structure, theta, data, first_noise)
 
         def predict(x, cov, row: Row):
             if method == KALMAN:
                 if structure.kind == LTI:
                     disc = jax.tree_util.tree_map(lambda a: a[row.dt_index], cache)
-                else:
-                    disc = row.discretization
-                x_pred, cov_pred = linear_predict(x, cov, disc, row.b_prev, row.b_cur, data.foh, form)
-                return x_pred, cov_pred, disc.transition
+                    x_pred, cov_pred = linear_predict(x, cov, disc, row.b_prev, row.b_cur, data.foh, form)
+                    return x_pred, cov_pred, disc.transition
+                step = time_varying(theta, row._replace(foh=data.foh))
+                x_pred = small.mm(step.transition, x) + step.offset
+                return x_pred, propagate(cov, step.transition, step.noise_covariance, form), step.transition
             interval = Interval(row.t_prev, row.dt, row.u_prev, row.u_cur, data.foh)
             if method == UKF:
                 return unscented_predict(x, cov, interval, theta, f, G, options.substeps, form, weights)

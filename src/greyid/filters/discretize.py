@@ -115,3 +115,41 @@ def stationary_covariance(A: jnp.ndarray, Q: jnp.ndarray) -> jnp.ndarray:
     lyap = jnp.kron(eye, A) + jnp.kron(A, eye)
     P = jnp.linalg.solve(lyap, -Q.reshape(-1)).reshape(n, n)
     return 0.5 * (P + P.T)
+
+
+class AffineStep(NamedTuple):
+    """x(t+τ) = Φ x(t) + c, Cov = Φ P Φᵀ + Λ over one interval of a time-varying linear model."""
+
+    transition: jnp.ndarray  # Φ
+    offset: jnp.ndarray  # c
+    noise_covariance: jnp.ndarray  # Λ
+
+
+def time_varying_step(matrices, offset, t_prev, tau, u_prev, u_cur, foh, substeps: int) -> AffineStep:
+    """Φ, c and Λ of dx = (A(t)x + b(t))dt + G(t)dω over [t_prev, t_prev + τ] (4.19–4.20).
+
+    ``matrices(u, t) -> (A, G Gᵀ)`` and ``offset(u, t) -> b``.  The interval is
+    cut into ``substeps`` pieces; on each, A and GGᵀ are frozen at its midpoint
+    (the exponential midpoint rule, second order: the error falls fourfold per
+    doubling of ``substeps``) and b is taken linear between the piece's ends, so
+    each piece is discretized exactly as in :func:`discretize`.  The inputs are
+    held (``foh`` = 0) or interpolated (``foh`` = 1) inside the interval.
+    """
+    h = tau / substeps
+    du = (u_cur - u_prev) * foh
+
+    def at(s):  # inputs and time at fraction s of the interval
+        return u_prev + du * s, t_prev + tau * s
+
+    def piece(j, state):
+        phi_total, c, lam = state
+        A, Q = matrices(*at((j + 0.5) / substeps))
+        b_start, b_end = offset(*at(j / substeps)), offset(*at((j + 1.0) / substeps))
+        disc = discretize(A, Q, h)
+        c = mm(disc.transition, c) + mm(disc.input_gain, b_start) + mm(disc.ramp_gain, b_end - b_start)
+        lam = mm(mm(disc.transition, lam), disc.transition.T) + disc.noise_covariance
+        return mm(disc.transition, phi_total), c, 0.5 * (lam + lam.T)
+
+    n = offset(u_prev, t_prev).shape[0]
+    start = (jnp.eye(n), jnp.zeros(n), jnp.zeros((n, n)))
+    return AffineStep(*jax.lax.fori_loop(0, substeps, piece, start))

@@ -42,8 +42,9 @@ def linear_predict(mean, cov, disc, b_prev, b_cur, foh, form):
 
 
 def _input_rate(drift, x, u, t, theta, u_rate):
-    """∂f/∂u · du/dt, the drift's change along the interpolated inputs."""
-    return jax.jvp(lambda v: drift(x, v, t, theta), (u,), (u_rate,))[1]
+    """∂f/∂u · du/dt + ∂f/∂t, the drift's change along the interpolated inputs and in time."""
+    t = jnp.asarray(t, dtype=jnp.float64)
+    return jax.jvp(lambda v, s: drift(x, v, s, theta), (u, t), (u_rate, jnp.ones_like(t)))[1]
 
 
 def second_order_term(fn, x, P, *args):
@@ -74,7 +75,7 @@ def extended_predict(mean, cov, interval: Interval, theta, drift, diffusion, sub
             f = f + second_order_term(drift, x, to_matrix(c, form), u, t, theta)
         g = diffusion(x, u, t, theta)
         disc = discretize(jac(x, u, t, theta), small.mm(g, g.T), h)
-        # x_{j+1} = x_j + Γ f_j + ∫(h−s)e^{As}ds ∂f/∂u u̇  (A.49 with the input ramp)
+        # x_{j+1} = x_j + Γ f_j + ∫(h−s)e^{As}ds (∂f/∂u u̇ + ∂f/∂t)  (A.49 with the input ramp)
         x = x + small.mm(disc.input_gain, f) + h * small.mm(disc.ramp_gain, _input_rate(drift, x, u, t, theta, u_rate))
         c = propagate(c, disc.transition, disc.noise_covariance, form)
         return x, c, small.mm(disc.transition, phi_total)

@@ -4,8 +4,9 @@
 sampling times (and inputs) from a DataFrame, or plain times for a model
 without inputs.  Between sampling times each path takes ``substeps`` steps of
 the chosen scheme, with inputs held (``hold="zoh"``) or interpolated
-(``hold="foh"``).  ``method="exact"`` samples a linear model exactly from its
-discretization (4.34–4.39).  The initial state is drawn from N(x0, P0).
+(``hold="foh"``).  ``method="exact"`` samples a time-invariant linear model exactly from its
+discretization (4.34–4.39), and a time-varying one from ``substeps`` midpoint
+pieces per interval (second order, as its Kalman filter).  The initial state is drawn from N(x0, P0).
 """
 
 from __future__ import annotations
@@ -22,7 +23,8 @@ from ..compiler import jit
 from ..errors import DataError, ModelError
 from ..filters.api import HOLDS, filter_inputs
 from ..filters.core import initial_state
-from ..filters.discretize import discretize
+from ..filters.discretize import discretize, time_varying_step
+from ..model.structure import LTI
 from .schemes import make_integrator
 
 METHODS = ("euler", "milstein", "heun", "exact")
@@ -127,7 +129,7 @@ def simulate(model, params, data_or_times, n_paths: int = 1, method: str = "eule
     init = x0 + scale * jax.random.normal(k_init, (n_paths, n)) @ _psd_sqrt(P0).T
 
     if method == "exact":
-        states = _exact_paths(structure, theta, series, HOLDS[hold], init, k_path, scale)
+        states = _exact_paths(structure, theta, series, HOLDS[hold], init, k_path, scale, substeps)
     else:
         fine_t, fine_u = _fine_grid(series, substeps, hold)
         # Without noise the paths solve the ODE dx = f dt: the Itô–Stratonovich and
@@ -175,20 +177,34 @@ def _psd_sqrt(P):
     return V * jnp.sqrt(jnp.clip(w, 0.0, None))[None, :]
 
 
-def _exact_paths(structure, theta, series, foh, init, key, scale=1.0):
-    """x_{k+1} = Φx_k + Γb_k + Υ(b_{k+1} − b_k) + Λ^½ z_k for linear models."""
+def _exact_paths(structure, theta, series, foh, init, key, scale=1.0, substeps=10):
+    """x_{k+1} = Φx_k + Γb_k + Υ(b_{k+1} − b_k) + Λ^½ z_k for linear models.
+
+    Exact for time-invariant models; a time-varying model's Φ, offset and Λ come
+    from ``substeps`` midpoint pieces per interval, as in its Kalman filter.
+    """
     z = scale * jax.random.normal(key, (init.shape[0], len(series.times) - 1, structure.n_states))
-    run = _compiled(structure, ("simulate", "exact"), lambda: jit(_make_exact(structure)))
+    varying = structure.kind != LTI
+    run = _compiled(structure, ("simulate", "exact", substeps if varying else 1),
+                    lambda: jit(_make_exact(structure, substeps if varying else None)))
     return np.asarray(run(theta, jnp.asarray(series.times), jnp.asarray(series.inputs), foh, init, z))
 
 
-def _make_exact(structure):
+def _make_exact(structure, substeps: int | None):
     f, G = structure.drift, structure.diffusion
     zeros = jnp.zeros(structure.n_states)
     jac = jax.jacfwd(f, argnums=0)
 
     def paths(theta, t, u, foh, init, z):
         def interval(u0, t0, u1, t1):
+            if substeps is not None:  # time-varying
+                def matrices(uu, tt):
+                    g = G(zeros, uu, tt, theta)
+                    return jac(zeros, uu, tt, theta), g @ g.T
+
+                step = time_varying_step(matrices, lambda uu, tt: f(zeros, uu, tt, theta), t0, t1 - t0, u0, u1,
+                                         foh, substeps)
+                return step.transition, step.offset, _psd_sqrt(step.noise_covariance)
             g = G(zeros, u0, t0, theta)
             d = discretize(jac(zeros, u0, t0, theta), g @ g.T, t1 - t0)
             b0, b1 = f(zeros, u0, t0, theta), f(zeros, u1, t1, theta)
