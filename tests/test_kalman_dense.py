@@ -64,3 +64,40 @@ def test_unobserved_elements_are_skipped(linear_model):
     assert np.array_equal(res.innovations.notna().to_numpy(), observed)
     assert res.n_obs == observed.sum()
     assert res.loglik == pytest.approx(linear_model.loglik(params, df), rel=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("case", ["known_initial_state", "tiny_variances"])
+def test_singular_covariances_stay_finite_and_exact(linear_model, seed, case):
+    """Noise-free states, P0 = 0 or 1e-18, and chains of 1e-5 intervals: both forms equal
+    the dense Gaussian (the square-root form's factorisation met 0/0 pivots here)."""
+    rng = np.random.default_rng(seed)
+    params, mats = random_linear_parameters(rng)
+    noisy = [0] if case == "tiny_variances" else []
+    for i in range(3):
+        if i not in noisy:
+            mats["G"][i] = 0.0
+            for j in range(2):
+                params[f"g{i + 1}{j + 1}"] = 0.0
+    mats["P0"] = np.eye(3) * (1e-18 if case == "tiny_variances" else 0.0)
+    for i in range(3):
+        for j in range(i, 3):
+            params[f"v{i + 1}{j + 1}"] = mats["P0"][i, j]
+    N = 30
+    t = 3.0 + np.cumsum(np.where(np.arange(N) % 2, 1e-5, 0.5))
+    U, Y = rng.normal(size=(N, 2)), rng.normal(size=(N, 2))
+    df = pd.DataFrame({"t": t, "u1": U[:, 0], "u2": U[:, 1], "y1": Y[:, 0], "y2": Y[:, 1]})
+    ref, _, _ = dense_reference(mats, t, U, Y, foh=0.0)
+    for form in ("sqrt", "plain"):
+        assert linear_model.loglik(params, df, form=form) == pytest.approx(ref, rel=1e-9), form
+
+
+def test_indefinite_initial_covariance_is_refused(linear_model):
+    import greyid
+
+    rng = np.random.default_rng(0)
+    params, _ = random_linear_parameters(rng)
+    params.update(v11=1.0, v12=2.0, v22=1.0)
+    df, *_ = random_data(rng)
+    with pytest.raises(greyid.ModelError, match="positive semi-definite"):
+        linear_model.loglik(params, df)

@@ -127,10 +127,12 @@ def check_at_parameters(structure: Structure, theta: np.ndarray, series: Series,
             "for the given parameters; variances must be positive"
         )
     P0 = np.asarray(P0)
-    if not np.all(np.isfinite(P0)) or np.min(np.linalg.eigvalsh(0.5 * (P0 + P0.T))) <= 0:
+    # Semi-definite is allowed: a state known exactly at t₀ has variance 0.
+    if not np.all(np.isfinite(P0)) or np.min(np.linalg.eigvalsh(0.5 * (P0 + P0.T))) < -1e-10 * max(
+            np.abs(P0).max(), 1e-300):
         raise ModelError(
-            "the initial state covariance is not positive definite for the given parameters "
-            f"(kind '{structure.initial_covariance.kind}'); give a positive definite matrix"
+            "the initial state covariance is not positive semi-definite for the given parameters "
+            f"(kind '{structure.initial_covariance.kind}'); give a positive semi-definite matrix"
         )
 
 

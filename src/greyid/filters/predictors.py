@@ -136,7 +136,11 @@ def unscented_predict(mean, cov, interval: Interval, theta, drift, diffusion, su
 
 
 def unscented_update(mean, cov, y, mask, u, t, theta, observation, variance, form, weights: SigmaWeights):
-    """Unscented measurement update: ŷ, R and the state–output cross covariance from sigma points."""
+    """Unscented measurement update: ŷ, R and the state–output cross covariance from sigma points.
+
+    P⁺ = P − K R Kᵀ subtracts, as every unscented update does; in the square-root
+    form P⁺ is refactorised by the guarded Cholesky (:func:`.small.cholesky`).
+    """
     P = to_matrix(cov, form)
     X = sigma_points(mean, P, weights)
     Y = jax.vmap(lambda xi: observation(xi, u, t, theta))(X)

@@ -15,19 +15,39 @@ from jax.scipy.linalg import solve_triangular as _solve_triangular
 SMALL = 6
 
 
+#: Largest dimension whose Cholesky factorisation is unrolled (and guarded, see below).
+CHOLESKY_UNROLLED = 12
+#: A pivot within this fraction of its diagonal element is rounding: the column is zero.
+PIVOT_ROUNDING = 1e-12
+#: A pivot below −(this fraction) of its diagonal element means the matrix is indefinite.
+PIVOT_INDEFINITE = 1e-8
+
+
 def cholesky(A: jnp.ndarray) -> jnp.ndarray:
-    """Lower Cholesky factor of a symmetric positive definite A."""
+    """Lower factor L with L Lᵀ = A for a symmetric positive *semi*-definite A.
+
+    Covariances in a filter are often singular: a state without noise, a known
+    initial state, an interval of 1e-5 s.  A pivot that is zero up to rounding
+    (|d| ≤ PIVOT_ROUNDING·A_jj) gives a zero column, as in a semi-definite
+    Cholesky factorisation, instead of 0/0; a clearly negative pivot (the matrix
+    is indefinite, which no covariance is) gives NaN, so the error shows.
+    Matrices larger than CHOLESKY_UNROLLED use LAPACK, which needs A definite.
+    """
     n = A.shape[0]
-    if n > SMALL:
+    if n > CHOLESKY_UNROLLED:
         return jnp.linalg.cholesky(A)
+    zero = jnp.zeros((), A.dtype)
     L = [[None] * n for _ in range(n)]
     for j in range(n):
-        d = A[j, j] - sum((L[j][k] ** 2 for k in range(j)), jnp.zeros((), A.dtype))
-        L[j][j] = jnp.sqrt(d)
+        d = A[j, j] - sum((L[j][k] ** 2 for k in range(j)), zero)
+        scale = jnp.abs(A[j, j])
+        positive = d > PIVOT_ROUNDING * scale
+        root = jnp.sqrt(jnp.where(positive, d, 1.0))
+        indefinite = d < -PIVOT_INDEFINITE * scale - 1e-300
+        L[j][j] = jnp.where(positive, root, jnp.where(indefinite, jnp.nan, zero))
         for i in range(j + 1, n):
-            off = A[i, j] - sum((L[i][k] * L[j][k] for k in range(j)), jnp.zeros((), A.dtype))
-            L[i][j] = off / L[j][j]
-    zero = jnp.zeros((), A.dtype)
+            off = A[i, j] - sum((L[i][k] * L[j][k] for k in range(j)), zero)
+            L[i][j] = jnp.where(positive, off / root, zero)
     return jnp.stack([jnp.stack([L[i][j] if j <= i else zero for j in range(n)]) for i in range(n)])
 
 

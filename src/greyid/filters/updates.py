@@ -3,9 +3,11 @@
 A filter carries the state covariance either as the matrix P ("plain", with
 the Joseph-form update) or as a square root L with P = L Lᵀ ("sqrt").  The
 square-root measurement update is Potter's, one scalar observation at a time,
-and never subtracts covariances, so P stays positive definite (the role of the
-LDLᵀ updates of A.1.2 and A.3); the time update refactorises Φ P Φᵀ + Λ, a sum
-of positive semi-definite terms, by Cholesky.
+and never subtracts covariances, so P stays positive semi-definite (the role of
+the LDLᵀ updates of A.1.2 and A.3); the time update refactorises Φ P Φᵀ + Λ, a
+sum of positive semi-definite terms, by the guarded Cholesky factorisation of
+:func:`.small.cholesky` (zero pivots give zero columns).  It is not an array
+(QR) algorithm.
 
 Unobserved elements of y_k are masked: their row of C is zeroed, their
 innovation set to 0 and their variance to 1, so they add nothing to the
