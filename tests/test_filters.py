@@ -134,9 +134,48 @@ def test_ekf_converges_with_substeps_on_nonlinear_model():
     lls = [m.loglik(params, df, method="ekf", substeps=k) for k in (4, 8, 16, 32)]
     diffs = np.abs(np.diff(lls))
     assert diffs[-1] < diffs[0] / 4  # first-order convergence of the sub-sampling
-    ukf = m.loglik(params, df, method="ukf", substeps=32)
-    iekf = m.loglik(params, df, method="iekf", substeps=32)
-    assert ukf == pytest.approx(lls[-1], abs=1.0) and iekf == pytest.approx(lls[-1], abs=1.0)
+    # UKF and IEKF against an exact likelihood: test_nonlinear_filters_on_geometric_brownian_motion.
+
+
+def gbm_models():
+    """Geometric Brownian motion observed in log, and the same process written in log (linear)."""
+    gbm = greyid.Model("gbm")
+    gbm.add_system("dX = mu*X*dt + sigma*X*dw1")
+    gbm.add_observation("y = log(X)", variance="e")
+    gbm.set_initial_state(mean={"X": 1.0}, covariance=[[1e-12]])
+    log = greyid.Model("log_gbm")
+    log.add_system("dz = (mu - sigma^2/2)*dt + sigma*dw1")
+    log.add_observation("y = z", variance="e")
+    log.set_initial_state(mean={"z": 0.0}, covariance=[[1e-12]])
+    for m in (gbm, log):
+        m.set_parameter("mu", init=0.05)
+        m.set_parameter("sigma", init=0.1, lower=0.0)
+        m.set_parameter("e", init=1e-3, lower=0.0)
+    return gbm, log
+
+
+def test_nonlinear_filters_on_geometric_brownian_motion():
+    """log X is Brownian motion with drift, so the exact likelihood is the Kalman filter's in log X;
+    the EKF, IEKF and UKF approach it as the noise (the nonlinearity) shrinks, and their fits agree."""
+    gbm, log = gbm_models()
+    times = pd.DataFrame({"t": np.linspace(0, 10, 101)})
+    errors = {}
+    for sigma in (0.05, 0.0125):
+        p = dict(mu=0.1, sigma=sigma, e=1e-4)
+        df = log.simulate(p, times, method="exact", seed=4).frame(0)
+        exact = log.loglik(p, df)
+        errors[sigma] = {method: abs(gbm.loglik(p, df, method=method) - exact) for method in ("ekf", "iekf", "ukf")}
+    for method in ("ekf", "iekf", "ukf"):
+        assert errors[0.05][method] < 0.15 and errors[0.0125][method] < 0.015, (method, errors)
+    p = dict(mu=0.1, sigma=0.05, e=1e-4)
+    df = log.simulate(p, times, method="exact", seed=4).frame(0)
+    exact_fit = log.fit(df)
+    for method in ("ekf", "iekf", "ukf"):
+        fit = gbm.fit(df, method=method)
+        assert fit.converged, method
+        for name in ("mu", "sigma", "e"):
+            assert abs(fit.values[name] - exact_fit.values[name]) < 0.1 * exact_fit.bse[name], (method, name)
+            assert fit.bse[name] == pytest.approx(exact_fit.bse[name], rel=0.03), (method, name)
 
 
 def test_filter_starts_with_update_at_first_row(linear_model):
