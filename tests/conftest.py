@@ -69,12 +69,8 @@ def van_loan(A, Q, tau):
     return E[:n, :n], E[:n, n:2 * n], ups, F[n:, n:].T @ F[:n, n:]
 
 
-def dense_reference(mats, t, U, Y, foh):
-    """Mean and covariance of all stacked observations, built from the discretized model.
-
-    Returns the log-density of the observed elements, and the stacked state
-    mean/covariance with the observation operator for conditioning.
-    """
+def dense_moments(mats, t, U, foh):
+    """Mean and covariance of the stacked states and observations, from the discretized model."""
     A, B, c, G, H, D, S = (mats[k] for k in "A B c G H D S".split())
     N, n = len(t), A.shape[0]
     b = U @ B.T + c  # affine drift term at each row
@@ -95,19 +91,38 @@ def dense_reference(mats, t, U, Y, foh):
         for j in range(k, -1, -1):
             T[k * n:(k + 1) * n, j * n:(j + 1) * n] = block
             block = block @ trans[j]
-    Wcov = sl.block_diag(*noise)
-    Xcov = T @ Wcov @ T.T
-    ny = H.shape[0]
+    Xcov = T @ sl.block_diag(*noise) @ T.T
     Hbig = np.kron(np.eye(N), H)
     ymean = (mean @ H.T + U[:, :1] @ D.T).reshape(-1)
     ycov = Hbig @ Xcov @ Hbig.T + np.diag(np.tile(S, N))
+    return mean, Xcov, Hbig, ymean, ycov
+
+
+def dense_reference(mats, t, U, Y, foh):
+    """Log-density of the observed elements, and the smoothed states E[X | y], Cov[X | y].
+
+    Built from the mean and covariance of all stacked observations (:func:`dense_moments`).
+    """
+    mean, Xcov, Hbig, ymean, ycov = dense_moments(mats, t, U, foh)
     obs = ~np.isnan(Y.reshape(-1))
     ll = multivariate_normal(ymean[obs], ycov[np.ix_(obs, obs)]).logpdf(Y.reshape(-1)[obs])
-    # Smoothed states: E[X | y_obs]
     K = Xcov @ Hbig[obs].T @ np.linalg.inv(ycov[np.ix_(obs, obs)])
     xs = mean.reshape(-1) + K @ (Y.reshape(-1)[obs] - ymean[obs])
     Ps = Xcov - K @ Hbig[obs] @ Xcov
-    return ll, xs.reshape(N, n), Ps
+    return ll, xs.reshape(xs.shape[0] // mean.shape[1], mean.shape[1]), Ps
+
+
+def matrices_from_parameters(p, n=3, nu=2, ny=2, nw=2):
+    """The matrices of :func:`random_linear_model_spec` at the parameter dict ``p``."""
+    A = np.array([[p[f"a{i}{j}"] for j in range(1, n + 1)] for i in range(1, n + 1)])
+    B = np.array([[p[f"b{i}{j}"] for j in range(1, nu + 1)] for i in range(1, n + 1)])
+    G = np.array([[p[f"g{i}{j}"] for j in range(1, nw + 1)] for i in range(1, n + 1)])
+    H = np.array([[p[f"h{i}{j}"] for j in range(1, n + 1)] for i in range(1, ny + 1)])
+    P0 = np.array([[p[f"v{min(i, j)}{max(i, j)}"] for j in range(1, n + 1)] for i in range(1, n + 1)])
+    return dict(A=A, B=B, c=np.array([p[f"c{i}"] for i in range(1, n + 1)]), G=G, H=H,
+                D=np.array([[p[f"d{i}1"]] for i in range(1, ny + 1)]),
+                S=np.array([p[f"s{i}"] for i in range(1, ny + 1)]), P0=P0,
+                m0=np.array([p[f"m{i}"] for i in range(1, n + 1)]))
 
 
 @pytest.fixture(scope="session")
