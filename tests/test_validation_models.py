@@ -110,7 +110,9 @@ def test_lm_information_kinds_agree_at_the_optimum(models, nested):
     names = list(small.cov.index)
     fisher = loglik_derivatives(small.model, small.values, data, names, "fisher")
     hessian = loglik_derivatives(small.model, small.values, data, names, "hessian")
-    np.testing.assert_allclose(np.diag(fisher.information), np.diag(hessian.information), rtol=0.2)
+    # Observed and expected information differ by sampling error only (12 % at most here); the
+    # expected information itself is checked exactly in test_kalman_dense.py.
+    np.testing.assert_allclose(np.diag(fisher.information), np.diag(hessian.information), rtol=0.15)
     assert np.max(np.abs(fisher.score * np.sqrt(np.diag(small.cov)))) < 1e-3
 
 
