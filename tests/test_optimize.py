@@ -86,3 +86,19 @@ def test_stopping_early_is_not_called_converged():
     opt = newton_trust_region(derivatives(rosenbrock), np.array([-1.2, 1.0]), maxiter=3)
     assert not opt.converged and "maximum number of iterations" in opt.message
     assert opt.iterations == 3
+
+
+def test_coordinate_without_curvature_at_the_start_still_moves():
+    """A coordinate in a Huber norm's linear part, curvature 2e-31 and slope 2 (an initial state
+    seen only through an outlier): its trust-region scale is floored, so trial steps in it are
+    not 1e15 long and the region does not collapse at the start (it did, after 19 evaluations)."""
+    def f(z):
+        a = jnp.abs(z[1])
+        huber = jnp.where(a < 1.0, z[1] ** 2, 2.0 * a - 1.0)
+        return (z[0] - 1.0) ** 2 + huber + 1e-31 * z[1] ** 2
+
+    z0 = np.array([3.0, 3.0])
+    assert float(jax.hessian(f)(jnp.asarray(z0))[1, 1]) == pytest.approx(2e-31)
+    opt = newton_trust_region(derivatives(f), z0, maxiter=500)
+    assert opt.converged, opt.message
+    np.testing.assert_allclose(opt.z, [1.0, 0.0], atol=1e-8)

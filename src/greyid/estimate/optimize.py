@@ -31,6 +31,8 @@ GRADIENT_TOLERANCE = 1e-6
 #: Where no step decreases the criterion any more, the gradient below which that is
 #: rounding at a minimum rather than a failed search.
 COLLAPSE_GRADIENT = 1e-4
+#: Smallest scale of a coordinate in the trust region, relative to the largest.
+SCALE_FLOOR = 1e-6
 
 
 class NotFiniteError(ModelError):
@@ -143,7 +145,11 @@ def newton_trust_region(evaluate: Callable, z0: np.ndarray, maxiter: int = 500,
     def eigen(H):
         nonlocal scale
         scale = np.maximum(scale, np.sqrt(np.abs(np.diag(H))))
-        d = np.where(scale > 0, scale, 1.0)
+        # A coordinate with (nearly) no curvature where the search starts — an initial
+        # state whose only observation lies in a robust norm's linear part — would get a
+        # scale near 0 and trial steps of 1e16 in it, and the region would collapse
+        # before any step is taken: its scale is floored relative to the others.
+        d = np.maximum(scale, SCALE_FLOOR * scale.max()) if scale.max() > 0 else np.ones_like(scale)
         Hs = 0.5 * (H + H.T) / np.outer(d, d)
         return d, *np.linalg.eigh(Hs)
 
