@@ -30,7 +30,7 @@ def extensions(current: greyid.Model) -> list[greyid.Model]:
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--level", type=float, default=0.05)
-    parser.add_argument("--starts", type=int, default=3)
+    parser.add_argument("--starts", type=int, default=1)
     args = parser.parse_args(argv)
     data = pd.read_csv(DATA, sep=";")
     started = time.perf_counter()

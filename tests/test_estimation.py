@@ -200,6 +200,8 @@ def test_non_identifiable_product_is_reported():
     assert fit.params.loc["s", "reliable"]
     assert any("not determined" in w for w in fit.warnings)
     assert fit.values["a"] * fit.values["b"] == pytest.approx(0.8, rel=0.2)
+    # Stopped on a ridge is not a minimum: not called converged, and the message names the ridge.
+    assert not fit.converged and "a" in fit.message and "b" in fit.message and "Hessian" in fit.message
 
 
 def test_active_bound_is_reported(ou):
@@ -326,3 +328,40 @@ def test_model_functions_with_unused_parameters_and_inputs():
     assert d_theta[index["tau"]] == pytest.approx(0.7 / values["tau"] ** 2, rel=1e-14)
     assert d_theta[index["b"]] == pytest.approx(-2.0, rel=1e-14)
     assert d_theta[index["p"]] == 0.0 and d_theta[index["e"]] == 0.0
+
+
+def test_space_filling_starts_are_a_latin_hypercube_in_z():
+    from greyid.estimate.starts import LOG_RANGE, LOGIT_RANGE, space_filling
+    from greyid.estimate.transforms import Transform
+
+    transform = Transform.from_bounds([0.0, None, 1e-6, None], [10.0, None, 1e6, 5.0])
+    z0 = transform.to_z(np.array([2.0, 0.5, 3.0, 1.0]))
+    points = np.array(space_filling(transform, z0, 8, seed=3))
+    assert points.shape == (8, 4)
+    np.testing.assert_array_equal(points, np.array(space_filling(transform, z0, 8, seed=3)))
+    theta = np.array([transform.to_theta(p, np) for p in points])
+    assert np.all((theta[:, 0] > 0.19) & (theta[:, 0] < 9.81))  # the middle 96 % of [0, 10]
+    assert np.all(np.abs(theta[:, 1] - 0.5) <= 1.0)
+    # One point in each of the 8 strata of every coordinate (Latin hypercube).
+    ranges = [(-LOGIT_RANGE, LOGIT_RANGE), (-0.5, 1.5), (-LOGIT_RANGE, LOGIT_RANGE),
+              (z0[3] - LOG_RANGE, z0[3] + LOG_RANGE)]
+    for j, (low, high) in enumerate(ranges):
+        values = points[:, j] if j != 1 else theta[:, 1]
+        strata = np.floor((values - low) / (high - low) * 8).astype(int)
+        assert sorted(np.clip(strata, 0, 7)) == list(range(8)), j
+
+
+def test_start_from_a_nested_fit_and_spread_of_optima(ou):
+    """With init_from the extension starts at the smaller fit (shared parameters) as well as
+    its own initial values; the summary reports how many starts reached the best value."""
+    m, df, fit = ou
+    small = ou_model()
+    small.fix_parameter("b", 0.0)  # the OU model without its input
+    small_fit = small.fit(df)
+    big = m.fit(df, init_from=small_fit, starts=3, seed=1)
+    assert [s["start"] for s in big.starts] == ["nested fit", "initial values", "space-filling", "space-filling"]
+    assert big.loglik >= small_fit.loglik
+    assert big.starts[0]["criterion"] == pytest.approx(fit.loglik, abs=1e-6)
+    assert "starts: 4, 4 reached the best value" in big.summary()
+    with pytest.raises(greyid.ModelError, match="init_from"):
+        m.fit(df, init_from=3.0)

@@ -11,7 +11,6 @@ mapped back to the natural parameters.
 
 from __future__ import annotations
 
-import math
 from dataclasses import replace
 
 import numpy as np
@@ -25,29 +24,10 @@ from .criteria import GaussianPrior, check_robust
 from .covariance import check_cov_type, default_cov_type, score_covariance
 from .objective import Derivatives, Problem, compiled, step_scores
 from .optimize import NotFiniteError, newton_trust_region
+from .starts import nested_start, space_filling
 from .transforms import Transform
 
 CRITERIA = ("ml", "map")
-
-
-def _starting_points(transform: Transform, theta0: np.ndarray, starts: int, seed: int) -> list[np.ndarray]:
-    """The initial values, then ``starts − 1`` random points inside the bounds."""
-    rng = np.random.default_rng(seed)
-    points = [transform.to_z(theta0)]
-    for _ in range(starts - 1):
-        theta = theta0.copy()
-        for i, kind in enumerate(transform.kind):
-            lo, hi = transform.lower[i], transform.upper[i]
-            if kind == 3:
-                theta[i] = rng.uniform(lo + 0.02 * (hi - lo), hi - 0.02 * (hi - lo))
-            elif kind == 1:
-                theta[i] = lo + (theta0[i] - lo) * math.exp(rng.uniform(-1.5, 1.5))
-            elif kind == 2:
-                theta[i] = hi - (hi - theta0[i]) * math.exp(rng.uniform(-1.5, 1.5))
-            else:
-                theta[i] = theta0[i] + rng.uniform(-1, 1) * max(abs(theta0[i]), 1.0)
-        points.append(transform.to_z(theta))
-    return points
 
 
 #: Newton decrement gᵀH⁻¹g on doubling the sub-steps below which the estimates stay:
@@ -86,7 +66,7 @@ def _describe(names, theta, free) -> str:
 
 def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=None, robust=None,
         horizon=1, starts=1, seed=0, init=None, time_unit=None, maxiter=500, progress=False, cov_type=None,
-        **filter_settings):
+        init_from=None, **filter_settings):
     """Estimate the free parameters of ``model`` from ``data``; see :meth:`Model.fit`."""
     from .results import FitResult, build_result
 
@@ -141,9 +121,17 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
 
     args = problem.arguments(theta0)
     free_theta0 = theta0[list(free)]
+    z0 = transform.to_z(free_theta0)
+    points, labels = [z0], ["initial values"]
+    if init_from is not None:
+        warm = nested_start(model, init_from, names, free, lower, upper)
+        warm_theta = np.array([warm.get(names[i], free_theta0[j]) for j, i in enumerate(free)])
+        points, labels = [transform.to_z(warm_theta), z0], ["nested fit", "initial values"]
+    points += space_filling(transform, z0, starts - 1, seed)
+    labels += ["space-filling"] * (starts - 1)
     label = "log-likelihood" if criterion == "ml" and robust is None and horizon == 1 else "criterion"
     optima = []
-    with FitProgress(progress, starts, label) as shown:
+    with FitProgress(progress, len(points), label) as shown:
         # The optimiser minimises −(criterion); progress shows the criterion itself.
         def report(iteration, stage, f, g):
             shown.iteration(iteration, stage, -f, float(np.max(np.abs(g))))
@@ -159,13 +147,13 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
                     for series, inputs in prepared:
                         check_at_parameters(structure, theta_start, series, inputs)
                     raise ModelError("the criterion or its derivatives are not finite at the "
-                                     f"{'initial values' if i == 0 else f'random start {i + 1}'} "
+                                     f"{labels[i] if i < len(labels) else 'refit'} (start {i + 1}) "
                                      f"({_describe(names, theta_start, free)}); check the initial parameter values")
                 shown.end_start(-optimum.value, optimum.iterations, optimum.converged, optimum.message)
             return optimum
 
-        for i, z0 in enumerate(_starting_points(transform, free_theta0, starts, seed)):
-            optima.append(optimize(problem, z0, i))
+        for i, z_start in enumerate(points):
+            optima.append(optimize(problem, z_start, i))
         best = min(optima, key=lambda o: o.value if np.isfinite(o.value) else np.inf)
         substep_choice = None
         if filter_settings.get("substeps") is None and needs_substeps(structure):
@@ -180,5 +168,6 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
                     iterations=options.iterations, criterion=criterion, robust=robust, horizon=int(horizon),
                     starts=starts, time_unit=time_unit, prior=prior, cov_type=cov_type,
                     substep_note=None if substep_choice is None else substep_choice.describe(),
-                    substeps_accurate=None if substep_choice is None else substep_choice.accurate)
+                    substeps_accurate=None if substep_choice is None else substep_choice.accurate,
+                    start_labels=labels)
     return build_result(model, frames, theta, problem, best, optima, settings, scores)

@@ -55,6 +55,7 @@ class FitResult:
     ill_determined: list = field(default_factory=list)
     data: list | None = None
     start_values: list = field(default_factory=list)
+    starts: list = field(default_factory=list)  # per start: label, criterion, converged, iterations, message
     data_file: str | None = None  # where the data came from, when read from a file
     _cache: dict = field(default_factory=dict, repr=False)
 
@@ -158,6 +159,8 @@ class FitResult:
             f"AIC: {self.aic:<16.4f} BIC: {self.bic:<16.4f} converged: {self.converged} ({self.iterations} iterations)",
             f"covariance: {self.cov_type}",
         ]
+        if len(self.start_values) > 1:
+            lines.append(f"starts: {self.start_spread()}")
         if s.get("substep_note"):
             lines.append(f"filter accuracy: {s['substep_note']}")
         elif self.model.kind != "lti":
@@ -189,6 +192,19 @@ class FitResult:
         for w in self.warnings:
             lines.append(f"warning: {w}")
         return "\n".join(lines)
+
+    def start_spread(self, tolerance: float = 0.01) -> str:
+        """How many starts reached the best criterion (within ``tolerance``), and the next best value."""
+        values = np.sort(np.array([v for v in self.start_values if np.isfinite(v)]))[::-1]
+        if len(values) == 0:
+            return f"{len(self.start_values)}, none finite"
+        best = values[0]
+        reached = int(np.sum(values >= best - tolerance))
+        text = f"{len(self.start_values)}, {reached} reached the best value {best:.6g}"
+        others = values[values < best - tolerance]
+        if len(others):
+            text += f"; next best {others[0]:.6g} (the criterion has several optima)"
+        return text
 
     def __repr__(self) -> str:
         return f"<FitResult {self.model.name}: loglik={self.loglik:.4f}, k={self.n_params}, converged={self.converged}>"
@@ -317,6 +333,7 @@ class FitResult:
             "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.settings.items()},
             "warnings": list(self.warnings),
             "ill_determined": self.ill_determined,
+            "starts": self.starts,
             "data_file": self.data_file,
         }
 
@@ -369,7 +386,32 @@ def load_fit(path) -> FitResult:
                      criterion_value=spec["criterion_value"], n_obs=spec["n_obs"], converged=spec["converged"],
                      message=spec["message"], iterations=spec["iterations"], settings=settings,
                      warnings=spec.get("warnings", []), ill_determined=spec.get("ill_determined", []), data=None,
+                     starts=spec.get("starts", []), start_values=[s["criterion"] for s in spec.get("starts", [])],
                      data_file=spec.get("data_file"))
+
+
+#: Largest change of the criterion from moving an interior parameter by one standard
+#: error along its gradient that a converged fit may leave.
+GRADIENT_ACROSS_SE = 1e-2
+
+
+def honest_convergence(best, ill, free_names, inner, g_theta, se) -> tuple[bool, str]:
+    """Converged only at a minimum: the optimiser says so, the Hessian of the parameters not at a
+    bound is positive definite, and no interior gradient is large on the scale of its standard error."""
+    if not best.converged:
+        return False, best.message
+    reasons = []
+    if ill:
+        flat = sorted({name for d in ill for name in d["direction"]})
+        reasons.append("the Hessian is not positive definite: flat or curved-down direction in "
+                       + ", ".join(flat))
+    steep = [f"{n} (|g|·SE = {abs(g) * e:.2g})" for n, i, g, e in zip(free_names, inner, g_theta, se)
+             if i and np.isfinite(g) and np.isfinite(e) and abs(g) * e > GRADIENT_ACROSS_SE]
+    if steep:
+        reasons.append("the gradient is not small for " + ", ".join(steep))
+    if reasons:
+        return False, "stopped where " + "; ".join(reasons)
+    return True, best.message
 
 
 def build_result(model, frames, theta, problem, best, optima, settings, scores=None) -> FitResult:
@@ -438,8 +480,9 @@ def build_result(model, frames, theta, problem, best, optima, settings, scores=N
     dof = max(n_obs - len(free), 1)  # as FitResult.df_resid
     tval = theta_free / se
     pval = 2 * special.stdtr(dof, -np.abs(tval))  # two-sided Student-t p-value
-    if not best.converged:
-        warn.append(f"the optimiser did not converge: {best.message}")
+    converged, message = honest_convergence(best, ill, free_names, inner, g_theta, se)
+    if not converged:
+        warn.append(f"the fit did not converge: {message}")
     if settings.get("substeps_accurate") is False:
         warn.append(f"the filter is not accurate between samples: {settings['substep_note']}")
 
@@ -473,6 +516,9 @@ def build_result(model, frames, theta, problem, best, optima, settings, scores=N
         warnings.warn(f"{model.name}: {message}", FitWarning, stacklevel=4)
     return FitResult(model=model, params=params, cov=pd.DataFrame(cov, index=free_names, columns=free_names),
                      loglik=float(loglik), criterion_value=float(criterion_value), n_obs=n_obs,
-                     converged=bool(best.converged), message=best.message, iterations=best.iterations,
+                     converged=converged, message=message, iterations=best.iterations,
                      settings=settings, warnings=warn, ill_determined=ill, data=frames,
-                     start_values=[float(-o.value) for o in optima])
+                     start_values=[float(-o.value) for o in optima],
+                     starts=[dict(start=label, criterion=float(-o.value), converged=bool(o.converged),
+                                  iterations=int(o.iterations), message=o.message)
+                             for label, o in zip(settings.get("start_labels", []), optima)])

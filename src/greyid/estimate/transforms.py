@@ -70,7 +70,8 @@ class Transform:
         one unit *towards* the bound when the bound holds the estimate back, and to
         zero at an interior optimum however close to the bound it lies or however
         wide the bounds are.  A parameter is at a bound when that step points to the
-        nearer bound and is longer than ``step``, or when e^z has underflowed.
+        nearer bound and is longer than ``step``, or when θ equals the bound to 12
+        digits (there g and h are rounding noise) or e^z has underflowed.
         (A test on |θ − bound| relative to the bounds' scale flagged every estimate
         inside CTSM-style bounds such as [1e-6, 1e6], and a variance of 4e-6 above 0.)
         """
@@ -82,5 +83,9 @@ class Transform:
         with np.errstate(divide="ignore", invalid="ignore"):
             newton = np.where(h > 0, -g / h, 0.0)
         pushed = (h > 0) & (newton * towards > step)
+        # Within rounding of the bound, g and h in z are rounding noise themselves.
+        theta = self.to_theta(z, np)
+        nearest = np.where(((self.kind == BOTH) & (z > 0)) | (self.kind == UPPER), self.upper, self.lower)
+        equal = np.abs(theta - nearest) <= 1e-12 * np.maximum(np.abs(theta), np.abs(nearest)) + 1e-300
         underflow = ~(np.abs(self.derivative(z)) > 0)
-        return bounded & (pushed | underflow)
+        return bounded & (pushed | equal | underflow)

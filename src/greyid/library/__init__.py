@@ -93,7 +93,29 @@ def rc_network(states: Iterable[str] = ()) -> Model:
                   if s in all_states]
     m.add_derived("C_total [kWh/K]", " + ".join(capacities))
     m.set_options(time="t", hold="zoh")
+    m.set_nested_start(lambda values: _nested_rc_start(extra, values))
     return m
+
+
+def _nested_rc_start(extra: tuple[str, ...], values: dict) -> dict:
+    """Start values where the RC model with ``extra`` states reduces to a smaller one (``values``).
+
+    A state the smaller model lacks starts where it vanishes: a sensor or heater
+    with a time constant of 1e-5 h (Ris·Cs, Rih·Ch) follows Ti; an envelope with a
+    small capacity splits Ria into Rie + Rea; a medium behind a large Rim is
+    decoupled; their noise is small and their initial values are Ti0's.
+    """
+    ti0 = values.get("Ti0", 21.0)
+    start = {}
+    if "Ts" in extra and "Ris" not in values:
+        start.update(Ris=0.01, Cs=0.001, pTs=-15.0, Ts0=ti0)
+    if "Th" in extra and "Rih" not in values:
+        start.update(Rih=0.01, Ch=0.001, pTh=-15.0, Th0=ti0)
+    if "Tm" in extra and "Rim" not in values:
+        start.update(Rim=90.0, Cm=1.0, pTm=-15.0, Tm0=ti0)
+    if "Te" in extra and "Rie" not in values and "Ria" in values:
+        start.update(Rie=values["Ria"] / 2, Rea=values["Ria"] / 2, Ce=0.01, pTe=-15.0, Te0=ti0)
+    return start
 
 
 def _model_files() -> dict:

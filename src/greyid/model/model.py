@@ -60,6 +60,7 @@ class Model:
         self._structure: Structure | None = None
         self._options: dict = {}
         self._derived: dict[str, str] = {}
+        self.nested_start = None  # rule for starting from a smaller model's fit (set_nested_start)
         self.source = None  # the model file this model was read from, if any
 
     # ------------------------------------------------------------------ building
@@ -155,6 +156,20 @@ class Model:
     def options(self) -> dict:
         """The model's default settings (see :meth:`set_options`)."""
         return dict(self._options)
+
+    def set_nested_start(self, rule) -> "Model":
+        """Declare where this model reduces to a smaller one it extends.
+
+        ``rule(values) -> {parameter: initial value}`` receives the estimates of
+        the smaller model's fit (by name) and returns starting values for the
+        parameters it lacks (and any it wants to change), e.g. a sensor state's
+        ``{"Ris": 0.01, "Cs": 0.001, "Ts0": values["Ti0"]}``.  Used by
+        ``fit(..., init_from=small_fit)`` and by forward selection.
+        """
+        if not callable(rule):
+            raise ModelError("set_nested_start takes a function of the smaller model's estimates")
+        self.nested_start = rule
+        return self
 
     def add_derived(self, name: str, expression: str) -> "Model":
         """Name a physical quantity computed from the parameters, e.g. ``UA = 1/(Ri+Ro)``.
@@ -491,15 +506,19 @@ class Model:
 
     def fit(self, data, time: str | None = None, hold: str | None = None, method: str | None = None,
             criterion: str | None = None, prior=None, robust=None, horizon: int | None = None,
-            starts: int | None = None, seed: int | None = None, init=None, progress=False, **options):
+            starts: int | None = None, seed: int | None = None, init=None, init_from=None, progress=False,
+            **options):
         """Estimate the free parameters by maximum likelihood or MAP (chapter 3).
 
         ``criterion`` is ``"ml"`` or ``"map"`` (with ``prior={"mean": ..., "sd":
         ..., "corr": ...}`` by parameter name, 3.46, or the priors declared with
         ``set_parameter(..., prior=(mean, sd))``); ``robust`` is ``None``,
         ``("huber", c)`` or ``("tukey", c)`` (3.57–3.58); ``horizon`` > 1 uses
-        k-step prediction errors (section 7.2); ``starts`` > 1 adds random
-        starting points inside the bounds.  ``progress=True`` prints the
+        k-step prediction errors (section 7.2); ``starts`` > 1 adds starting
+        points of a space-filling design inside the bounds; ``init_from`` (the fit
+        of a model this one extends) adds a start at that fit's estimates, with the
+        new parameters where this model reduces to the other (see
+        :meth:`set_nested_start` and :mod:`greyid.estimate.starts`).  ``progress=True`` prints the
         optimiser's iterations (or pass a callable taking one dict per
         iteration).  ``cov_type`` chooses the covariance of the estimates:
         ``"hessian"`` (the default for ML and MAP), ``"sandwich"`` H⁻¹JH⁻¹ (the
@@ -516,7 +535,7 @@ class Model:
         settings.pop("prior_correlation", None)
         if prior is None and settings.get("criterion") == "map":
             prior = self.prior()
-        return fit(self, data, prior=prior, init=init, progress=progress, **settings)
+        return fit(self, data, prior=prior, init=init, init_from=init_from, progress=progress, **settings)
 
     def predict(self, params, data, steps: int = 1, time: str | None = None, hold: str | None = None,
                 method: str | None = None, **options):

@@ -28,25 +28,40 @@ class ForwardSelection:
         return f"<ForwardSelection: chose '{self.chosen.model.name}' after {len(self.table)} fits>"
 
 
+def _why_below(fit) -> str:
+    """Why an extension may have ended below the model it extends, from its starts."""
+    nested = [s for s in fit.starts if s["start"] == "nested fit"]
+    if not nested:
+        return ""
+    start = nested[0]
+    return (f" (from the nested fit's start it reached {start['criterion']:.6g}: {start['message']}; "
+            "the model's nested-start rule may not reproduce the smaller model closely enough)")
+
+
 def select_forward(candidates, data, level: float = 0.05, **fit_options) -> ForwardSelection:
     """Fit ``candidates`` in order and stop when the LR test no longer prefers the extension.
 
     ``candidates`` is a list whose items are models, lists of alternative
     models (the extensions tried at that step), or functions that take the
     model chosen so far and return that list; each step's models must nest
-    the model chosen before.  ``fit_options`` go to every ``fit`` call.
+    the model chosen before.  ``fit_options`` go to every ``fit`` call.  Each
+    extension is fitted from the chosen model's fit (``init_from``, where the
+    extension reduces to it) as well as from the usual starts; an extension that
+    still ends below the model it extends is reported with the reason.
     """
     steps = [c if isinstance(c, (list, tuple)) or callable(c) else [c] for c in candidates]
     if len(steps) < 2 or callable(steps[0]) or not steps[0]:
         raise ModelError("give a starting model and at least one step of extensions")
     fits, rows = {}, []
 
-    def fit_all(models):
+    def fit_all(models, smaller=None):
         out = []
         for m in models:
             if m.name in fits:
                 raise ModelError(f"two candidate models are named '{m.name}'; give each its own name")
-            fits[m.name] = m.fit(data, **fit_options)
+            # An extension starts from the chosen model's fit too, so it cannot end below it
+            # merely by starting far from where it nests the smaller model.
+            fits[m.name] = m.fit(data, init_from=smaller, **fit_options)
             out.append(fits[m.name])
         return max(out, key=lambda f: f.loglik), out
 
@@ -60,13 +75,13 @@ def select_forward(candidates, data, level: float = 0.05, **fit_options) -> Forw
             models = list(models(current.model))
             if not models:
                 break
-        best, tried = fit_all(models)
+        best, tried = fit_all(models, current)
         accepted = False
         for f in tried:
             try:  # an extension stuck below the current likelihood is reported, not fatal
                 t, note = lr_test(current, f), ""
             except ModelError as err:
-                t, note = None, str(err)
+                t, note = None, str(err) + _why_below(f)
             chosen = bool(f is best and t is not None and t.p_value < level)
             accepted = accepted or chosen
             rows.append(dict(step=number, model=f.model.name, loglik=f.loglik, n_params=f.n_params,
