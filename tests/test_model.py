@@ -173,7 +173,10 @@ def test_structural_errors():
     # fit checks only when the criterion is not finite at the start, and then says why
     m.set_parameter("s", init=1.0)
     m.set_parameter("r", init=-0.1)
+    longer = pd.DataFrame({"t": np.arange(6.0), "y": [0.0, 1.0, 0.5, 0.2, 0.4, 0.1]})
     with pytest.raises(ModelError, match="variance of observation 'y' is -0.1 at row 0"):
+        m.fit(longer, init={"a": 0.5})
+    with pytest.raises(greyid.DataError, match="3 observed output value.* for 3 free parameters"):
         m.fit(df, init={"a": 0.5})
     m.set_parameter("r", init=0.1)
     with pytest.raises(ModelError, match="unknown filter method 'pf'"):

@@ -38,6 +38,25 @@ class InputProblem(Exception):
     """Bad input named by the message; the command exits with code 2."""
 
 
+DEBUG = {"on": False}  # --debug: show tracebacks of bad input too
+
+
+def _version(value: bool) -> None:
+    if value:
+        from importlib.metadata import version
+
+        out.print(f"greyid {version('greyid')}")
+        raise typer.Exit(OK)
+
+
+@app.callback()
+def _options(debug: bool = typer.Option(False, "--debug", help="show the traceback of an error"),
+             show_version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
+                                               help="print the version and exit")) -> None:
+    """Grey-box identification of physical systems with stochastic differential equations."""
+    DEBUG["on"] = debug
+
+
 # ---------------------------------------------------------------------- loading
 def load_model_or_fit(source: str):
     """``(model, fit or None)`` from a model file, a saved fit or a library name."""
@@ -56,6 +75,14 @@ def load_model_or_fit(source: str):
         return library.load_model(source), None
     raise InputProblem(f"'{source}' is neither a model file (.toml), a fit file (.json) nor a library model "
                        f"(see 'greyid models')")
+
+
+def check_output_file(path: Path) -> None:
+    """Refuse an output file that cannot be written, before any work is done."""
+    if path.is_dir():
+        raise InputProblem(f"--out '{path}' is a folder; give a file name")
+    if not path.parent.is_dir():
+        raise InputProblem(f"--out '{path}': the folder '{path.parent}' does not exist")
 
 
 def load_data(model, data: Optional[Path], fit=None):
@@ -79,6 +106,10 @@ def _run(command) -> None:
             warnings.simplefilter("ignore", FitWarning)
             code = command()
     except (InputProblem, ModelError, DataError) as problem:
+        if DEBUG["on"]:
+            import traceback
+
+            err.print(traceback.format_exc())
         err.print(f"[bold red]error:[/] {escape(str(problem))}", markup=True)
         raise typer.Exit(BAD_INPUT)
     raise typer.Exit(code)
@@ -99,6 +130,10 @@ def fit(model: str = typer.Argument(..., help="model file (.toml) or library mod
     """Estimate the parameters of MODEL from DATA and print the summary."""
 
     def command() -> int:
+        if out_dir is not None and out_dir.exists() and not out_dir.is_dir():
+            raise InputProblem(f"--out '{out_dir}' is a file; give a folder for fit.json, summary.txt, parameters.csv")
+        if report and out_dir is None:
+            raise InputProblem("--report needs --out DIR to write the report into")
         m, _ = load_model_or_fit(model)
         frame, data_file = load_data(m, data)
         if not quiet:
@@ -142,6 +177,8 @@ def simulate(model: str = typer.Argument(..., help="model file, fit file (.json)
     """Simulate MODEL (at a fit's estimates, or the model file's initial values) on DATA's times and inputs."""
 
     def command() -> int:
+        if out_file is not None:
+            check_output_file(out_file)
         m, saved = load_model_or_fit(model)
         frame, _ = load_data(m, data, saved)
         params = saved.values if saved is not None else m.initial_values()
@@ -191,6 +228,7 @@ def report(fit_file: Path = typer.Argument(..., help="fit file written by 'greyi
     """Write a self-contained HTML report of a saved fit."""
 
     def command() -> int:
+        check_output_file(out_file)
         _fit_with_data(fit_file, data).report(out_file, level=level, steps=steps)
         err.print(f"wrote {out_file}")
         return OK

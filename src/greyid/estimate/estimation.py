@@ -16,7 +16,7 @@ from dataclasses import replace
 import numpy as np
 
 from ..data.prepare import as_frames
-from ..errors import ModelError
+from ..errors import DataError, ModelError
 from ..filters.accuracy import LOGLIK_TOLERANCE, MAX_SUBSTEPS, SubstepChoice, needs_substeps
 from ..filters.api import check_at_parameters, filter_options, prepare_datasets
 from ..progress import FitProgress
@@ -98,7 +98,11 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
             continue
         value = init.get(name, None if p is None else p.init)
         if value is None:
-            raise ModelError(f"parameter '{name}' has no initial value; set it with set_parameter('{name}', init=...)")
+            raise ModelError(
+                f"'{name}' appears in the model's equations but is neither a declared input nor a parameter "
+                f"with a value: declare it as an input (add_inputs('{name}'), or `inputs = [...]` in a model "
+                f"file's [model]) or give it a value (set_parameter('{name}', init=...), or "
+                f"`{name} = {{ init = ... }}` under [parameters])")
         lo, hi = (None, None) if p is None else (p.lower, p.upper)
         if (lo is not None and value <= lo) or (hi is not None and value >= hi):
             raise ModelError(f"the initial value {value} of '{name}' must lie strictly inside its bounds [{lo}, {hi}]")
@@ -118,6 +122,10 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
     # own; they run only if the criterion is not finite at the start, to say why.
     prepared = prepare_datasets(structure, theta0, frames, time, hold, time_unit, check=False)
     datasets = [inputs for _, inputs in prepared]
+    observed = sum(int(np.sum(~np.isnan(series.outputs))) for series, _ in prepared)
+    if observed <= len(free):
+        raise DataError(f"the data hold {observed} observed output value(s) for {len(free)} free parameters; "
+                        "a fit needs more observations than parameters (fix some parameters or add data)")
 
     args = problem.arguments(theta0)
     free_theta0 = theta0[list(free)]

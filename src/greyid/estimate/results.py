@@ -363,9 +363,22 @@ def load_fit(path) -> FitResult:
     """Read a fit written by :meth:`FitResult.save`; its ``model`` reproduces the log-likelihood."""
     from ..model import Model
 
-    spec = json.loads(Path(path).read_text())
-    if spec.get("format") != "greyid-fit-1":
-        raise ModelError(f"{path} is not a greyid fit file")
+    path = Path(path)
+    if path.is_dir() or not path.is_file():
+        raise ModelError(f"fit file '{path}' {'is a folder' if path.is_dir() else 'not found'}")
+    try:
+        spec = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise ModelError(f"fit file '{path}' is not valid JSON ({err})") from None
+    if not isinstance(spec, dict) or spec.get("format") != "greyid-fit-1":
+        raise ModelError(f"'{path}' is not a greyid fit file (no \"format\": \"greyid-fit-1\")")
+    for key in ("model", "params", "cov", "loglik", "criterion_value", "n_obs", "converged", "message",
+                "iterations", "settings"):
+        if key not in spec:
+            raise ModelError(f"fit file '{path}' lacks the entry '{key}'")
+    for name, entry in spec["params"].items() if isinstance(spec["params"], dict) else [("params", None)]:
+        if not isinstance(entry, dict) or "estimate" not in entry:
+            raise ModelError(f"fit file '{path}': parameter entry '{name}' must be a table with an 'estimate'")
     model = Model.from_dict(spec["model"])
     params = pd.DataFrame.from_dict(spec["params"], orient="index")
     # Files written before greyid 0.2 named the bounds "lower" and "upper".

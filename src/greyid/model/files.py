@@ -160,7 +160,10 @@ def _parameter(name: str, value) -> dict:
         raise ModelError(f"parameter '{name}' must be a number or a table {{ init = ..., lower = ..., upper = ... }}")
     _check_keys(value, _PARAMETER_KEYS, f"[parameters] {name}")
     out = {k: value.get(k) for k in ("init", "lower", "upper")}
-    out["fixed"] = bool(value.get("fixed", False))
+    fixed = value.get("fixed", False)
+    if not isinstance(fixed, bool):
+        raise ModelError(f"[parameters] {name}: 'fixed' must be true or false, got {fixed!r}")
+    out["fixed"] = fixed
     prior = value.get("prior")
     if prior is not None:
         if not isinstance(prior, Mapping) or set(prior) != {"mean", "sd"}:
@@ -183,6 +186,10 @@ def spec_from_toml(document: Mapping) -> dict:
         system = [system]
     if not system:
         raise ModelError("[model] needs system = [\"dx = ...*dt + ...*dw1\", ...]")
+    for key in ("system", "inputs", "algebraic"):
+        value = system if key == "system" else model.get(key, [])
+        if not (isinstance(value, list) and all(isinstance(v, str) for v in value)):
+            raise ModelError(f"[model] {key} must be a list of strings, e.g. {key} = [\"...\"], got {value!r}")
     observations = model.get("observations")
     if not observations:
         raise ModelError("the model file has no [model.observations]; add e.g. y = { equation = \"x\", variance = \"s\" }")
@@ -335,6 +342,8 @@ def read_data(model, path=None):
     import pandas as pd
 
     path = data_path(model, path)
+    if path.is_dir():
+        raise DataError(f"data file '{path}' is a folder; give the CSV file inside it")
     if not path.is_file():
         raise DataError(f"data file '{path}' not found")
     separator = model.options.get("separator")

@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
 from ..errors import ModelError
 
 
@@ -26,6 +28,16 @@ class Parameter:
     prior: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
+        if not isinstance(self.fixed, (bool, np.bool_)):
+            raise ModelError(f"parameter '{self.name}': fixed must be True or False, got {self.fixed!r}")
+        # An infinite bound is no bound (TOML's -inf, NumPy's inf).
+        for label in ("lower", "upper"):
+            value = getattr(self, label)
+            if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isinf(value):
+                if (label == "lower") == (value < 0):
+                    object.__setattr__(self, label, None)
+                else:
+                    raise ModelError(f"parameter '{self.name}': {label} bound {value} leaves no room for a value")
         if self.prior is not None:
             prior = self.prior
             if not (isinstance(prior, (tuple, list)) and len(prior) == 2

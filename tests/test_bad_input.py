@@ -1,0 +1,244 @@
+"""A battery of bad inputs: each gives a named error (type, CLI exit code 2, the culprit in the message).
+
+One line per case: model files, data, saved fits and command-line options.
+"""
+
+import contextlib
+import io
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+import greyid
+from greyid import DataError, ModelError
+from greyid.cli import main
+
+MODEL = """
+[model]
+name = "ou"
+inputs = ["u"]
+system = ["dx = (-a*x + b*u)*dt + s*dw1"]
+initial_covariance = [[0.1]]
+
+[model.observations]
+y = { equation = "x", variance = "r" }
+
+[model.initial_state]
+x = "x0"
+
+[parameters]
+a = { init = 0.5, lower = 0, upper = 10 }
+b = 1.0
+s = { init = 0.3, lower = 0 }
+r = { init = 0.1, lower = 0 }
+x0 = 0.0
+"""
+
+
+def replace(old, new):
+    assert old in MODEL, old
+    return MODEL.replace(old, new)
+
+
+MODEL_FILE_CASES = [
+    ("fixed not a boolean", replace("b = 1.0", 'b = { init = 1.0, fixed = "no" }'), "'fixed' must be true or false"),
+    ("fixed a number", replace("b = 1.0", "b = { init = 1.0, fixed = 0 }"), "'fixed'"),
+    ("unknown section", MODEL + "\n[solver]\nx = 1\n", "solver"),
+    ("unknown model key", replace('name = "ou"', 'name = "ou"\nstates = ["x"]'), "states"),
+    ("unknown parameter key", replace("b = 1.0", "b = { initial = 1.0 }"), "initial"),
+    ("parameter not a number", replace("b = 1.0", 'b = "one"'), "'b'"),
+    ("bounds crossed", replace("a = { init = 0.5, lower = 0, upper = 10 }", "a = { init = 0.5, lower = 10, upper = 0 }"),
+     "lower bound"),
+    ("init outside bounds", replace("a = { init = 0.5,", "a = { init = 50.0,"), "outside its bounds"),
+    ("init not a number", replace("a = { init = 0.5,", 'a = { init = "0.5",'), "init must be a number"),
+    ("upper bound minus infinity", replace("s = { init = 0.3, lower = 0 }", "s = { init = 0.3, upper = -inf }"),
+     "upper bound"),
+    ("prior without sd", replace("b = 1.0", "b = { init = 1.0, prior = { mean = 1.0 } }"), "prior"),
+    ("prior sd negative", replace("b = 1.0", "b = { init = 1.0, prior = { mean = 1.0, sd = -2 } }"), "prior"),
+    ("observation not a table", replace('y = { equation = "x", variance = "r" }', 'y = "x"'), "observation 'y'"),
+    ("observation without variance", replace('y = { equation = "x", variance = "r" }', 'y = { equation = "x" }'),
+     "observation 'y'"),
+    ("observation unknown key", replace('variance = "r" }', 'variance = "r", noise = 1 }'), "noise"),
+    ("missing parenthesis", replace("(-a*x + b*u)*dt", "(-a*x + b*u*dt"), "dx"),
+    ("equation without dt", replace("(-a*x + b*u)*dt + s*dw1", "-a*x + s*dw1"), "dx"),
+    ("equation for no derivative", replace('system = ["dx =', 'system = ["x ='), "x ="),
+    ("system not a list", replace('system = ["dx = (-a*x + b*u)*dt + s*dw1"]', "system = 3"), "system"),
+    ("inputs not a list", replace('inputs = ["u"]', 'inputs = "u"'), "inputs"),
+    ("duplicated input", replace('inputs = ["u"]', 'inputs = ["u", "u"]'), "'u'"),
+    ("unknown covariance kind", replace("initial_covariance = [[0.1]]", 'initial_covariance = "huge"'), "huge"),
+    ("unknown filter method", MODEL + '\n[filter]\nmethod = "pf"\n', "method"),
+    ("unknown filter form", MODEL + '\n[filter]\nform = "qr"\n', "form"),
+    ("substeps zero", MODEL + "\n[filter]\nsubsteps = 0\n", "substeps"),
+    ("starts zero", MODEL + "\n[estimation]\nstarts = 0\n", "starts"),
+    ("unknown criterion", MODEL + '\n[estimation]\ncriterion = "ls"\n', "criterion"),
+    ("unknown covariance type", MODEL + '\n[estimation]\ncov_type = "robust"\n', "cov_type"),
+    ("seed not an integer", MODEL + '\n[estimation]\nseed = "one"\n', "seed"),
+    ("unknown hold", MODEL + '\n[data]\nhold = "cubic"\n', "hold"),
+    ("columns not strings", MODEL + "\n[data.columns]\ny = 3\n", "columns"),
+    ("prior correlation out of range", MODEL + '\n[estimation.prior_correlation]\n"a,b" = 1.5\n', "prior correlation"),
+    ("invalid TOML", MODEL + "\n[parameters\n", "TOML"),
+]
+
+
+@pytest.mark.parametrize("text, culprit", [c[1:] for c in MODEL_FILE_CASES], ids=[c[0] for c in MODEL_FILE_CASES])
+def test_model_file(text, culprit):
+    with pytest.raises(ModelError, match=culprit):
+        greyid.Model.from_toml(text).structure  # structure: equations are parsed when first needed
+
+
+def data(n=40, seed=0):
+    rng = np.random.default_rng(seed)
+    return pd.DataFrame({"t": np.arange(n) * 0.5, "u": rng.normal(size=n), "y": rng.normal(size=n)})
+
+
+def with_value(column, row, value):
+    frame = data().astype({column: object})
+    frame.loc[row, column] = value
+    return frame
+
+
+DATA_CASES = [
+    ("missing output column", data().drop(columns="y"), "'y'"),
+    ("missing input column", data().drop(columns="u"), "'u'"),
+    ("missing time column", data().drop(columns="t"), "'t'"),
+    ("time going back", with_value("t", 5, 0.1), "row 5"),
+    ("time repeated", with_value("t", 7, 3.0), "row 7"),
+    ("time missing", with_value("t", 3, np.nan), "row 3"),
+    ("time text", with_value("t", 4, "noon"), "row 4"),
+    ("input missing", with_value("u", 6, np.nan), "row 6"),
+    ("input text", with_value("u", 2, "high"), "'u'"),
+    ("input infinite", with_value("u", 8, np.inf), "row 8"),
+    ("output infinite", with_value("y", 9, np.inf), "row 9"),
+    ("output text", with_value("y", 1, "warm"), "'y'"),
+    ("empty data", data().iloc[:0], "no rows|empty"),
+    ("too short for the parameters", data(4), "4 observed output value"),
+    ("no observed output", data().assign(y=np.nan), "'y' has no observation"),
+]
+
+
+@pytest.fixture(scope="module")
+def ou():
+    return greyid.Model.from_toml(MODEL)
+
+
+@pytest.mark.parametrize("frame, culprit", [c[1:] for c in DATA_CASES], ids=[c[0] for c in DATA_CASES])
+def test_data(ou, frame, culprit):
+    with pytest.raises(DataError, match=culprit):
+        ou.fit(frame)
+
+
+def test_undeclared_input_names_inputs(ou):
+    m = greyid.Model.from_toml(replace('inputs = ["u"]', "inputs = []"))
+    with pytest.raises(ModelError, match="'u' appears in the model's equations.*inputs"):
+        m.fit(data())
+
+
+def test_infinite_lower_bound_is_no_bound():
+    m = greyid.Model.from_toml(replace("s = { init = 0.3, lower = 0 }", "s = { init = 0.3, lower = -inf }"))
+    assert m.parameters["s"].lower is None
+
+
+@pytest.fixture(scope="module")
+def saved_fit(ou, tmp_path_factory):
+    path = tmp_path_factory.mktemp("fit") / "fit.json"
+    ou.fit(data()).save(path)
+    return json.loads(path.read_text())
+
+
+def _broken(spec, key, value):
+    spec = json.loads(json.dumps(spec))
+    if value is None:
+        del spec[key]
+    else:
+        spec[key] = value
+    return json.dumps(spec)
+
+
+FIT_FILE_CASES = [
+    ("not JSON", lambda spec: "{ not json", "not valid JSON"),
+    ("a list", lambda spec: "[1, 2]", "not a greyid fit file"),
+    ("wrong format", lambda spec: _broken(spec, "format", "other"), "not a greyid fit file"),
+    ("no model", lambda spec: _broken(spec, "model", None), "'model'"),
+    ("no parameters", lambda spec: _broken(spec, "params", None), "'params'"),
+    ("no settings", lambda spec: _broken(spec, "settings", None), "'settings'"),
+    ("parameter not a table", lambda spec: _broken(spec, "params", dict(spec["params"], a=3.0)), "'a'"),
+    ("parameter without estimate", lambda spec: _broken(spec, "params", dict(spec["params"], a={"se": 1})), "'a'"),
+]
+
+
+@pytest.mark.parametrize("make, culprit", [c[1:] for c in FIT_FILE_CASES], ids=[c[0] for c in FIT_FILE_CASES])
+def test_fit_file(saved_fit, tmp_path, make, culprit):
+    path = tmp_path / "broken.json"
+    path.write_text(make(saved_fit))
+    with pytest.raises(ModelError, match=culprit):
+        greyid.load_fit(path)
+    code, message = run_cli(["validate", str(path)])
+    assert code == 2 and "broken.json" in message, message
+
+
+def test_fit_file_missing_or_folder(tmp_path):
+    with pytest.raises(ModelError, match="not found"):
+        greyid.load_fit(tmp_path / "none.json")
+    with pytest.raises(ModelError, match="is a folder"):
+        greyid.load_fit(tmp_path)
+
+
+def run_cli(args):
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed), contextlib.redirect_stderr(printed):
+        code = main(args)
+    return code, printed.getvalue()
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory, saved_fit):
+    folder = tmp_path_factory.mktemp("cli")
+    (folder / "model.toml").write_text(MODEL)
+    data().to_csv(folder / "data.csv", index=False)
+    (folder / "fit.json").write_text(json.dumps(saved_fit))
+    (folder / "existing.txt").write_text("x")
+    (folder / "binary.csv").write_bytes(bytes(range(256)) * 4)
+    (folder / "sub").mkdir()
+    return folder
+
+
+CLI_CASES = [
+    ("unknown model", ["fit", "nonexistent_model"], "neither a model file"),
+    ("data file missing", ["fit", "{f}/model.toml", "{f}/none.csv"], "not found"),
+    ("data path a folder", ["fit", "{f}/model.toml", "{f}/sub"], "is a folder"),
+    ("data not CSV", ["fit", "{f}/model.toml", "{f}/binary.csv"], "binary.csv"),
+    ("fit --out a file", ["fit", "{f}/model.toml", "{f}/data.csv", "--out", "{f}/existing.txt"], "is a file"),
+    ("fit --report without --out", ["fit", "{f}/model.toml", "{f}/data.csv", "--report"], "--out"),
+    ("fit unknown method", ["fit", "{f}/model.toml", "{f}/data.csv", "--method", "pf"], "pf"),
+    ("fit unknown hold", ["fit", "{f}/model.toml", "{f}/data.csv", "--hold", "cubic"], "cubic"),
+    ("fit unknown time column", ["fit", "{f}/model.toml", "{f}/data.csv", "--time", "when"], "'when'"),
+    ("report --out into a missing folder", ["report", "{f}/fit.json", "{f}/data.csv", "--out", "{f}/no/r.html"],
+     "does not exist"),
+    ("report --out a folder", ["report", "{f}/fit.json", "{f}/data.csv", "--out", "{f}/sub"], "is a folder"),
+    ("validate not a fit file", ["validate", "{f}/model.toml"], "not a fit file"),
+    ("validate missing fit", ["validate", "{f}/none.json"], "not a fit file"),
+    ("simulate --out into a missing folder", ["simulate", "{f}/model.toml", "{f}/data.csv", "--out", "{f}/no/s.csv"],
+     "does not exist"),
+    ("simulate unknown method", ["simulate", "{f}/model.toml", "{f}/data.csv", "--method", "rk4"], "rk4"),
+    ("unknown library model", ["models", "NoSuchModel"], "NoSuchModel"),
+]
+
+
+@pytest.mark.parametrize("args, culprit", [c[1:] for c in CLI_CASES], ids=[c[0] for c in CLI_CASES])
+def test_command_line(files, args, culprit):
+    code, message = run_cli([a.format(f=files) for a in args])
+    assert code == 2, message
+    assert culprit in message, message
+    assert "Traceback" not in message
+
+
+def test_debug_shows_the_traceback(files):
+    code, message = run_cli(["--debug", "validate", str(files / "model.toml")])
+    assert code == 2 and "Traceback" in message
+
+
+def test_version():
+    code, message = run_cli(["--version"])
+    assert code == 0 and message.strip() == f"greyid {greyid.__version__}"
