@@ -129,6 +129,64 @@ def test_data(ou, frame, culprit):
         ou.fit(frame)
 
 
+API_CASES = [
+    ("starts zero", dict(starts=0), ModelError, "starts"),
+    ("horizon zero", dict(horizon=0), ModelError, "horizon"),
+    ("unknown criterion", dict(criterion="ls"), ModelError, "criterion"),
+    ("map without prior", dict(criterion="map"), ModelError, "prior"),
+    ("prior with ml", dict(prior={"mean": {"a": 1.0}, "sd": {"a": 1.0}}), ModelError, "criterion='map'"),
+    ("prior on unknown parameter", dict(criterion="map", prior={"mean": {"q": 1.0}, "sd": {"q": 1.0}}),
+     ModelError, "'q'"),
+    ("init of unknown parameter", dict(init={"q": 1.0}), ModelError, "'q'"),
+    ("init outside bounds", dict(init={"a": 20.0}), ModelError, "'a'"),
+    ("robust norm unknown", dict(robust=("cauchy", 2.0)), ModelError, "robust"),
+    ("robust threshold negative", dict(robust=("huber", -1.0)), ModelError, "threshold"),
+    ("unknown covariance type", dict(cov_type="robust"), ModelError, "cov_type"),
+    ("unknown filter method", dict(method="pf"), ModelError, "'pf'"),
+    ("kalman on nonlinear", None, ModelError, "needs a linear model"),
+    ("substeps zero", dict(substeps=0), ModelError, "substeps"),
+    ("unknown filter option", dict(tolerance=1e-3), ModelError, "tolerance"),
+    ("unknown hold", dict(hold="cubic"), (ModelError, DataError), "cubic"),
+    ("unknown time column", dict(time="when"), DataError, "'when'"),
+    ("init_from not a fit", dict(init_from=3.0), ModelError, "init_from"),
+]
+
+
+@pytest.mark.parametrize("options, error, culprit", [c[1:] for c in API_CASES], ids=[c[0] for c in API_CASES])
+def test_fit_options(ou, options, error, culprit):
+    if options is None:  # the exact filter asked of a nonlinear model
+        m = greyid.Model.from_toml(replace("(-a*x + b*u)*dt", "(-a*x*x + b*u)*dt"))
+        with pytest.raises(error, match=culprit):
+            m.fit(data(), method="kalman")
+        return
+    with pytest.raises(error, match=culprit):
+        ou.fit(data(), **options)
+
+
+STRUCTURE_CASES = [
+    ("initial state of an unknown state", replace('x = "x0"', 'x = "x0"\nz = 1.0'), "'z'"),
+    ("observation of an unknown state", replace('equation = "x"', 'equation = "z"'), "'z'.*state"),
+    ("undeclared input", replace('inputs = ["u"]', "inputs = []"), "'u'.*input"),
+    ("derived quantity of an unknown parameter", MODEL + '\n[derived]\nUA = "1/q"\n', "'q'"),
+]
+
+
+@pytest.mark.parametrize("text, culprit", [c[1:] for c in STRUCTURE_CASES], ids=[c[0] for c in STRUCTURE_CASES])
+def test_model_structure(text, culprit):
+    m = greyid.Model.from_toml(text)
+    with pytest.raises(ModelError, match=culprit):
+        m.fit(data()).derived()
+
+
+def test_function_model_without_initial_state():
+    m = greyid.Model.from_functions(
+        states=["x"], outputs=["y"], drift=lambda x, u, t, p: -p["a"] * x,
+        diffusion=lambda x, u, t, p: np.ones((1, 1)) * p["s"], observation=lambda x, u, t, p: x,
+        observation_variance=lambda x, u, t, p: np.ones(1) * p["r"], parameters=["a", "s", "r"])
+    with pytest.raises(ModelError, match="set_initial_state"):
+        m.loglik({"a": 1.0, "s": 1.0, "r": 0.1}, data().drop(columns="u"))
+
+
 def test_undeclared_input_names_inputs(ou):
     m = greyid.Model.from_toml(replace('inputs = ["u"]', "inputs = []"))
     with pytest.raises(ModelError, match="'u' appears in the model's equations.*inputs"):

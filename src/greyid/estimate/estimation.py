@@ -99,8 +99,8 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
         value = init.get(name, None if p is None else p.init)
         if value is None:
             raise ModelError(
-                f"'{name}' appears in the model's equations but is neither a declared input nor a parameter "
-                f"with a value: declare it as an input (add_inputs('{name}'), or `inputs = [...]` in a model "
+                f"'{name}' appears in the model's equations but is neither a state, a declared input nor a "
+                f"parameter with a value: a state needs its equation d{name} = ...; declare it as an input (add_inputs('{name}'), or `inputs = [...]` in a model "
                 f"file's [model]) or give it a value (set_parameter('{name}', init=...), or "
                 f"`{name} = {{ init = ... }}` under [parameters])")
         lo, hi = (None, None) if p is None else (p.lower, p.upper)
