@@ -127,3 +127,41 @@ def test_forecast_past_the_data_equals_closed_form(ou_case):
     np.testing.assert_allclose(tail["y_sd"].to_numpy(), np.sqrt(var), rtol=1e-9)
     # Within the data the forecast frame holds the usual one-step predictions.
     np.testing.assert_allclose(forecast["y"].iloc[:len(df)], fit.predict(df)["y"], rtol=1e-12)
+
+
+def test_nearly_flat_parameter_is_flagged():
+    """A noise intensity the data cannot see (true exp(p) = 6e-6 under measurement noise 0.2)
+    drifts with a huge standard error: flagged unreliable with a warning, not silently 'reliable'."""
+    import greyid
+
+    m = greyid.Model("ou_flat")
+    m.add_system("dx = (-a*x + b*u)*dt + exp(p)*dw1")
+    m.add_inputs("u")
+    m.add_observation("y = x", variance="r")
+    m.set_initial_state(mean={"x": 0.0}, covariance=[[0.1]])
+    for name, init, lower in [("a", 0.5, 0.0), ("b", 1.0, None), ("p", -3.0, None), ("r", 0.1, 0.0)]:
+        m.set_parameter(name, init=init, lower=lower)
+    rng = np.random.default_rng(0)
+    df = pd.DataFrame({"t": np.arange(300) * 0.5, "u": np.repeat(rng.choice([0.0, 1.0], 30), 10)})
+    df["y"] = m.simulate(dict(a=0.8, b=1.5, p=-12.0, r=0.04), df, method="exact", seed=5).outputs[0, :, 0]
+    fit = m.fit(df)
+    assert not fit.params.loc["p", "reliable"] and fit.params.loc["a", "reliable"]
+    assert any("nearly flat in 'p'" in w for w in fit.warnings)
+    assert fit.message.startswith("converged")
+
+
+def test_loaded_fit_reads_its_data_file(ou_case, tmp_path):
+    import greyid
+
+    m, df, fit = ou_case
+    df.to_csv(tmp_path / "data.csv", index=False)
+    fit.data_file = str(tmp_path / "data.csv")
+    fit.save(tmp_path / "fit.json")
+    loaded = greyid.load_fit(tmp_path / "fit.json")
+    assert loaded.data is None
+    np.testing.assert_allclose(loaded.residuals["y"].to_numpy(), fit.residuals["y"].to_numpy(), rtol=1e-8)
+    assert "<html" in loaded.report(steps=2)[:200].lower()
+    (tmp_path / "data.csv").unlink()
+    again = greyid.load_fit(tmp_path / "fit.json")
+    with pytest.raises(greyid.DataError, match="not there any more"):
+        again.validate()

@@ -35,6 +35,8 @@ class FitWarning(UserWarning):
 
 #: Eigenvalues of the scaled Hessian below this fraction of the largest are ill-determined.
 ILL_DETERMINED = 1e-8
+#: A standard error above this multiple of max(|estimate|, 1) marks a nearly flat likelihood.
+FLAT_SE = 100.0
 
 
 @dataclass
@@ -246,11 +248,27 @@ class FitResult:
         return replace(self, data=frames, data_file=data_file if data_file is not None else self.data_file,
                        _cache={})
 
+    def attach_stored_data(self) -> list | None:
+        """The fit's data; a loaded fit reads the data file it stores (``data_file``) on first use."""
+        if self.data is None and self.data_file:
+            from ..data.prepare import as_frames
+            from ..errors import DataError
+            from ..model.files import read_data
+            from ..model.options import rename_columns
+
+            path = Path(self.data_file)
+            if not path.is_file():
+                raise DataError(f"the data file this fit was made from, '{path}', is not there any more; "
+                                "attach the data with fit.with_data(frame)")
+            self.data = as_frames(rename_columns(read_data(self.model, path), self.model.options.get("columns")))
+        return self.data
+
     def _data(self, data):
         if data is not None:
             return data
-        if self.data is None:
-            raise ModelError("this fit carries no data (it was loaded from a file); pass data explicitly")
+        if self.attach_stored_data() is None:
+            raise ModelError("this fit carries no data (it was loaded from a file without one); "
+                             "pass data explicitly or attach it with fit.with_data(frame)")
         return self.data[0] if len(self.data) == 1 else self.data
 
     def _filter_settings(self):
@@ -489,6 +507,12 @@ def build_result(model, frames, theta, problem, best, optima, settings, scores=N
     idx = np.flatnonzero(inner)
     cov[np.ix_(idx, idx)] = cov_inner
     se = np.sqrt(np.where(np.diag(cov) >= 0, np.diag(cov), np.nan))
+    for j in np.flatnonzero(inner & reliable & (se > FLAT_SE * np.maximum(np.abs(theta_free), 1.0))):
+        # Not singular to working precision, yet the data barely constrain it (a noise
+        # intensity drifting towards −∞ with SE 7863): as unreliable as a singular direction.
+        reliable[j] = False
+        warn.append(f"the likelihood is nearly flat in '{free_names[j]}' (standard error {se[j]:.4g} against "
+                    f"an estimate of {theta_free[j]:.4g}): the data do not determine it")
     n_obs = int(sum(int(np.sum(~np.isnan(df[list(model.output_names)].to_numpy(dtype=float)))) for df in frames))
     dof = max(n_obs - len(free), 1)  # as FitResult.df_resid
     tval = theta_free / se
@@ -525,8 +549,8 @@ def build_result(model, frames, theta, problem, best, optima, settings, scores=N
     else:
         loglik = model.loglik(dict(zip(names, theta)), frames if len(frames) > 1 else frames[0],
                               **filter_settings(settings))
-    for message in warn:  # printed plainly once, and kept on the fit
-        warnings.warn(f"{model.name}: {message}", FitWarning, stacklevel=4)
+    for text in warn:  # printed plainly once, and kept on the fit
+        warnings.warn(f"{model.name}: {text}", FitWarning, stacklevel=4)
     return FitResult(model=model, params=params, cov=pd.DataFrame(cov, index=free_names, columns=free_names),
                      loglik=float(loglik), criterion_value=float(criterion_value), n_obs=n_obs,
                      converged=converged, message=message, iterations=best.iterations,

@@ -196,7 +196,7 @@ def _validation_sections(fit, validation, steps: int, n_paths: int, seed: int) -
 def html_report(fit, level: float = 0.05, steps: int = 4, n_paths: int = 100, seed: int = 0,
                 title: str | None = None) -> str:
     """The report of ``fit`` as one HTML document (a string); see the module docstring."""
-    if fit.data is None:
+    if fit.attach_stored_data() is None:
         raise ModelError("this fit carries no data (it was loaded from a file); attach it with fit.with_data(data)")
     from .. import __version__
 

@@ -113,7 +113,7 @@ def validate(fit, level: float = 0.05, lags: int | None = None, m: int | None = 
     """Run the residual tests of chapter 5 on every output of ``fit``; see :class:`Validation`."""
     if not 0 < level < 1:
         raise ModelError(f"level must lie between 0 and 1, got {level}")
-    if fit.data is None:
+    if fit.attach_stored_data() is None:
         raise ModelError("this fit carries no data (it was loaded from a file); validation needs its residuals")
     residuals = fit.residuals
     residuals = residuals if isinstance(residuals, list) else [residuals]
