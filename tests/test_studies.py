@@ -45,5 +45,6 @@ def test_lotka_volterra_study_reduced():
     data = pd.DataFrame({"t": thesis.lotka_volterra_times()})
     study = run_study(thesis.lotka_volterra_model(), thesis.LOTKA_VOLTERRA_PARAMETERS, data, 5,
                       report=["a", "b", "c", "d", "s1", "s2", "m1", "m2"], seed=3,
-                      simulate={"method": "milstein", "substeps": 20}, fit={"method": "ekf"})
+                      simulate={"method": "milstein", "substeps": 20},
+                      fit={"method": "ekf", "substeps": 1})  # one sub-step, as the thesis ran it
     check(study)
