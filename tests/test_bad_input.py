@@ -300,3 +300,34 @@ def test_debug_shows_the_traceback(files):
 def test_version():
     code, message = run_cli(["--version"])
     assert code == 0 and message.strip() == f"greyid {greyid.__version__}"
+
+
+def test_timestamps_in_a_data_file(files, tmp_path):
+    """The CLI reads a time column of timestamps, says how it converted it, and names a bad row."""
+    frame = data()
+    frame["t"] = pd.Timestamp("2013-06-28 00:00:00") + pd.to_timedelta(frame["t"], unit="h")
+    frame.to_csv(tmp_path / "stamped.csv", index=False)
+    text = MODEL + '\n[data]\ntime_unit = "h"\n'
+    (tmp_path / "model.toml").write_text(text)
+    code, message = run_cli(["fit", str(tmp_path / "model.toml"), str(tmp_path / "stamped.csv"), "--quiet"])
+    assert code in (0, 1), message
+    assert "timestamps from 2013-06-28 00:00:00 read as elapsed time in 'h'" in message
+    plain = greyid.Model.from_toml(text).fit(data())
+    assert f"{plain.loglik:.6f}" in message  # the same fit as with hours as numbers
+    frame = frame.astype({"t": str})
+    frame.loc[5, "t"] = "noon"
+    frame.to_csv(tmp_path / "bad.csv", index=False)
+    code, message = run_cli(["fit", str(tmp_path / "model.toml"), str(tmp_path / "bad.csv"), "--quiet"])
+    assert code == 2 and "row 5" in message and "'noon'" in message, message
+
+
+def test_time_zone_makes_elapsed_time_cross_daylight_saving():
+    from greyid.data.prepare import time_values
+    from greyid.model.files import parse_timestamps
+
+    local = pd.DataFrame({"t": ["2026-03-29 00:30", "2026-03-29 01:30", "2026-03-29 03:30"]})  # clocks jump at 2:00
+    parsed = parse_timestamps(local, "t", time_zone="Europe/Copenhagen")
+    np.testing.assert_allclose(time_values(parsed, "t", "h"), [0.0, 1.0, 2.0])
+    np.testing.assert_allclose(time_values(parse_timestamps(local, "t"), "t", "h"), [0.0, 1.0, 3.0])
+    with pytest.raises(DataError, match="time zone 'Mars/Olympus'"):
+        parse_timestamps(local, "t", time_zone="Mars/Olympus")

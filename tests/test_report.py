@@ -51,11 +51,12 @@ def test_content_matches_the_fit(report):
     assert "ljung_box" in text and "cumulative_periodogram" in text
 
 
-def test_loaded_fit_needs_its_data(report):
+def test_loaded_fit_reads_its_data(report):
+    """A saved fit knows its data file and reads it when residuals, validation or a report need it."""
     _, folder = report
     fit = greyid.load_fit(folder / "fit.json")
-    with pytest.raises(greyid.ModelError, match="with_data"):
-        fit.report()
+    assert fit.data is None and fit.data_file
+    assert fit.residuals.shape == (len(load_building_data()), 1)
     assert fit.with_data(load_building_data()).residuals.shape == (len(load_building_data()), 1)
 
 

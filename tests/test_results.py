@@ -165,3 +165,15 @@ def test_loaded_fit_reads_its_data_file(ou_case, tmp_path):
     again = greyid.load_fit(tmp_path / "fit.json")
     with pytest.raises(greyid.DataError, match="not there any more"):
         again.validate()
+
+
+def test_predict_gives_time_and_states(ou_case):
+    m, df, fit = ou_case
+    pred = fit.predict(states=True)
+    assert list(pred.columns) == ["t", "y", "y_sd", "x", "x_sd"]
+    np.testing.assert_allclose(pred["t"], df["t"])
+    filtered = fit.filter()
+    np.testing.assert_allclose(pred["x"], filtered.predicted["x"], rtol=1e-10)
+    np.testing.assert_allclose(pred["x_sd"], np.sqrt(filtered.predicted_cov[:, 0, 0]), rtol=1e-10)
+    # The output's variance is the state's plus the measurement noise (y = x + e).
+    np.testing.assert_allclose(pred["y_sd"] ** 2, pred["x_sd"] ** 2 + fit.values["r"], rtol=1e-9)

@@ -85,13 +85,25 @@ def check_output_file(path: Path) -> None:
         raise InputProblem(f"--out '{path}': the folder '{path.parent}' does not exist")
 
 
-def load_data(model, data: Optional[Path], fit=None):
-    """``(frame, path)``: DATA, else the fit's data file, else the model file's ``[data] file``."""
+def load_data(model, data: Optional[Path], fit=None, time: Optional[str] = None):
+    """``(frame, path)``: DATA, else the fit's data file, else the model file's ``[data] file``.
+
+    A time column of timestamps is parsed (``[data] time_format``, ``time_zone``)
+    and the conversion is said on standard error.
+    """
+    import pandas as pd
+
     from .model.files import data_path, read_data
 
     if data is None and fit is not None and fit.data_file and Path(fit.data_file).is_file():
         data = Path(fit.data_file)
-    return read_data(model, data), str(data_path(model, data).resolve())
+    frame = read_data(model, data, time)
+    name = time or model.options.get("time", "t")
+    if name in frame.columns and pd.api.types.is_datetime64_any_dtype(frame[name]):
+        unit = model.options.get("time_unit") or "s"
+        err.print(f"time column '{name}': timestamps from {frame[name].iloc[0]} read as elapsed time in "
+                  f"'{unit}' since the first row (set [data] time_unit to change it)")
+    return frame, str(data_path(model, data).resolve())
 
 
 def _run(command) -> None:
@@ -135,7 +147,7 @@ def fit(model: str = typer.Argument(..., help="model file (.toml) or library mod
         if report and out_dir is None:
             raise InputProblem("--report needs --out DIR to write the report into")
         m, _ = load_model_or_fit(model)
-        frame, data_file = load_data(m, data)
+        frame, data_file = load_data(m, data, time=time_column)
         if not quiet:
             err.print(f"fitting '{m.name}' to {len(frame)} rows of {data_file}")
         started = time.perf_counter()

@@ -282,9 +282,14 @@ class FitResult:
         """Rauch–Tung–Striebel smoothed states at the estimates."""
         return self.model.smooth(self.values, self._data(data), **self._filter_settings())
 
-    def predict(self, data=None, steps: int = 1):
-        """``steps``-ahead predictions of the outputs with standard deviations."""
-        return self.model.predict(self.values, self._data(data), steps=steps, **self._filter_settings())
+    def predict(self, data=None, steps: int = 1, states: bool = False):
+        """``steps``-ahead predictions of the outputs (and states) with standard deviations.
+
+        As :meth:`Model.predict` at the estimates; append rows of future inputs with
+        missing outputs to ``data`` to forecast past its end.
+        """
+        return self.model.predict(self.values, self._data(data), steps=steps, states=states,
+                                  **self._filter_settings())
 
     def simulate(self, data=None, n_paths: int = 1, seed: int = 0, method: str = "euler", **options):
         """Sample paths of the fitted model driven by the data's inputs."""

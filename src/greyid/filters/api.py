@@ -226,11 +226,16 @@ def smooth_data(model, params, data, time="t", hold="zoh", method=None, time_uni
     return out[0] if single else out
 
 
-def predict_data(model, params, data, steps=1, time="t", hold="zoh", method=None, time_unit=None, **options):
+def predict_data(model, params, data, steps=1, time="t", hold="zoh", method=None, time_unit=None,
+                 states=False, **options):
     """ŷ_{k|k−steps} and its standard deviation for every output (one DataFrame per data set).
 
-    Columns are the outputs and ``<output>_sd``; the prediction for row k uses
-    the data up to row k − steps (the first rows are predicted from the prior).
+    Columns are the time column (as in the data), the outputs and ``<output>_sd``,
+    and with ``states=True`` the predicted states and ``<state>_sd``; the index is
+    the data's.  The prediction for row k uses the data up to row k − steps (the
+    first rows are predicted from the prior).  Rows whose outputs are missing are
+    predicted all the same, so rows of future inputs appended to the data give
+    forecasts past its end.
     """
     structure, theta, prepared = _prepare(model, params, data, time, hold, time_unit)
     opts = accurate_options(structure, theta, prepared, method, **options)[0]
@@ -238,14 +243,20 @@ def predict_data(model, params, data, steps=1, time="t", hold="zoh", method=None
     if key not in structure.cache:
         structure.cache[key] = make_ahead(structure, opts, int(steps))
     frames = []
-    for series, inputs in prepared:
+    for (series, inputs), frame in zip(prepared, as_frames(data)):
         out = structure.cache[key](jnp.asarray(theta), inputs)
         n = series.n_rows
         y = np.asarray(out.output_prediction)[:n]
         sd = np.sqrt(np.diagonal(np.asarray(out.output_cov)[:n], axis1=1, axis2=2))
-        cols = {}
+        cols = {series.time_name: frame[series.time_name].to_numpy()}
         for j, name in enumerate(structure.output_names):
             cols[name] = y[:, j]
             cols[f"{name}_sd"] = sd[:, j]
+        if states:
+            x = np.asarray(out.state_prediction)[:n]
+            x_sd = np.sqrt(np.diagonal(np.asarray(out.state_cov)[:n], axis1=1, axis2=2))
+            for j, name in enumerate(structure.state_names):
+                cols[name] = x[:, j]
+                cols[f"{name}_sd"] = x_sd[:, j]
         frames.append(pd.DataFrame(cols, index=series.index))
     return frames[0] if isinstance(data, pd.DataFrame) else frames

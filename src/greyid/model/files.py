@@ -333,7 +333,7 @@ def data_path(model, path=None) -> Path:
     return path
 
 
-def read_data(model, path=None):
+def read_data(model, path=None, time: str | None = None):
     """Read the CSV data for ``model`` from :func:`data_path`.
 
     The separator is ``[data] separator`` when given, else detected.  Column
@@ -349,7 +349,41 @@ def read_data(model, path=None):
     separator = model.options.get("separator")
     try:
         if separator is None:
-            return pd.read_csv(path, sep=None, engine="python")
-        return pd.read_csv(path, sep=separator)
+            frame = pd.read_csv(path, sep=None, engine="python")
+        else:
+            frame = pd.read_csv(path, sep=separator)
     except (pd.errors.ParserError, UnicodeDecodeError, ValueError) as err:
         raise DataError(f"data file '{path}' could not be read as CSV: {err}") from None
+    return parse_timestamps(frame, time or model.options.get("time", "t"), model.options.get("time_format"),
+                            model.options.get("time_zone"), str(path))
+
+
+def parse_timestamps(frame, time: str, time_format=None, time_zone=None, where: str = "the data"):
+    """A time column of text turned into timestamps (``time_format``, else ISO 8601 or inferred).
+
+    Naive timestamps are read in ``time_zone`` when given (so elapsed times cross
+    daylight-saving changes correctly), aware ones converted to it.  A column of
+    numbers is left as it is; text that is not a time names its row.
+    """
+    import pandas as pd
+
+    if time not in frame.columns or not (pd.api.types.is_object_dtype(frame[time])
+                                         or pd.api.types.is_string_dtype(frame[time])):
+        return frame
+    column = frame[time]
+    if pd.to_numeric(column, errors="coerce").notna().all():
+        return frame
+    parsed = pd.to_datetime(column, format=time_format, errors="coerce")
+    if parsed.isna().all():
+        return frame  # not timestamps at all: the numeric check names the first bad row
+    bad = np.flatnonzero(parsed.isna().to_numpy())
+    if len(bad):
+        raise DataError(f"time column '{time}' in {where}: row {bad[0]} holds {column.iloc[bad[0]]!r}, which is not "
+                        f"a time{f' in the format {time_format!r}' if time_format else ''}")
+    if time_zone:
+        try:
+            parsed = (parsed.dt.tz_localize(time_zone, ambiguous="raise", nonexistent="raise")
+                      if parsed.dt.tz is None else parsed.dt.tz_convert(time_zone))
+        except Exception as err:  # unknown zone, or a local time that DST makes ambiguous
+            raise DataError(f"time column '{time}' in {where}: time zone {time_zone!r}: {err}") from None
+    return frame.assign(**{time: parsed})

@@ -538,13 +538,18 @@ class Model:
         return fit(self, data, prior=prior, init=init, init_from=init_from, progress=progress, **settings)
 
     def predict(self, params, data, steps: int = 1, time: str | None = None, hold: str | None = None,
-                method: str | None = None, **options):
-        """``steps``-ahead output predictions with standard deviations (a DataFrame)."""
+                method: str | None = None, states: bool = False, **options):
+        """``steps``-ahead output predictions with standard deviations (a DataFrame).
+
+        Columns: the time column, each output and ``<output>_sd`` and, with
+        ``states=True``, each state and ``<state>_sd``.  Rows with missing outputs
+        are predicted too: append future inputs to forecast past the data.
+        """
         from ..filters.api import predict_data
 
         data, settings = self._call_settings(data, dict(time=time, hold=hold, method=method, **options),
                                              DATA_KEYS + FILTER_KEYS)
-        return predict_data(self, params, data, steps=steps, **settings)
+        return predict_data(self, params, data, steps=steps, states=states, **settings)
 
     def loglik(self, params, data, time: str | None = None, hold: str | None = None, method: str | None = None,
                **options) -> float:

@@ -13,7 +13,7 @@ from ..errors import ModelError
 
 #: Data settings: time column, hold order, time unit of datetime columns, and the
 #: mapping from model names (inputs, outputs) to the data's column names.
-DATA_KEYS = ("time", "hold", "time_unit", "columns")
+DATA_KEYS = ("time", "hold", "time_unit", "columns", "time_format", "time_zone")
 #: Filter settings (see :func:`greyid.filters.api.filter_options`).
 FILTER_KEYS = ("method", "form", "substeps", "iterations", "alpha", "beta", "kappa")
 #: Estimation settings of :meth:`Model.fit`.
@@ -36,7 +36,7 @@ def check_options(options: Mapping) -> dict:
             raise ModelError(f"unknown setting '{key}'; settings are {list(ALL_KEYS)}")
         if value is None:
             continue
-        if key in ("time", "file", "separator", "time_unit") and not isinstance(value, str):
+        if key in ("time", "file", "separator", "time_unit", "time_format", "time_zone") and not isinstance(value, str):
             raise ModelError(f"setting '{key}' must be a string, got {value!r}")
         if key == "hold" and value not in HOLDS:
             raise ModelError(f"setting 'hold' must be 'zoh' or 'foh', got {value!r}")
