@@ -108,3 +108,23 @@ def test_models_lists_and_prints_a_library_model(capsys):
     assert main(["models", "TiTe"]) == 0
     text = capsys.readouterr().out
     assert greyid.Model.from_toml(text).to_dict() == greyid.library.load_model("TiTe").to_dict()
+
+
+def test_help_and_version_do_not_load_jax():
+    """`greyid --help` and `--version` answer without importing JAX or SymPy (seconds saved);
+    the first model use switches JAX to 64 bits."""
+    import subprocess
+    import sys
+
+    code = ("import sys, contextlib, io\n"
+            "from greyid.cli import main\n"
+            "with contextlib.redirect_stdout(io.StringIO()):\n"
+            "    main(['--help']); main(['--version'])\n"
+            "assert 'jax' not in sys.modules and 'sympy' not in sys.modules, sorted(sys.modules)\n"
+            "import greyid\n"
+            "greyid.Model('m')\n"
+            "import jax\n"
+            "assert jax.config.jax_enable_x64\n"
+            "print('ok')\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr

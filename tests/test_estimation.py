@@ -285,7 +285,7 @@ def test_k_step_criterion_fit(ou):
     assert fit4.loglik == pytest.approx(m.loglik(fit4.values, df), rel=1e-10)
     assert fit4.loglik <= fit1.loglik + 1e-8  # the 1-step fit maximises the likelihood
     pred = fit4.predict(steps=4)
-    assert list(pred.columns) == ["y", "y_sd"] and len(pred) == len(df)
+    assert list(pred.columns) == ["t", "y", "y_sd"] and len(pred) == len(df)
 
 
 def test_save_and_load_reproduce_the_fit(ou, tmp_path):

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 
+from . import _jax  # noqa: F401  (64-bit JAX before any JAX work)
 import jax
 
 

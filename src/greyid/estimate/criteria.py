@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Mapping
 
+from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
 import jax.numpy as jnp
 import numpy as np
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 
+from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
 import jax
 import jax.numpy as jnp
 import numpy as np

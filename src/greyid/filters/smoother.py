@@ -12,6 +12,7 @@ EKF, the product of the sub-step Jacobians of A.49).
 
 from __future__ import annotations
 
+from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
 import jax
 import jax.numpy as jnp
 from jax.scipy.linalg import cho_factor, cho_solve

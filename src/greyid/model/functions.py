@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
+
 import sympy as sp
 
 from ..errors import ModelError

@@ -1,0 +1,32 @@
+"""JAX as greyid needs it, set up once, before greyid's first JAX computation.
+
+Every module of greyid that uses JAX imports this one first.  It switches JAX
+to 64-bit floats (the filters need them; this applies to every JAX user in the
+process) and turns on JAX's persistent compilation cache in
+``$GREYID_CACHE_DIR`` (default ``~/.cache/greyid/jax``; ``off`` keeps it off)
+unless a cache directory is configured already.  ``import greyid`` alone
+imports neither JAX nor SymPy, so the command line's help and version answer at
+once; the first use of a model does.
+"""
+
+import os
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+
+def _enable_compilation_cache() -> None:
+    path = os.environ.get("GREYID_CACHE_DIR", os.path.join(os.path.expanduser("~"), ".cache", "greyid", "jax"))
+    if path.lower() in ("off", "0", "none", ""):
+        return
+    try:
+        os.makedirs(path, exist_ok=True)
+    except OSError:
+        return  # a read-only home: run without the cache
+    if jax.config.jax_compilation_cache_dir is None:  # respect a cache the user configured
+        jax.config.update("jax_compilation_cache_dir", path)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+
+
+_enable_compilation_cache()
