@@ -232,3 +232,18 @@ def test_bias_corrected_and_unscented_predictions_of_a_quadratic_observation():
     for method, expected in (("ekf2", 1.5**2 + 0.3), ("ukf", 1.5**2 + 0.3), ("ekf", 1.5**2)):
         res = m.filter(p, df, method=method)
         assert res.output_predictions["y"].iloc[0] == pytest.approx(expected, rel=1e-12), method
+
+
+@pytest.mark.parametrize("method", ["ekf", "iekf", "ukf"])
+def test_smoothers_of_nonlinear_filters_beat_their_filters(method):
+    """On geometric Brownian motion with noisy log observations, the smoothed states lie closer
+    to the simulated truth than the filtered ones (RMSE), for every filter."""
+    gbm, _ = gbm_models()
+    p = dict(mu=0.1, sigma=0.2, e=0.1**2)
+    sim = gbm.simulate(p, np.linspace(0, 10, 201), method="milstein", substeps=50, seed=7)
+    df = sim.frame(0)
+    truth = sim.states[0, :, 0]
+    smoothed = gbm.smooth(p, df, method=method)
+    filtered = gbm.filter(p, df, method=method)
+    rmse = lambda x: np.sqrt(np.mean((np.log(x) - np.log(truth)) ** 2))
+    assert rmse(smoothed.smoothed["X"].to_numpy()) < 0.9 * rmse(filtered.filtered["X"].to_numpy())

@@ -128,3 +128,13 @@ def test_fisher_information_equals_dense_gaussian_formula(linear_model):
                           + 0.5 * np.trace(cov_inv @ d_cov[i] @ cov_inv @ d_cov[j]) for j in range(k)]
                          for i in range(k)])
     np.testing.assert_allclose(fisher, expected, rtol=1e-5, atol=1e-8 * np.abs(expected).max())
+
+
+@pytest.mark.parametrize("method", ["iekf", "ukf", "ekf2"])
+def test_every_filter_smooths_and_is_exact_on_linear_models(linear_model, method):
+    rng = np.random.default_rng(43)
+    params, mats = random_linear_parameters(rng)
+    df, t, U, Y = random_data(rng, N=25)
+    _, xs_ref, _ = dense_reference(mats, t, U, Y, foh=0.0)
+    sm = linear_model.smooth(params, df, method=method)
+    np.testing.assert_allclose(sm.smoothed.to_numpy(), xs_ref, rtol=1e-6, atol=1e-7)

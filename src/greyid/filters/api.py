@@ -209,11 +209,9 @@ def filter_data(model, params, data, time="t", hold="zoh", method=None, time_uni
 
 
 def smooth_data(model, params, data, time="t", hold="zoh", method=None, time_unit=None, **options):
-    """Rauch–Tung–Striebel smoothing after the Kalman filter or the EKF."""
+    """Rauch–Tung–Striebel smoothing after any of the filters (see :mod:`.smoother`)."""
     structure = model.structure
     chosen = method or (KALMAN if structure.is_linear else EKF)
-    if chosen not in (KALMAN, EKF, EKF2):
-        raise ModelError(f"smoothing is available after the 'kalman', 'ekf' and 'ekf2' filters, not '{chosen}'")
     results = filter_data(model, params, data, time, hold, chosen, time_unit, **options)
     single = isinstance(results, FilterResult)
     out = []

@@ -1,4 +1,4 @@
-"""Rauch–Tung–Striebel fixed-interval smoother for the linear and EKF cases.
+"""Rauch–Tung–Striebel fixed-interval smoother, after any of greyid's filters.
 
 Running backwards over the filter's output,
 
@@ -6,8 +6,13 @@ Running backwards over the filter's output,
     x_{k|N} = x_{k|k} + J_k (x_{k+1|N} − x_{k+1|k}),
     P_{k|N} = P_{k|k} + J_k (P_{k+1|N} − P_{k+1|k}) J_kᵀ,
 
-where Φ_{k+1} is the transition matrix of the interval (t_k, t_{k+1}] (for the
-EKF, the product of the sub-step Jacobians of A.49).
+where Φ_{k+1} is the transition matrix of the interval (t_k, t_{k+1}]: exact
+for the Kalman filter; for the EKF family (EKF, IEKF, EKF2) the product of the
+sub-step Jacobians of A.49; for the UKF the product of the sub-steps'
+statistically linearized transitions (A = Cov(x, f) P⁻¹, 4.48), so that
+P_{k|k}Φᵀ is the sigma points' state cross-covariance to first order — the
+statistically linearized (unscented) RTS smoother.  All are exact on linear
+models.
 """
 
 from __future__ import annotations
