@@ -20,7 +20,7 @@ import numpy as np
 from ..compiler import jit
 from ..filters.api import compiled_filter
 from ..filters.core import KALMAN, FilterOptions, make_ahead
-from .criteria import GaussianPrior, log_criterion, step_criterion
+from .criteria import GaussianPrior, log_criterion, scale_consistency, step_criterion
 from .transforms import Transform
 
 
@@ -124,7 +124,7 @@ def build(structure, problem: Problem):
 
     def contributions(z, base, lower, upper, data):
         theta = problem.theta(z, base, Transform(kinds, lower, upper), jnp)
-        return step_criterion(terms(theta, data), problem.robust)
+        return step_criterion(terms(theta, data), problem.robust, scale_consistency(problem.robust))
 
     forward = forward_hessian(problem.options.method, len(problem.free))
     # Per-step scores (rows: steps, columns: ∂/∂z), forward mode: nothing stored per step.
