@@ -115,10 +115,12 @@ def check_at_parameters(structure: Structure, theta: np.ndarray, series: Series,
         def checks(theta, data):
             x0, P0 = initial_state(structure, theta, data)
             S = jax.vmap(lambda u, t: structure.observation_variance(x0, u, t, theta))(data.u_cur, data.t)
-            return S, P0
+            full = structure.observation_covariance
+            S_full = None if full is None else jax.vmap(lambda u, t: full(x0, u, t, theta))(data.u_cur, data.t)
+            return S, P0, S_full
 
         structure.cache[key] = jit(checks)
-    S, P0 = structure.cache[key](jnp.asarray(theta), data)
+    S, P0, S_full = structure.cache[key](jnp.asarray(theta), data)
     S = np.asarray(S)[: series.n_rows]
     bad = np.argwhere(~(S > 0))
     if len(bad):
@@ -127,6 +129,12 @@ def check_at_parameters(structure: Structure, theta: np.ndarray, series: Series,
             f"the variance of observation '{structure.output_names[j]}' is {S[row, j]} at row {row} "
             "for the given parameters; variances must be positive"
         )
+    if S_full is not None:
+        lowest = np.linalg.eigvalsh(np.asarray(S_full)[: series.n_rows]).min(axis=1)
+        bad = np.flatnonzero(~(lowest > 0))
+        if len(bad):
+            raise ModelError(f"the observation covariance is not positive definite at row {bad[0]} for the given "
+                             f"parameters (smallest eigenvalue {lowest[bad[0]]:.4g})")
     P0 = np.asarray(P0)
     # Semi-definite is allowed: a state known exactly at t₀ has variance 0.
     if not np.all(np.isfinite(P0)) or np.min(np.linalg.eigvalsh(0.5 * (P0 + P0.T))) < -1e-10 * max(

@@ -33,7 +33,7 @@ from .predictors import (
     unscented_predict,
     unscented_update,
 )
-from .updates import FORMS, StepTerms, from_matrix, linear_update, propagate, to_matrix
+from .updates import FORMS, StepTerms, correlated_update, from_matrix, linear_update, propagate, to_matrix
 
 KALMAN, EKF, IEKF, UKF, EKF2 = "kalman", "ekf", "iekf", "ukf", "ekf2"
 METHODS = (KALMAN, EKF, IEKF, UKF, EKF2)
@@ -140,6 +140,7 @@ def filter_steps(structure: Structure, options: FilterOptions):
     :func:`make_ahead` are both built from these predict and update closures.
     """
     f, G, h, S = structure.drift, structure.diffusion, structure.observation, structure.observation_variance
+    S_full = structure.observation_covariance  # None unless the outputs' noise is correlated
     form, method = options.form, options.method
     if method == KALMAN and not structure.is_linear:
         raise ModelError(
@@ -202,23 +203,30 @@ def filter_steps(structure: Structure, options: FilterOptions):
             u, t, y = row.u_cur, row.t, row.y
             mask = row.mask if mask is None else mask
             if method == UKF:
-                return unscented_update(x_pred, cov_pred, y, mask, u, t, theta, h, S, form, weights)
+                noise = S(x_pred, u, t, theta) if S_full is None else S_full(x_pred, u, t, theta)
+                return unscented_update(x_pred, cov_pred, y, mask, u, t, theta, h, noise, form, weights)
             y_pred, C = linearized_observation(h, x_pred, u, t, theta)
             if method == EKF2:  # (4.60)
                 y_pred = y_pred + second_order_term(h, x_pred, to_matrix(cov_pred, form), u, t, theta)
             if method != IEKF:
-                return linear_update(x_pred, cov_pred, y, mask, y_pred, C, S(x_pred, u, t, theta), form), y_pred
+                return measurement_update(x_pred, cov_pred, y, mask, y_pred, C, x_pred, u, t), y_pred
 
             # Iterated update (4.43): relinearize h about the latest estimate η.
             def iterate(_, eta):
                 h_eta, C_eta = linearized_observation(h, eta, u, t, theta)
                 pseudo = h_eta + C_eta @ (x_pred - eta)
-                return linear_update(x_pred, cov_pred, y, mask, pseudo, C_eta, S(eta, u, t, theta), form).mean
+                return measurement_update(x_pred, cov_pred, y, mask, pseudo, C_eta, eta, u, t).mean
 
             eta = jax.lax.fori_loop(0, options.iterations - 1, iterate, x_pred)
             h_eta, C = linearized_observation(h, eta, u, t, theta)
             y_pred = h_eta + C @ (x_pred - eta)
-            return linear_update(x_pred, cov_pred, y, mask, y_pred, C, S(eta, u, t, theta), form), y_pred
+            return measurement_update(x_pred, cov_pred, y, mask, y_pred, C, eta, u, t), y_pred
+
+        def measurement_update(x_pred, cov_pred, y, mask, y_pred, C, at, u, t):
+            """(4.27–4.29) with the noise of the outputs at ``at``: independent or correlated."""
+            if S_full is None:
+                return linear_update(x_pred, cov_pred, y, mask, y_pred, C, S(at, u, t, theta), form)
+            return correlated_update(x_pred, cov_pred, y, mask, y_pred, C, S_full(at, u, t, theta), form)
 
         return FilterSteps((x0, from_matrix(P0, form)), rows, predict, update)
 

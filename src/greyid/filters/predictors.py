@@ -147,9 +147,9 @@ def unscented_update(mean, cov, y, mask, u, t, theta, observation, variance, for
     Y = jax.vmap(lambda xi: observation(xi, u, t, theta))(X)
     y_pred = weights.mean @ Y
     dY = Y - y_pred
-    S = variance(mean, u, t, theta)
+    S = variance  # the outputs' noise: variances (a vector) or a full covariance matrix
     m = mask
-    R = dY.T @ (weights.cov[:, None] * dY) + jnp.diag(S)
+    R = dY.T @ (weights.cov[:, None] * dY) + (jnp.diag(S) if S.ndim == 1 else S)
     R = R * m[:, None] * m[None, :] + jnp.diag(1.0 - m)
     cross = ((X - mean).T @ (weights.cov[:, None] * dY)) * m[None, :]
     innovation = jnp.where(m > 0, y - y_pred, 0.0)

@@ -119,3 +119,26 @@ def linear_update(mean, cov, y, mask, y_pred, C, S, form: str) -> Update:
     IKC = jnp.eye(n) - gain @ C
     new_cov = symmetrize(IKC @ cov @ IKC.T + (gain * S) @ gain.T)  # Joseph form
     return Update(new_mean, new_cov, innovation, R, gaussian_term(innovation, chol_R, mask))
+
+
+def correlated_update(mean, cov, y, mask, y_pred, C, S_full, form: str, update=None) -> Update:
+    """The update with correlated measurement noise S (a full matrix).
+
+    The observed elements are decorrelated by the Cholesky factor L of their noise
+    covariance (unobserved ones get an identity block): with y', ŷ', C' = L⁻¹(y, ŷ, C)
+    the noise is white with unit variances, so the scalar updates apply; log det R
+    gains 2 log det L, and the innovations and R are returned in the outputs' own
+    coordinates.  ``update`` is :func:`linear_update` or a filter's variant of it.
+    """
+    update = update or linear_update
+    m = mask
+    S_observed = symmetrize(S_full * m[:, None] * m[None, :] + jnp.diag(1.0 - m))
+    L = small.cholesky(S_observed)
+    observed_y = jnp.where(m > 0, y, 0.0)
+    observed_pred = jnp.where(m > 0, y_pred, 0.0)
+    white = update(mean, cov, small.solve_lower(L, observed_y), m, small.solve_lower(L, observed_pred),
+                   small.solve_lower(L, C * m[:, None]), jnp.ones_like(y), form)
+    terms = white.terms._replace(logdet=white.terms.logdet + 2.0 * jnp.sum(jnp.log(jnp.diag(L))))
+    innovation = jnp.where(m > 0, y - y_pred, 0.0)
+    R = symmetrize(small.mm(small.mm(L, white.innovation_covariance), L.T))
+    return Update(white.mean, white.covariance, innovation, R, terms)

@@ -59,7 +59,7 @@ from .options import DATA_KEYS, ESTIMATION_KEYS, FILE_KEYS, FILTER_KEYS
 
 _SECTIONS = {
     "model": ("name", "description", "inputs", "system", "algebraic", "observations", "initial_state",
-              "initial_covariance", "initial_covariance_scale"),
+              "initial_covariance", "initial_covariance_scale", "observation_covariance"),
     "parameters": None,
     "derived": None,
     "data": DATA_KEYS + FILE_KEYS,
@@ -102,6 +102,7 @@ def model_to_dict(model) -> dict:
         "system": [e.text for e in model._system],
         "inputs": list(model._inputs),
         "observations": [{"equation": o[0].text, "variance": _plain(o[2])} for o in model._observations],
+        "observation_covariance": _plain(model._observation_covariance),
         "algebraic": [a.text for a in model._algebraics],
         "parameters": {n: parameter(p) for n, p in model.parameters.items()},
         "initial_state": None if model._initial_mean is None else {
@@ -126,6 +127,8 @@ def model_from_dict(spec: Mapping, cls=None):
         m.add_algebraic(a)
     for o in spec["observations"]:
         m.add_observation(o["equation"], variance=o["variance"])
+    if spec.get("observation_covariance") is not None:
+        m.set_observation_covariance(spec["observation_covariance"])
     for name, p in spec.get("parameters", {}).items():
         prior = p.get("prior")
         m.set_parameter(name, init=p.get("init"), lower=p.get("lower"), upper=p.get("upper"),
@@ -211,6 +214,7 @@ def spec_from_toml(document: Mapping) -> dict:
             "scale": model.get("initial_covariance_scale", 1.0),
         },
         "derived": dict(document.get("derived", {})),
+        "observation_covariance": model.get("observation_covariance"),
         "options": options,
     }
 
@@ -282,6 +286,8 @@ def model_to_toml(model) -> str:
         lines.append(f"initial_covariance = {_value(initial['covariance'])}")
         if initial["scale"] != 1.0:
             lines.append(f"initial_covariance_scale = {_value(initial['scale'])}")
+    if spec.get("observation_covariance") is not None:
+        lines.append(f"observation_covariance = {_value(spec['observation_covariance'])}")
     lines += ["", "[model.observations]"]
     for o in spec["observations"]:
         name, rhs = (part.strip() for part in o["equation"].split("=", 1))

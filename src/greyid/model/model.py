@@ -53,6 +53,7 @@ class Model:
         self._system: list = []
         self._inputs: list[str] = []
         self._observations: list[tuple] = []
+        self._observation_covariance = None  # a full matrix of expressions (set_observation_covariance)
         self._algebraics: list = []
         self._parameters: dict[str, Parameter] = {}
         self._initial_mean: dict[str, object] | None = None
@@ -158,6 +159,22 @@ class Model:
     def options(self) -> dict:
         """The model's default settings (see :meth:`set_options`)."""
         return dict(self._options)
+
+    def set_observation_covariance(self, matrix) -> "Model":
+        """Correlated measurement noise: the full covariance of the outputs, in their order.
+
+        ``matrix`` is square (numbers or expressions); its diagonal must repeat the
+        outputs' variances and it must be symmetric and free of the states.
+        Missing outputs are handled per element (the observed subset is
+        decorrelated by its Cholesky factor before the updates).
+        """
+        if isinstance(matrix, np.ndarray):
+            matrix = matrix.tolist()
+        if not (isinstance(matrix, (list, tuple)) and matrix and all(isinstance(r, (list, tuple)) for r in matrix)):
+            raise ModelError("the observation covariance must be a square matrix (a list of rows)")
+        self._observation_covariance = [list(r) for r in matrix]
+        self._changed()
+        return self
 
     def set_nested_start(self, rule) -> "Model":
         """Declare where this model reduces to a smaller one it extends.
@@ -351,13 +368,15 @@ class Model:
         observation = [sub(o[0].rhs) for o in self._observations]
         variance = [sub(o[1]) for o in self._observations]
 
+        correlation = self._observation_covariance_expressions(outputs, variance, states)
         mean_exprs, cov = self._initial_state_expressions(states)
         mean_exprs = [sub(e) for e in mean_exprs]
         if isinstance(cov, list):
             cov = [[sub(e) for e in row] for row in cov]
 
         known = {sp.Symbol(n, real=True) for n in states + inputs} | {TIME}
-        everything = [*drift, *[g for row in diffusion for g in row], *observation, *variance, *mean_exprs]
+        everything = [*drift, *[g for row in diffusion for g in row], *observation, *variance, *mean_exprs,
+                      *([] if correlation is None else [e for row in correlation for e in row])]
         if isinstance(cov, list):
             everything += [e for row in cov for e in row]
         for e, where in [(x, "initial state") for x in mean_exprs] + [(v, "observation variance") for v in variance]:
@@ -405,7 +424,33 @@ class Model:
             initial_mean=lambdify_parameters(mean_exprs, param_syms, (n,)),
             initial_covariance=initial_cov,
             equations=dict(drift=f_mat, diffusion=g_mat, observation=h_mat, variance=s_mat),
+            observation_covariance=None if correlation is None else lambdify_model(
+                [e for row in correlation for e in row], *args, (s, s)),
         )
+
+    def _observation_covariance_expressions(self, outputs, variance, states):
+        """The checked full observation covariance (SymPy rows), or None for independent outputs."""
+        if self._observation_covariance is None:
+            return None
+        rows = self._observation_covariance
+        s = len(outputs)
+        if len(rows) != s or any(len(r) != s for r in rows):
+            raise ModelError(f"the observation covariance must be {s}x{s} (outputs {outputs})")
+        exprs = [[self._substitute_algebraics(self._expression(v, f"observation covariance of '{outputs[i]}' and "
+                                                                   f"'{outputs[j]}'")) for j, v in enumerate(r)]
+                 for i, r in enumerate(rows)]
+        for i in range(s):
+            if sp.simplify(exprs[i][i] - variance[i]) != 0:
+                raise ModelError(f"the observation covariance's diagonal entry for '{outputs[i]}' is {exprs[i][i]}, "
+                                 f"but its variance is {variance[i]}; they must agree")
+            for j in range(i + 1, s):
+                if sp.simplify(exprs[i][j] - exprs[j][i]) != 0:
+                    raise ModelError(f"the observation covariance is not symmetric for '{outputs[i]}' and "
+                                     f"'{outputs[j]}'")
+        used = {sym.name for row in exprs for e in row for sym in e.free_symbols}
+        if used & set(states):
+            raise ModelError(f"the observation covariance cannot depend on the state '{sorted(used & set(states))[0]}'")
+        return exprs
 
     def _initial_state_expressions(self, states: list[str]):
         if self._initial_mean is None:

@@ -59,6 +59,8 @@ class Structure:
     initial_mean: Callable[[Array], Array]
     initial_covariance: InitialCovariance
     equations: dict = field(default_factory=dict)
+    #: (x, u, t, θ) → the outputs' full noise covariance, where they are correlated (else None).
+    observation_covariance: ModelFunction | None = None
     #: Compiled filters and simulators for this structure, keyed by their settings.
     cache: dict = field(default_factory=dict, compare=False, repr=False)
 

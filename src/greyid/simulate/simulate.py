@@ -149,7 +149,12 @@ def simulate(model, params, data_or_times, n_paths: int = 1, method: str = "eule
     y_mean, S = observe(theta, jnp.asarray(states), u, t)
     if np.any(np.asarray(S) < 0):
         raise ModelError("an observation variance is negative along the simulated paths")
-    y = y_mean + scale * jnp.sqrt(S) * jax.random.normal(k_obs, y_mean.shape)
+    z = jax.random.normal(k_obs, y_mean.shape)
+    if structure.observation_covariance is None:
+        y = y_mean + scale * jnp.sqrt(S) * z
+    else:  # correlated measurement noise: e = L z with L Lᵀ = S (S free of the states)
+        full = jax.vmap(lambda uu, tt: structure.observation_covariance(jnp.zeros(n), uu, tt, theta))(u, t)
+        y = y_mean + scale * jnp.einsum("kij,pkj->pki", jnp.linalg.cholesky(full), z)
     return Simulation(series.times, series.inputs, np.asarray(states), np.asarray(y), series.time_name,
                       structure.input_names, structure.state_names, structure.output_names)
 
