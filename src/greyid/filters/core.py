@@ -29,6 +29,7 @@ from .predictors import (
     linear_predict,
     linearized_observation,
     second_order_term,
+    second_order_update,
     sigma_weights,
     unscented_predict,
     unscented_update,
@@ -36,7 +37,10 @@ from .predictors import (
 from .updates import FORMS, StepTerms, correlated_update, from_matrix, linear_update, propagate, to_matrix
 
 KALMAN, EKF, IEKF, UKF, EKF2 = "kalman", "ekf", "iekf", "ukf", "ekf2"
-METHODS = (KALMAN, EKF, IEKF, UKF, EKF2)
+#: The modified truncated and Gaussian second-order filters (section 4.2.2).
+TRUNCATED2, GAUSSIAN2 = "truncated2", "gaussian2"
+SECOND_ORDER = (TRUNCATED2, GAUSSIAN2)
+METHODS = (KALMAN, EKF, IEKF, UKF, EKF2, TRUNCATED2, GAUSSIAN2)
 
 
 @dataclass(frozen=True)
@@ -197,14 +201,18 @@ def filter_steps(structure: Structure, options: FilterOptions):
             if method == UKF:
                 return unscented_predict(x, cov, interval, theta, f, G, options.substeps, form, weights)
             return extended_predict(x, cov, interval, theta, f, G, options.substeps, form,
-                                    bias_correction=method == EKF2)
+                                    bias_correction=method in (EKF2, *SECOND_ORDER),
+                                    noise_correction=method in SECOND_ORDER)
 
         def update(x_pred, cov_pred, row: Row, mask=None):
             u, t, y = row.u_cur, row.t, row.y
             mask = row.mask if mask is None else mask
-            if method == UKF:
+            if method in (UKF, *SECOND_ORDER):
                 noise = S(x_pred, u, t, theta) if S_full is None else S_full(x_pred, u, t, theta)
-                return unscented_update(x_pred, cov_pred, y, mask, u, t, theta, h, noise, form, weights)
+                if method == UKF:
+                    return unscented_update(x_pred, cov_pred, y, mask, u, t, theta, h, noise, form, weights)
+                return second_order_update(x_pred, cov_pred, y, mask, u, t, theta, h, noise, form,
+                                           gaussian=method == GAUSSIAN2)
             y_pred, C = linearized_observation(h, x_pred, u, t, theta)
             if method == EKF2:  # (4.60)
                 y_pred = y_pred + second_order_term(h, x_pred, to_matrix(cov_pred, form), u, t, theta)

@@ -55,12 +55,14 @@ def second_order_term(fn, x, P, *args):
 
 
 def extended_predict(mean, cov, interval: Interval, theta, drift, diffusion, substeps: int, form: str,
-                     bias_correction: bool = False):
+                     bias_correction: bool = False, noise_correction: bool = False):
     """Sub-sampled local linearization (A.46–A.50); returns mean, cov and the interval's Φ.
 
     With ``bias_correction`` the mean follows (4.58), f + ½ P ∂²f/∂x², while the
     covariance keeps the first-order equation (the "first order filter with bias
-    correction" of section 4.2.2).
+    correction" of section 4.2.2).  With ``noise_correction`` the covariance
+    follows (4.59) with the second-order expectation of GGᵀ, GGᵀ + ½ P ∂²(GGᵀ)/∂x²
+    (the second-order filters; exact for a diffusion linear in x).
     """
     h = interval.dt / substeps
     du = (interval.u_cur - interval.u_prev) * interval.foh
@@ -75,7 +77,14 @@ def extended_predict(mean, cov, interval: Interval, theta, drift, diffusion, sub
         if bias_correction:
             f = f + second_order_term(drift, x, to_matrix(c, form), u, t, theta)
         g = diffusion(x, u, t, theta)
-        disc = discretize(jac(x, u, t, theta), small.mm(g, g.T), h)
+        Q = small.mm(g, g.T)
+        if noise_correction:
+            def noise(xx):
+                gg = diffusion(xx, u, t, theta)
+                return (gg @ gg.T).reshape(-1)
+
+            Q = Q + second_order_term(noise, x, to_matrix(c, form)).reshape(Q.shape)
+        disc = discretize(jac(x, u, t, theta), Q, h)
         # x_{j+1} = x_j + Γ f_j + ∫(h−s)e^{As}ds (∂f/∂u u̇ + ∂f/∂t)  (A.49 with the input ramp)
         x = x + small.mm(disc.input_gain, f) + h * small.mm(disc.ramp_gain, _input_rate(drift, x, u, t, theta, u_rate))
         c = propagate(c, disc.transition, disc.noise_covariance, form)
@@ -148,18 +157,50 @@ def unscented_update(mean, cov, y, mask, u, t, theta, observation, variance, for
     y_pred = weights.mean @ Y
     dY = Y - y_pred
     S = variance  # the outputs' noise: variances (a vector) or a full covariance matrix
-    m = mask
     R = dY.T @ (weights.cov[:, None] * dY) + (jnp.diag(S) if S.ndim == 1 else S)
+    cross = (X - mean).T @ (weights.cov[:, None] * dY)
+    return moment_update(mean, P, y, mask, y_pred, cross, R, form), y_pred
+
+
+def moment_update(mean, P, y, mask, y_pred, cross, R, form) -> Update:
+    """The update from the first two moments of the output: ŷ, R = Cov(y) and Cov(x, y) (4.21–4.22
+    with Gaussian approximations); unobserved elements are masked out."""
+    m = mask
     R = R * m[:, None] * m[None, :] + jnp.diag(1.0 - m)
-    cross = ((X - mean).T @ (weights.cov[:, None] * dY)) * m[None, :]
+    cross = cross * m[None, :]
     innovation = jnp.where(m > 0, y - y_pred, 0.0)
     chol_R = jnp.linalg.cholesky(symmetrize(R))
     gain = jax.scipy.linalg.cho_solve((chol_R, True), cross.T).T
     new_mean = mean + gain @ innovation
     new_P = symmetrize(P - gain @ R @ gain.T)
-    return Update(new_mean, from_matrix(new_P, form), innovation, R, gaussian_term(innovation, chol_R, m)), y_pred
+    return Update(new_mean, from_matrix(new_P, form), innovation, R, gaussian_term(innovation, chol_R, m))
 
 
 def linearized_observation(observation: Callable, x, u, t, theta):
     """h(x) and C = ∂h/∂x (A.41)."""
     return observation(x, u, t, theta), jax.jacfwd(observation, argnums=0)(x, u, t, theta)
+
+
+def second_order_update(mean, cov, y, mask, u, t, theta, observation, noise, form, gaussian: bool):
+    """The measurement update of the modified second-order filters (section 4.2.2).
+
+    With δ = x − x̂ and h expanded to second order, ŷ = h + ½b, b_k = tr(∂²h_k P)
+    (4.60), Cov(x, y) = P Hᵀ (odd moments vanish), and
+    Cov(y) = H P Hᵀ + S + ¼(E[δᵀh_k''δ δᵀh_l''δ] − b_k b_l): the truncated filter
+    neglects the fourth moments (−¼ b bᵀ), the Gaussian one takes them from (4.57)
+    (+½ tr(h_k'' P h_l'' P)).  The covariance is then updated from these moments
+    (4.61–4.62 with b₁ = 0, the "modified" filters).
+    """
+    P = to_matrix(cov, form)
+    h_value, H = linearized_observation(observation, mean, u, t, theta)
+    hess = jax.hessian(observation, argnums=0)(mean, u, t, theta)  # (s, n, n)
+    b = jnp.einsum("kij,ji->k", hess, P)
+    y_pred = h_value + 0.5 * b
+    if gaussian:
+        HP = jnp.einsum("kij,jl->kil", hess, P)
+        fourth = 0.5 * jnp.einsum("kij,lji->kl", HP, HP)
+    else:
+        fourth = -0.25 * jnp.outer(b, b)
+    S = noise if noise.ndim == 2 else jnp.diag(noise)
+    R = H @ P @ H.T + S + fourth
+    return moment_update(mean, P, y, mask, y_pred, P @ H.T, R, form), y_pred

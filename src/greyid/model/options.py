@@ -24,7 +24,7 @@ FILE_KEYS = ("file", "separator")
 ALL_KEYS = DATA_KEYS + FILE_KEYS + FILTER_KEYS + ESTIMATION_KEYS
 
 HOLDS = ("zoh", "foh")
-METHODS = ("kalman", "ekf", "iekf", "ekf2", "ukf")
+METHODS = ("kalman", "ekf", "iekf", "ekf2", "ukf", "truncated2", "gaussian2")
 FORMS = ("sqrt", "plain")
 
 
