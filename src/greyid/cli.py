@@ -132,7 +132,7 @@ def _run(command) -> None:
 def fit(model: str = typer.Argument(..., help="model file (.toml) or library model name"),
         data: Optional[Path] = typer.Argument(None, help="CSV data (default: the model file's [data] file)"),
         out_dir: Optional[Path] = typer.Option(None, "--out", help="folder for fit.json, summary.txt, parameters.csv"),
-        method: Optional[str] = typer.Option(None, help="filter: kalman, ekf, iekf, ekf2, ukf"),
+        method: Optional[str] = typer.Option(None, help="filter: kalman, ekf, iekf, ekf2, ukf, gaussian2, truncated2"),
         hold: Optional[str] = typer.Option(None, help="input hold between samples: zoh or foh"),
         time_column: Optional[str] = typer.Option(None, "--time", help="name of the time column"),
         starts: Optional[int] = typer.Option(None, help="number of starting points (random ones inside the bounds)"),

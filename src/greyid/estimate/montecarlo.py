@@ -58,17 +58,20 @@ class StudyResult:
 
 def run_study(model, truth: Mapping[str, float], data: pd.DataFrame, n_series: int, report: list[str],
               derived: Mapping[str, str] | None = None, seed: int = 0, simulate: Mapping | None = None,
-              fit: Mapping | None = None, progress: bool | Callable[[int, int], None] = False) -> StudyResult:
+              fit: Mapping | None = None, progress: bool | Callable[[int, int], None] = False,
+              simulation_model=None) -> StudyResult:
     """Simulate ``n_series`` series on ``data``'s times and inputs and fit each.
 
     ``report`` names the parameters for the table; ``derived`` adds functions of
     them (delta-method variances).  ``simulate`` and ``fit`` are keyword
-    arguments for :meth:`Model.simulate` and :meth:`Model.fit`.  ``progress=True``
+    arguments for :meth:`Model.simulate` and :meth:`Model.fit`; ``simulation_model``
+    (default: ``model``) simulates, e.g. one whose initial state is known exactly
+    while the fitted model keeps its prior.  ``progress=True``
     shows a progress bar; a callable receives ``(done, total)``.
     """
     simulate = dict(simulate or {})
     fit_options = dict(fit or {})
-    sims = model.simulate(dict(truth), data, n_paths=n_series, seed=seed, **simulate)
+    sims = (simulation_model or model).simulate(dict(truth), data, n_paths=n_series, seed=seed, **simulate)
     derived = dict(derived or {})
     estimates, variances, converged, acf1 = [], [], [], []
     for i in track(range(n_series), n_series, "Monte Carlo fits", progress):
