@@ -1,0 +1,12 @@
+"""Design of experiments before measuring (thesis chapter 6 and section 7.3).
+
+* :func:`fisher_information` — the information matrix of a planned experiment
+  (a DataFrame of times and inputs, no outputs) at assumed parameter values;
+* :func:`criterion` — the optimality criteria (6.32)–(6.35), every one minimised;
+* :func:`local_identifiability` — the rank of that information at the assumed values.
+"""
+
+from .criteria import CRITERIA, criterion
+from .information import fisher_information, local_identifiability
+
+__all__ = ["fisher_information", "criterion", "local_identifiability", "CRITERIA"]

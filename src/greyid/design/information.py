@@ -1,0 +1,99 @@
+"""The Fisher information of a planned experiment (6.29–6.30), before any data exist.
+
+``method="montecarlo"`` is the approach of section 7.3: simulate ``n_paths``
+data sets from the model at the assumed parameters on the plan's times and
+inputs, and average the outer products of the per-observation scores through
+the filter (each an unbiased estimate of the information, since the scores of
+the prediction-error decomposition are martingale differences), with the Monte
+Carlo standard error of every entry.  It serves linear and nonlinear models.
+An exact O(N) computation for linear models (the filter augmented with its
+parameter sensitivities) is not in greyid yet.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from ..errors import DataError, ModelError
+from ..estimate.information import loglik_derivatives
+
+METHODS = ("montecarlo",)
+
+
+def _free_names(model, free):
+    names = list(model.structure.parameter_names)
+    if free is None:
+        declared = model.parameters
+        return [n for n in names if not (n in declared and declared[n].fixed)]
+    unknown = [n for n in free if n not in names]
+    if unknown:
+        raise ModelError(f"'{unknown[0]}' is not a parameter of model '{model.name}'")
+    return list(free)
+
+
+def fisher_information(model, params, plan: pd.DataFrame, time: str = "t", hold: str = "zoh", free=None,
+                       method: str = "montecarlo", n_paths: int = 100, seed: int = 0, filter_method=None,
+                       simulation: str | None = None, substeps: int = 20) -> pd.DataFrame:
+    """Information matrix of the experiment ``plan`` at ``params`` (natural parameters).
+
+    ``plan`` holds the time column and the inputs; ``free`` names the parameters
+    the matrix is taken for (default: the model's non-fixed ones).  Returns a
+    DataFrame indexed and columned by those names; its ``attrs["standard_error"]``
+    holds the Monte Carlo standard error of each entry and ``attrs["n_paths"]``
+    the number of simulated data sets.
+    """
+    if method not in METHODS:
+        raise ModelError(f"method {method!r} is not available; use one of {list(METHODS)} "
+                         "(the exact linear-model information is not implemented yet)")
+    if not isinstance(plan, pd.DataFrame):
+        raise DataError("the plan must be a DataFrame with the time column and the inputs")
+    present = [o for o in model.output_names if o in plan.columns]
+    if present:
+        raise DataError(f"the plan holds the output column '{present[0]}'; a plan has times and inputs only")
+    if not isinstance(n_paths, int) or n_paths < 2:
+        raise ModelError(f"n_paths must be an integer of at least 2, got {n_paths!r}")
+    names = _free_names(model, free)
+    values = model.parameter_vector(params)
+    all_names = list(model.structure.parameter_names)
+    point = dict(zip(all_names, values))
+    simulation = simulation or ("exact" if model.structure.is_linear else "milstein")
+    sims = model.simulate(point, plan, n_paths=n_paths, seed=seed, method=simulation, substeps=substeps,
+                          hold=hold, time=time)
+    k = len(names)
+    samples = np.empty((n_paths, k, k))
+    for i in range(n_paths):
+        data = plan.copy()
+        for j, name in enumerate(model.output_names):
+            data[name] = sims.outputs[i, :, j]
+        samples[i] = loglik_derivatives(model, point, data, names, "opg", time=time, hold=hold,
+                                        method=filter_method).information
+    mean = samples.mean(axis=0)
+    error = samples.std(axis=0, ddof=1) / np.sqrt(n_paths)
+    info = pd.DataFrame(0.5 * (mean + mean.T), index=names, columns=names)
+    info.attrs["standard_error"] = pd.DataFrame(error, index=names, columns=names)
+    info.attrs["n_paths"] = n_paths
+    return info
+
+
+def local_identifiability(info: pd.DataFrame, tolerance: float = 1e-8) -> pd.DataFrame:
+    """Which parameters the planned experiment determines, from the information matrix.
+
+    The matrix is scaled to unit diagonal; eigenvalues below ``tolerance`` times
+    the largest are flat directions, whose loadings (above 0.05) name the
+    parameters involved.  Returns one row per flat direction (``eigenvalue``,
+    ``parameters``); an empty table means locally identifiable at these values.
+    """
+    M = info.to_numpy(dtype=np.float64)
+    scale = np.sqrt(np.abs(np.diag(M)))
+    if np.any(scale == 0):
+        zero = [n for n, s in zip(info.index, scale) if s == 0]
+        rows = [dict(eigenvalue=0.0, parameters=[n]) for n in zero]
+        return pd.DataFrame(rows, columns=["eigenvalue", "parameters"])
+    w, V = np.linalg.eigh(M / np.outer(scale, scale))
+    rows = []
+    for j in np.flatnonzero(w < tolerance * w.max()):
+        vec = V[:, j] / np.max(np.abs(V[:, j]))
+        rows.append(dict(eigenvalue=float(w[j]),
+                         parameters=[n for n, v in zip(info.index, vec) if abs(v) > 0.05]))
+    return pd.DataFrame(rows, columns=["eigenvalue", "parameters"])

@@ -1,0 +1,102 @@
+"""Experiment design: information of a plan by Monte Carlo against the exact Gaussian information,
+optimality criteria against their formulas, local identifiability."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+import greyid
+from conftest import dense_moments, matrices_from_parameters, random_linear_parameters
+from greyid import design
+
+NAMES = ["a11", "b11", "g11", "s1", "m1"]
+
+
+def exact_information(params, t, U, names):
+    """∂μᵀΣ⁻¹∂μ + ½tr(Σ⁻¹∂ΣΣ⁻¹∂Σ) of all stacked observations, derivatives by central differences."""
+    d_mean, d_cov = [], []
+    for name in names:
+        h = 1e-5 * max(abs(params[name]), 1.0)
+        up = dense_moments(matrices_from_parameters(dict(params, **{name: params[name] + h})), t, U, 0.0)
+        down = dense_moments(matrices_from_parameters(dict(params, **{name: params[name] - h})), t, U, 0.0)
+        d_mean.append((up[3] - down[3]) / (2 * h))
+        d_cov.append((up[4] - down[4]) / (2 * h))
+    inv = np.linalg.inv(dense_moments(matrices_from_parameters(params), t, U, 0.0)[4])
+    k = len(names)
+    return np.array([[d_mean[i] @ inv @ d_mean[j] + 0.5 * np.trace(inv @ d_cov[i] @ inv @ d_cov[j])
+                      for j in range(k)] for i in range(k)])
+
+
+def test_monte_carlo_information_converges_to_the_exact_one(linear_model):
+    rng = np.random.default_rng(5)
+    params, _ = random_linear_parameters(rng)
+    N = 12
+    t = np.cumsum(rng.uniform(0.3, 1.0, N))
+    U = rng.normal(size=(N, 2))
+    plan = pd.DataFrame({"t": t, "u1": U[:, 0], "u2": U[:, 1]})
+    info = design.fisher_information(linear_model, params, plan, free=NAMES, n_paths=400, seed=1)
+    assert list(info.index) == NAMES and info.attrs["n_paths"] == 400
+    exact = exact_information(params, t, U, NAMES)
+    error = info.attrs["standard_error"].to_numpy()
+    deviation = np.abs(info.to_numpy() - exact)
+    assert np.all(deviation < 4.5 * error + 1e-9 * np.abs(exact).max()), deviation / error
+    # The estimate is informative: its standard errors are small against the diagonal.
+    assert np.all(np.diag(error) < 0.2 * np.diag(exact))
+
+
+def test_plan_must_not_hold_outputs(linear_model):
+    rng = np.random.default_rng(5)
+    params, _ = random_linear_parameters(rng)
+    plan = pd.DataFrame({"t": [0.0, 1.0], "u1": [0.0, 1.0], "u2": [0.0, 0.0], "y1": [1.0, 2.0]})
+    with pytest.raises(greyid.DataError, match="'y1'"):
+        design.fisher_information(linear_model, params, plan)
+    with pytest.raises(greyid.ModelError, match="exact"):
+        design.fisher_information(linear_model, params, plan.drop(columns="y1"), method="exact")
+
+
+def test_criteria_equal_their_formulas():
+    rng = np.random.default_rng(2)
+    B = rng.normal(size=(4, 4))
+    M = B @ B.T + 0.5 * np.eye(4)
+    names = ["a", "b", "c", "d"]
+    info = pd.DataFrame(M, index=names, columns=names)
+    theta = {"a": 2.0, "b": -0.5, "c": 4.0, "d": 1.5}
+    cov = np.linalg.inv(M)
+    assert design.criterion(info, "D") == pytest.approx(-np.log(np.linalg.det(M)))
+    assert design.criterion(info, "A") == pytest.approx(np.trace(cov) / 4)
+    assert design.criterion(info, "E") == pytest.approx(1 / np.linalg.eigvalsh(M).min())
+    t2 = np.array([theta[n] for n in names]) ** 2 / np.diag(cov)
+    assert design.criterion(info, "C", params=theta) == pytest.approx(np.mean(1 / t2))
+    assert design.criterion(info, "L", k=1) == pytest.approx(design.criterion(info, "A"))
+    assert design.criterion(info, "L", k=60) == pytest.approx(design.criterion(info, "E") / 4 ** (1 / 60), rel=1e-3)
+    # Ds: the information on (a, b) with c, d as nuisance is the inverse of their covariance block.
+    assert design.criterion(info, "Ds", interest=["a", "b"]) == pytest.approx(
+        np.log(np.linalg.det(cov[:2, :2])))
+    # C is scale-free: expressing a in other units leaves it unchanged.
+    S = np.diag([10.0, 1, 1, 1])
+    scaled = pd.DataFrame(np.linalg.inv(S) @ M @ np.linalg.inv(S), index=names, columns=names)
+    assert design.criterion(scaled, "C", params=dict(theta, a=20.0)) == pytest.approx(
+        design.criterion(info, "C", params=theta))
+    # Gauss' formula (6.35): the variance of a + 2b is J M⁻¹ Jᵀ.
+    J = np.array([1.0, 2.0, 0.0, 0.0])
+    assert design.criterion(info, "A", params=theta, derived={"q": "a + 2*b"}) == pytest.approx(J @ cov @ J)
+    assert design.criterion(np.diag([1.0, 0.0]), "D") == np.inf
+    with pytest.raises(greyid.ModelError, match="unknown criterion"):
+        design.criterion(info, "G")
+
+
+def test_local_identifiability_names_a_product():
+    """y depends on a·b only: the information is singular along a ridge that names a and b."""
+    m = greyid.Model("product")
+    m.add_system("dx = (-a*b*x + u)*dt + s*dw1")
+    m.add_inputs("u")
+    m.add_observation("y = x", variance="r")
+    m.set_initial_state(mean={"x": 0.0}, covariance=[[0.1]])
+    for name, value in dict(a=1.0, b=0.8, s=0.3, r=0.05).items():
+        m.set_parameter(name, init=value)
+    rng = np.random.default_rng(0)
+    plan = pd.DataFrame({"t": np.arange(60) * 0.5, "u": np.repeat(rng.choice([0.0, 1.0], 6), 10)})
+    info = design.fisher_information(m, dict(a=1.0, b=0.8, s=0.3, r=0.05), plan, n_paths=20, seed=0)
+    flat = design.local_identifiability(info, tolerance=1e-6)
+    assert len(flat) == 1 and set(flat["parameters"].iloc[0]) == {"a", "b"}
+    assert design.local_identifiability(info.loc[["a", "s", "r"], ["a", "s", "r"]]).empty
