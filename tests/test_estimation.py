@@ -383,3 +383,19 @@ def test_start_from_a_nested_fit_and_spread_of_optima(ou):
     assert "starts: 4, 4 reached the best value" in big.summary()
     with pytest.raises(greyid.ModelError, match="init_from"):
         m.fit(df, init_from=3.0)
+
+
+def test_long_series_take_forward_mode_and_agree(ou, monkeypatch):
+    """Past LONG_SERIES rows the Hessian is taken forward over forward whatever the filter (memory
+    independent of the length); the fit is the same as with forward over reverse."""
+    import greyid.estimate.objective as objective
+
+    m, df, _ = ou
+    reverse = m.fit(df, method="ekf", substeps=1)
+    monkeypatch.setattr(objective, "LONG_SERIES", 100)
+    forward = m.fit(df, method="ekf", substeps=1)
+    keys = [k for k in m.structure.cache if k[0] == "objective" and k[1].method == "ekf"]
+    assert {k[-1] for k in keys} == {False, True}
+    for name in TRUE:
+        assert forward.values[name] == pytest.approx(reverse.values[name], rel=1e-7, abs=1e-10)
+        assert forward.bse[name] == pytest.approx(reverse.bse[name], rel=1e-6)

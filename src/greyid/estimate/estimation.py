@@ -22,6 +22,7 @@ from ..filters.api import check_at_parameters, filter_options, prepare_datasets
 from ..progress import FitProgress
 from .criteria import GaussianPrior, check_robust
 from .covariance import check_cov_type, default_cov_type, score_covariance
+from . import objective
 from .objective import Derivatives, Problem, compiled, step_scores
 from .optimize import NotFiniteError, newton_trust_region
 from .starts import nested_start, space_filling
@@ -122,6 +123,8 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
     # own; they run only if the criterion is not finite at the start, to say why.
     prepared = prepare_datasets(structure, theta0, frames, time, hold, time_unit, check=False)
     datasets = [inputs for _, inputs in prepared]
+    if sum(series.n_rows for series, _ in prepared) > objective.LONG_SERIES:
+        problem = replace(problem, long_series=True)  # memory independent of the series' length
     observed = sum(int(np.sum(~np.isnan(series.outputs))) for series, _ in prepared)
     if observed <= len(free):
         raise DataError(f"the data hold {observed} observed output value(s) for {len(free)} free parameters; "

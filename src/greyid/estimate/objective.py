@@ -26,6 +26,11 @@ from .transforms import Transform
 
 #: Largest number of free parameters whose Hessian is taken forward over forward.
 FORWARD_HESSIAN_MAX = 10
+#: Rows (over all data sets) above which the Hessian is taken forward over forward
+#: whatever the filter: reverse mode keeps every step's intermediates, 5 GB for a
+#: 10⁵-sample logistic EKF fit against 0.6 GB forward (and 59 s against 26 s),
+#: benchmarks/length.py.
+LONG_SERIES = 20_000
 
 
 @dataclass(frozen=True)
@@ -39,11 +44,12 @@ class Problem:
     transform: Transform
     prior: GaussianPrior | None
     prior_index: tuple[int, ...]  # positions in θ of the prior's parameters
+    long_series: bool = False  # more rows than LONG_SERIES: derivatives in forward mode only
 
     def key(self):
         prior = None if self.prior is None else self.prior.names
         return ("objective", self.options, self.robust, self.horizon, self.free,
-                tuple(self.transform.kind.tolist()), prior)
+                tuple(self.transform.kind.tolist()), prior, self.long_series)
 
     def arguments(self, base_theta):
         """The non-static arguments of the compiled functions."""
@@ -126,7 +132,7 @@ def build(structure, problem: Problem):
         theta = problem.theta(z, base, Transform(kinds, lower, upper), jnp)
         return step_criterion(terms(theta, data), problem.robust, scale_consistency(problem.robust))
 
-    forward = forward_hessian(problem.options.method, len(problem.free))
+    forward = forward_hessian(problem.options.method, len(problem.free)) or problem.long_series
     # Per-step scores (rows: steps, columns: ∂/∂z), forward mode: nothing stored per step.
     return (jit(hessian_rows(negative, forward)), negative, jit(jax.jacfwd(contributions)),
             jit(forward_value_and_grad(negative)))
