@@ -125,6 +125,22 @@ def matrices_from_parameters(p, n=3, nu=2, ny=2, nw=2):
                 m0=np.array([p[f"m{i}"] for i in range(1, n + 1)]))
 
 
+def dense_information(params, t, U, names, foh=0.0):
+    """Fisher information of all stacked observations of :func:`random_linear_model_spec`,
+    ∂μᵀΣ⁻¹∂μ + ½tr(Σ⁻¹∂ΣΣ⁻¹∂Σ), with ∂μ and ∂Σ by central differences of :func:`dense_moments`."""
+    d_mean, d_cov = [], []
+    for name in names:
+        h = 1e-5 * max(abs(params[name]), 1.0)
+        up = dense_moments(matrices_from_parameters(dict(params, **{name: params[name] + h})), t, U, foh)
+        down = dense_moments(matrices_from_parameters(dict(params, **{name: params[name] - h})), t, U, foh)
+        d_mean.append((up[3] - down[3]) / (2 * h))
+        d_cov.append((up[4] - down[4]) / (2 * h))
+    inv = np.linalg.inv(dense_moments(matrices_from_parameters(params), t, U, foh)[4])
+    k = len(names)
+    return np.array([[d_mean[i] @ inv @ d_mean[j] + 0.5 * np.trace(inv @ d_cov[i] @ inv @ d_cov[j])
+                      for j in range(k)] for i in range(k)])
+
+
 @pytest.fixture(scope="session")
 def linear_model():
     return random_linear_model_spec()

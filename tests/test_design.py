@@ -6,25 +6,10 @@ import pandas as pd
 import pytest
 
 import greyid
-from conftest import dense_moments, matrices_from_parameters, random_linear_parameters
+from conftest import dense_information, random_linear_parameters
 from greyid import design
 
 NAMES = ["a11", "b11", "g11", "s1", "m1"]
-
-
-def exact_information(params, t, U, names):
-    """∂μᵀΣ⁻¹∂μ + ½tr(Σ⁻¹∂ΣΣ⁻¹∂Σ) of all stacked observations, derivatives by central differences."""
-    d_mean, d_cov = [], []
-    for name in names:
-        h = 1e-5 * max(abs(params[name]), 1.0)
-        up = dense_moments(matrices_from_parameters(dict(params, **{name: params[name] + h})), t, U, 0.0)
-        down = dense_moments(matrices_from_parameters(dict(params, **{name: params[name] - h})), t, U, 0.0)
-        d_mean.append((up[3] - down[3]) / (2 * h))
-        d_cov.append((up[4] - down[4]) / (2 * h))
-    inv = np.linalg.inv(dense_moments(matrices_from_parameters(params), t, U, 0.0)[4])
-    k = len(names)
-    return np.array([[d_mean[i] @ inv @ d_mean[j] + 0.5 * np.trace(inv @ d_cov[i] @ inv @ d_cov[j])
-                      for j in range(k)] for i in range(k)])
 
 
 def test_monte_carlo_information_converges_to_the_exact_one(linear_model):
@@ -36,7 +21,7 @@ def test_monte_carlo_information_converges_to_the_exact_one(linear_model):
     plan = pd.DataFrame({"t": t, "u1": U[:, 0], "u2": U[:, 1]})
     info = design.fisher_information(linear_model, params, plan, free=NAMES, n_paths=400, seed=1)
     assert list(info.index) == NAMES and info.attrs["n_paths"] == 400
-    exact = exact_information(params, t, U, NAMES)
+    exact = dense_information(params, t, U, NAMES)
     error = info.attrs["standard_error"].to_numpy()
     deviation = np.abs(info.to_numpy() - exact)
     assert np.all(deviation < 4.5 * error + 1e-9 * np.abs(exact).max()), deviation / error

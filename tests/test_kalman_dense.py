@@ -107,7 +107,7 @@ def test_fisher_information_equals_dense_gaussian_formula(linear_model):
     """For parameters of the mean (inputs, offsets, initial state) the innovations' derivatives
     do not depend on the data, and the information through the filter equals the Gaussian
     formula on the stacked observations, ∂μᵀΣ⁻¹∂μ (+ ½tr(Σ⁻¹∂ΣΣ⁻¹∂Σ) = 0), ∂μ by differences."""
-    from conftest import dense_moments, matrices_from_parameters
+    from conftest import dense_information
     from greyid.estimate.information import loglik_derivatives
 
     rng = np.random.default_rng(5)
@@ -115,18 +115,7 @@ def test_fisher_information_equals_dense_gaussian_formula(linear_model):
     df, t, U, Y = random_data(rng, N=15, missing=0.0)
     names = ["b11", "b22", "c1", "d21", "m2", "m3"]
     fisher = loglik_derivatives(linear_model, params, df, names, "fisher").information
-    d_mean, d_cov = [], []
-    for name in names:
-        h = 1e-5 * max(abs(params[name]), 1.0)
-        up = dense_moments(matrices_from_parameters(dict(params, **{name: params[name] + h})), t, U, 0.0)
-        down = dense_moments(matrices_from_parameters(dict(params, **{name: params[name] - h})), t, U, 0.0)
-        d_mean.append((up[3] - down[3]) / (2 * h))
-        d_cov.append((up[4] - down[4]) / (2 * h))
-    cov_inv = np.linalg.inv(dense_moments(matrices_from_parameters(params), t, U, 0.0)[4])
-    k = len(names)
-    expected = np.array([[d_mean[i] @ cov_inv @ d_mean[j]
-                          + 0.5 * np.trace(cov_inv @ d_cov[i] @ cov_inv @ d_cov[j]) for j in range(k)]
-                         for i in range(k)])
+    expected = dense_information(params, t, U, names)
     np.testing.assert_allclose(fisher, expected, rtol=1e-5, atol=1e-8 * np.abs(expected).max())
 
 
