@@ -11,6 +11,7 @@ mapped back to the natural parameters.
 
 from __future__ import annotations
 
+from contextlib import ExitStack
 from dataclasses import replace
 
 import numpy as np
@@ -101,9 +102,9 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
         if value is None:
             raise ModelError(
                 f"'{name}' appears in the model's equations but is neither a state, a declared input nor a "
-                f"parameter with a value: a state needs its equation d{name} = ...; declare it as an input (add_inputs('{name}'), or `inputs = [...]` in a model "
-                f"file's [model]) or give it a value (set_parameter('{name}', init=...), or "
-                f"`{name} = {{ init = ... }}` under [parameters])")
+                f"parameter with a value: a state needs its equation d{name} = ...; declare it as an input "
+                f"(add_inputs('{name}'), or `inputs = [...]` in a model file's [model]) or give it a value "
+                f"(set_parameter('{name}', init=...), or `{name} = {{ init = ... }}` under [parameters])")
         lo, hi = (None, None) if p is None else (p.lower, p.upper)
         if (lo is not None and value <= lo) or (hi is not None and value >= hi):
             raise ModelError(f"the initial value {value} of '{name}' must lie strictly inside its bounds [{lo}, {hi}]")
@@ -142,25 +143,29 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
     labels += ["space-filling"] * (starts - 1)
     label = "log-likelihood" if criterion == "ml" and robust is None and horizon == 1 else "criterion"
     optima = []
-    with FitProgress(progress, len(points), label) as shown:
+    with FitProgress(progress, len(points), label) as shown, ExitStack() as open_programs:
         # The optimiser minimises −(criterion); progress shows the criterion itself.
         def report(iteration, stage, f, g):
             shown.iteration(iteration, stage, -f, float(np.max(np.abs(g))))
 
+        evaluators = {}  # one threaded evaluator per problem, shared by its starts
+
         def optimize(problem, z0, i):
-            program = compiled(structure, problem)[0]
-            with Derivatives(program, len(free), (*args, datasets)) as vgh:
-                shown.begin_start(i)
-                try:
-                    optimum = newton_trust_region(vgh, z0, maxiter, report)
-                except NotFiniteError:
-                    theta_start = problem.theta(z0, theta0)
-                    for series, inputs in prepared:
-                        check_at_parameters(structure, theta_start, series, inputs)
-                    raise ModelError("the criterion or its derivatives are not finite at the "
-                                     f"{labels[i] if i < len(labels) else 'refit'} (start {i + 1}) "
-                                     f"({_describe(names, theta_start, free)}); check the initial parameter values")
-                shown.end_start(-optimum.value, optimum.iterations, optimum.converged, optimum.message)
+            if problem.key() not in evaluators:
+                program = compiled(structure, problem)[0]
+                evaluators[problem.key()] = open_programs.enter_context(
+                    Derivatives(program, len(free), (*args, datasets)))
+            shown.begin_start(i)
+            try:
+                optimum = newton_trust_region(evaluators[problem.key()], z0, maxiter, report)
+            except NotFiniteError:
+                theta_start = problem.theta(z0, theta0)
+                for series, inputs in prepared:
+                    check_at_parameters(structure, theta_start, series, inputs)
+                raise ModelError("the criterion or its derivatives are not finite at the "
+                                 f"{labels[i] if i < len(labels) else 'refit'} (start {i + 1}) "
+                                 f"({_describe(names, theta_start, free)}); check the initial parameter values")
+            shown.end_start(-optimum.value, optimum.iterations, optimum.converged, optimum.message)
             return optimum
 
         for i, z_start in enumerate(points):

@@ -123,9 +123,8 @@ class Row(NamedTuple):
     y: jnp.ndarray
     mask: jnp.ndarray
     dt_index: jnp.ndarray
-    b_prev: jnp.ndarray | None = None  # f(0, u, t) at both ends (exact filter)
+    b_prev: jnp.ndarray | None = None  # f(0, u, t) at both ends (exact filter, time-invariant)
     b_cur: jnp.ndarray | None = None
-    foh: jnp.ndarray | None = None  # the hold flag, where a step needs it with the row
 
 
 class FilterSteps(NamedTuple):
@@ -157,35 +156,29 @@ def filter_steps(structure: Structure, options: FilterOptions):
     zeros = np.zeros(n)  # a constant of the traced code; NumPy, so nothing compiles here
 
     def linear_terms(theta, data):
-        """Discretizations and affine drift terms b = f(0, u, t) for the exact filter."""
+        """Discretizations and affine drift terms b = f(0, u, t) of a time-invariant linear model."""
         b_prev = jax.vmap(lambda u, t: f(zeros, u, t, theta))(data.u_prev, data.t_prev)
         b_cur = jax.vmap(lambda u, t: f(zeros, u, t, theta))(data.u_cur, data.t)
-        if structure.kind == LTI:
-            u0, t0 = data.u_cur[0], data.t[0]
-            A = jac_f(zeros, u0, t0, theta)
-            g = G(zeros, u0, t0, theta)
-            cache = discretize_each(A, g @ g.T, data.unique_dt)
-            return cache, b_prev, b_cur
+        u0, t0 = data.u_cur[0], data.t[0]
+        g = G(zeros, u0, t0, theta)
+        return discretize_each(jac_f(zeros, u0, t0, theta), g @ g.T, data.unique_dt), b_prev, b_cur
 
-        return None, b_prev, b_cur
-
-    def time_varying(theta, row: Row):
+    def time_varying(theta, row: Row, foh):
         """The interval's Φ, offset and Λ of a time-varying linear model (sub-stepped)."""
         def matrices(u, t):
             g = G(zeros, u, t, theta)
             return jac_f(zeros, u, t, theta), small.mm(g, g.T)
 
         return time_varying_step(matrices, lambda u, t: f(zeros, u, t, theta), row.t_prev, row.dt,
-                                 row.u_prev, row.u_cur, row.foh, options.substeps)
+                                 row.u_prev, row.u_cur, foh, options.substeps)
 
     def steps(theta, data: FilterInputs) -> FilterSteps:
         first_noise = None
         rows = Row(data.t, data.t_prev, data.dt, data.u_prev, data.u_cur, data.y, data.mask, data.dt_index)
-        if method == KALMAN:
+        if method == KALMAN and structure.kind == LTI:
             cache, b_prev, b_cur = linear_terms(theta, data)
             rows = rows._replace(b_prev=b_prev, b_cur=b_cur)
-            if structure.kind == LTI:  # the first interval's Λ is in the cache already
-                first_noise = cache.noise_covariance[data.dt_index[1]]
+            first_noise = cache.noise_covariance[data.dt_index[1]]  # the first interval's Λ
         x0, P0 = initial_state(structure, theta, data, first_noise)
 
         def predict(x, cov, row: Row):
@@ -194,7 +187,7 @@ def filter_steps(structure: Structure, options: FilterOptions):
                     disc = jax.tree_util.tree_map(lambda a: a[row.dt_index], cache)
                     x_pred, cov_pred = linear_predict(x, cov, disc, row.b_prev, row.b_cur, data.foh, form)
                     return x_pred, cov_pred, disc.transition
-                step = time_varying(theta, row._replace(foh=data.foh))
+                step = time_varying(theta, row, data.foh)
                 x_pred = small.mm(step.transition, x) + step.offset
                 return x_pred, propagate(cov, step.transition, step.noise_covariance, form), step.transition
             interval = Interval(row.t_prev, row.dt, row.u_prev, row.u_cur, data.foh)
