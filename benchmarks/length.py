@@ -1,13 +1,15 @@
 """Fits of long series: time, iterations and peak memory against the number of samples.
 
-    python benchmarks/length.py [--lengths 1000,10000,100000] [--model logistic|testcell]
+    python benchmarks/length.py [--lengths 1000,10000,100000] [--model logistic|testcell] [--optimizer auto|scoring|newton]
 
 Each fit runs in a fresh process (so its peak resident memory is its own):
 simulate the series, then fit it.  ``logistic`` is the library's logistic
 growth model through the EKF (one sub-step, so every length is the same
 problem); ``testcell`` is the thesis' test-cell model (7.43) through the exact
-Kalman filter.  Prints seconds for the fit alone, iterations, log-likelihood
-and the process's peak resident memory.
+Kalman filter.  Prints seconds for the first fit (compilation included) and
+for a second one, the second fit's time in units of one compiled
+log-likelihood evaluation, iterations, log-likelihood and the process's peak
+resident memory.  ``--optimizer`` as in ``fit``.
 """
 
 from __future__ import annotations
@@ -36,11 +38,20 @@ else:
     df["t"] = np.arange(n) * (inputs["t"].iloc[1] - inputs["t"].iloc[0])
     df["Ttr"] = m.simulate(thesis.TEST_CELL_PARAMETERS, df, method="exact", seed=1).outputs[0, :, 0]
     options = {}
+optimizer = sys.argv[3]
 start = time.perf_counter()
-fit = m.fit(df, **options)
+fit = m.fit(df, optimizer=optimizer, **options)
 seconds = time.perf_counter() - start
 peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
-print(f"{n:>9d} {seconds:10.1f} {fit.iterations:6d} {fit.loglik:16.4f} {peak:9.2f}")
+start = time.perf_counter()
+m.fit(df, optimizer=optimizer, **options)
+again = time.perf_counter() - start
+m.loglik(fit.values, df, **options)  # compiled
+start = time.perf_counter()
+for _ in range(3):
+    m.loglik(fit.values, df, **options)
+one = (time.perf_counter() - start) / 3
+print(f"{n:>9d} {seconds:10.1f} {again:10.1f} {again / one:9.0f} {fit.iterations:6d} {fit.loglik:16.4f} {peak:9.2f}")
 """
 
 
@@ -48,10 +59,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--lengths", default="1000,10000,100000")
     parser.add_argument("--model", choices=["logistic", "testcell"], default="logistic")
+    parser.add_argument("--optimizer", choices=["auto", "scoring", "newton"], default="auto")
     args = parser.parse_args()
-    print(f"{args.model}: samples, fit [s] (compile included), iterations, log-likelihood, peak memory [GB]")
+    print(f"{args.model}, optimizer {args.optimizer}: samples, first fit [s] (compile included), "
+          "second fit [s], second fit in log-likelihood evaluations, iterations, log-likelihood, peak memory [GB]")
     for n in (int(v) for v in args.lengths.split(",")):
-        done = subprocess.run([sys.executable, "-c", SCRIPT, args.model, str(n)], capture_output=True, text=True)
+        done = subprocess.run([sys.executable, "-c", SCRIPT, args.model, str(n), args.optimizer],
+                              capture_output=True, text=True)
         print(done.stdout.strip() if done.returncode == 0 else f"{n:>9d} failed: {done.stderr.strip()[-300:]}")
 
 

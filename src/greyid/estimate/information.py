@@ -27,7 +27,7 @@ from ..compiler import jit
 from ..errors import ModelError
 from ..filters.api import compiled_filter, filter_options, prepare_datasets
 from .criteria import log_criterion
-from .objective import forward_hessian, forward_value_and_grad, hessian_rows
+from .objective import forward_hessian, forward_value_and_grad, hessian_rows, whitened_sensitivities
 
 INFORMATION_KINDS = ("fisher", "hessian", "opg")
 
@@ -65,12 +65,9 @@ def _compiled(structure, options, index: tuple[int, ...]):
             return out.innovation * data.mask, jnp.where(both > 0, out.innovation_cov, eye)
 
         def fisher(sub, base, data):
-            (eps, R), (d_eps, d_R) = innovations(sub, base, data), jax.jacfwd(innovations)(sub, base, data)
-            R_inv = jnp.linalg.inv(R)
-            first = jnp.einsum("nai,nab,nbj->ij", d_eps, R_inv, d_eps)
-            A = jnp.einsum("nab,nbci->naci", R_inv, d_R)  # R⁻¹ ∂R/∂θ_i
-            second = 0.5 * jnp.einsum("nabi,nbaj->ij", A, A)
-            return first + second
+            (_, R), (d_eps, d_R) = innovations(sub, base, data), jax.jacfwd(innovations)(sub, base, data)
+            M = whitened_sensitivities(R, jnp.moveaxis(d_eps, -1, 0), jnp.moveaxis(d_R, -1, 0))
+            return M @ M.T
 
         hessian = hessian_rows(total, forward_hessian(options.method, len(index)))
         eye = jnp.eye(len(index))

@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Callable, NamedTuple
 
 from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
 import jax
@@ -98,8 +99,19 @@ def _log_prior(theta, index, mean, chol):
     return -0.5 * (z @ z + 2 * jnp.sum(jnp.log(jnp.diag(chol))) + len(index) * jnp.log(2 * jnp.pi))
 
 
-def build(structure, problem: Problem):
-    """``(derivatives, negative, step_scores, value_and_grad)`` for this problem, all but the second jitted.
+class Programs(NamedTuple):
+    """The compiled functions of one estimation problem (see :func:`build`)."""
+
+    derivatives: Callable  # (z, rows, *args) -> (f, g, rows·H)
+    negative: Callable  # (z, *args) -> f, not jitted
+    value: Callable  # the same, jitted
+    step_scores: Callable  # (z, base, lower, upper, data) -> ∂(term k)/∂z
+    value_and_grad: Callable  # (z, *args) -> (f, g)
+    scoring: Callable | None  # (z, rows, *args) -> pieces of (f, g, F); Gaussian ML/MAP only
+
+
+def build(structure, problem: Problem) -> Programs:
+    """The :class:`Programs` of this problem.
 
     ``derivatives(z, ...) -> (value, gradient, Hessian)`` is one compiled
     program.  For the exact Kalman filter with up to FORWARD_HESSIAN_MAX free
@@ -133,9 +145,76 @@ def build(structure, problem: Problem):
         return step_criterion(terms(theta, data), problem.robust, scale_consistency(problem.robust))
 
     forward = forward_hessian(problem.options.method, len(problem.free)) or problem.long_series
+    scoring = None
+    if problem.horizon == 1 and problem.robust is None:
+        scoring = jit(expected_information(structure, problem, kinds))
     # Per-step scores (rows: steps, columns: ∂/∂z), forward mode: nothing stored per step.
-    return (jit(hessian_rows(negative, forward)), negative, jit(jax.jacfwd(contributions)),
-            jit(forward_value_and_grad(negative)))
+    return Programs(jit(hessian_rows(negative, forward)), negative, jit(negative), jit(jax.jacfwd(contributions)),
+                    jit(forward_value_and_grad(negative)), scoring)
+
+
+def whitened_sensitivities(R, d_eps, d_R):
+    """M with rows i = (L⁻¹∂_iε_k, √½ L⁻¹∂_iR_k L⁻ᵀ) over all steps k (R_k = L_kL_kᵀ), so that
+    MMᵀ = Σ_k ∂εᵀR⁻¹∂ε + ½ tr(R⁻¹∂_iR R⁻¹∂_jR), the Gaussian innovations' information (4.32–4.33).
+
+    ``d_eps`` (directions, N, m) and ``d_R`` (directions, N, m, m) are the sensitivities.
+    """
+    L_inv = jax.scipy.linalg.solve_triangular(jnp.linalg.cholesky(R), jnp.broadcast_to(
+        jnp.eye(R.shape[-1]), R.shape), lower=True)
+    W = jnp.einsum("kab,ikb->ika", L_inv, d_eps)
+    B = jnp.einsum("kab,ikbc,kdc->ikad", L_inv, d_R, L_inv)
+    return jnp.concatenate([W.reshape(W.shape[0], -1), np.sqrt(0.5) * B.reshape(B.shape[0], -1)], axis=1)
+
+
+def expected_information(structure, problem: Problem, kinds):
+    """``(z, rows, *args) -> (f, rows·g, M_rows, prior)``, the pieces of Fisher's scoring matrix.
+
+    With M the whitened innovation sensitivities (one row per direction), the
+    negative log-posterior's scoring matrix is F = MMᵀ + the prior's exact
+    Hessian (``prior`` holds its value, gradient and Hessian); see
+    :func:`combine_scoring`.
+
+    F = Σ_k J_kᵀR_k⁻¹J_k + ½ tr(R_k⁻¹∂_iR_k R_k⁻¹∂_jR_k) with J_k = ∂ε_k/∂z — the
+    expected information of the Gaussian innovations (3.33, 4.32–4.33), taken in z
+    — plus the exact Hessian of the prior's term.  It is positive semi-definite
+    everywhere and, with one tangent per parameter pushed forward through the
+    filter, costs about one forward gradient, against a Hessian's one per
+    parameter pair; near the optimum it approximates the Hessian up to terms that
+    vanish with the innovations' mean.
+    """
+    run = compiled_filter(structure, problem.options, keep_outputs="innovations")
+
+    def theta_of(z, base, lower, upper):
+        return problem.theta(z, base, Transform(kinds, lower, upper), jnp)
+
+    def innovations(z, base, lower, upper, datasets):
+        theta = theta_of(z, base, lower, upper)
+        value, parts = 0.0, []
+        for data in datasets:
+            terms, (innovation, innovation_cov) = run(theta, data)
+            value = value + log_criterion(terms, None)
+            both = data.mask[:, :, None] * data.mask[:, None, :]
+            # Unobserved elements: ε = 0 and an identity block, so no information.
+            parts.append((innovation * data.mask, jnp.where(both > 0, innovation_cov, jnp.eye(data.mask.shape[1]))))
+        return -value, parts
+
+    def prior_term(z, base, lower, upper, prior_mean, prior_chol):
+        if problem.prior is None:
+            return jnp.zeros(())
+        return -_log_prior(theta_of(z, base, lower, upper), problem.prior_index, prior_mean, prior_chol)
+
+    def scoring(z, rows, base, lower, upper, prior_mean, prior_chol, datasets):
+        def along(u):
+            return jax.jvp(lambda x: innovations(x, base, lower, upper, datasets), (z,), (u,))
+
+        (value, parts), (slopes, tangents) = jax.vmap(along, out_axes=(None, 0))(rows)
+        whitened = [whitened_sensitivities(R, d_eps, d_R) for (_, R), (d_eps, d_R) in zip(parts, tangents)]
+        args = (base, lower, upper, prior_mean, prior_chol)
+        prior_value, prior_gradient = jax.value_and_grad(prior_term)(z, *args)
+        prior = (prior_value, prior_gradient, jax.hessian(prior_term)(z, *args))
+        return value, slopes, jnp.concatenate(whitened, axis=1), prior
+
+    return scoring
 
 
 def forward_hessian(method: str, n_parameters: int) -> bool:
@@ -177,22 +256,38 @@ def worker_count() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-class Derivatives:
-    """``(f, g, H)`` at z: the compiled program run on blocks of the Hessian's rows at once.
+def combine_hessian(parts, n):
+    """(f, g, H) from the blocks of :func:`hessian_rows`."""
+    return parts[0][0], parts[0][1], np.concatenate([np.asarray(p[2]) for p in parts])[:n]
 
-    XLA runs one program on one CPU core; the rows of H are independent
-    directional derivatives, so blocks of them run in parallel threads (JAX
-    releases the GIL while a program runs).  All blocks have the same size — the
-    last one padded with zero directions — so one compiled program serves them.
+
+def combine_scoring(parts, n):
+    """(f, g, F) from the blocks of :func:`expected_information`: F = MMᵀ + the prior's Hessian."""
+    prior_value, prior_gradient, prior_hessian = (np.asarray(a) for a in parts[0][3])
+    slopes = np.concatenate([np.asarray(p[1]) for p in parts])[:n]
+    M = np.concatenate([np.asarray(p[2]) for p in parts])[:n]
+    return parts[0][0] + prior_value, slopes + prior_gradient, M @ M.T + prior_hessian
+
+
+class Derivatives:
+    """Derivatives at z from a program run on blocks of directions at once, in parallel threads.
+
+    XLA runs one program on one CPU core; the rows of a Hessian (or of the
+    scoring matrix's sensitivities) are independent directional derivatives, so
+    blocks of them run in parallel threads (JAX releases the GIL while a program
+    runs) and ``combine(parts, n)`` joins them (default: ``(f, g, H)`` of
+    :func:`hessian_rows`).  All blocks have the same size — the last one padded
+    with zero directions — so one compiled program serves them.
     """
 
-    def __init__(self, program, n: int, arguments: tuple, workers: int | None = None):
+    def __init__(self, program, n: int, arguments: tuple, workers: int | None = None,
+                 combine: Callable = combine_hessian):
         workers = min(worker_count() if workers is None else workers, n, 8)
         size = -(-n // workers)
         count = -(-n // size)
         directions = np.vstack([np.eye(n), np.zeros((count * size - n, n))])
         self.blocks = [jax.device_put(block) for block in np.split(directions, count)]
-        self.n, self.program, self.arguments = n, program, arguments
+        self.n, self.program, self.arguments, self.combine = n, program, arguments, combine
         self.pool = ThreadPoolExecutor(len(self.blocks)) if len(self.blocks) > 1 else None
         self.signature = (size, tuple(np.shape(a) for a in jax.tree_util.tree_leaves(arguments)))
 
@@ -206,9 +301,7 @@ class Derivatives:
             self.program.compiled_for.add(self.signature)
         else:
             parts = list(self.pool.map(lambda rows: self._block(z, rows), self.blocks))
-        value, gradient = parts[0][0], parts[0][1]
-        H = np.concatenate([np.asarray(p[2]) for p in parts])[:self.n]
-        return value, gradient, H
+        return self.combine(parts, self.n)
 
     def close(self):
         if self.pool is not None:
@@ -221,8 +314,8 @@ class Derivatives:
         self.close()
 
 
-def compiled(structure, problem: Problem):
-    """``(derivatives, negative, step_scores, value_and_grad)`` of :func:`build`, built once per problem."""
+def compiled(structure, problem: Problem) -> Programs:
+    """The :class:`Programs` of :func:`build`, built once per problem."""
     key = problem.key()
     if key not in structure.cache:
         structure.cache[key] = build(structure, problem)
@@ -231,6 +324,6 @@ def compiled(structure, problem: Problem):
 
 def step_scores(structure, problem: Problem, z, arguments, datasets) -> list[np.ndarray]:
     """∂(criterion term of step k)/∂z for every step of every data set (padding rows are 0)."""
-    scores = compiled(structure, problem)[2]
+    scores = compiled(structure, problem).step_scores
     base, lower, upper = arguments[:3]
     return [np.asarray(scores(np.asarray(z, dtype=np.float64), base, lower, upper, d)) for d in datasets]

@@ -1,7 +1,7 @@
 """The minimiser of the negative log-posterior in unbounded coordinates z.
 
-Newton's method on the exact Hessian inside a trust region (Nocedal & Wright,
-algorithm 4.1, with the subproblem solved exactly by eigendecomposition).
+Fisher scoring far from the optimum, then Newton's method on the exact Hessian,
+inside a trust region (Nocedal & Wright, algorithm 4.1, with the subproblem solved exactly by eigendecomposition).
 Each evaluation returns value, gradient and Hessian from one compiled program,
 so a fit compiles one program, and convergence near the optimum is quadratic.
 The trust region, not a line search, keeps it safe far from the optimum: where
@@ -107,7 +107,11 @@ def trust_region_step(w: np.ndarray, V: np.ndarray, g: np.ndarray, radius: float
         p[~lowest] = -a[~lowest] / np.where(shift > 0, shift, 1.0)
         rest = radius**2 - float(p @ p)
         if rest >= 0:
-            p[np.flatnonzero(lowest)[0]] += np.sqrt(rest)
+            # Along a direction of zero curvature and zero slope the model is flat: no
+            # reason to move (Fisher's matrix where a parameter has no effect); along
+            # negative curvature, to the region's edge.
+            if w[0] < 0:
+                p[np.flatnonzero(lowest)[0]] += np.sqrt(rest)
             return V @ p
     lam_lo, lam_hi = low, low + np.linalg.norm(a) / radius + 1e-300
     lam = lam_hi
@@ -127,6 +131,9 @@ def trust_region_step(w: np.ndarray, V: np.ndarray, g: np.ndarray, radius: float
     return V @ (-a / (w + lam))
 
 
+#: Largest move of a log or logistic coordinate z in one step (estimation's step_limit).
+MAX_STEP = 10.0
+
 #: Accepted steps in a row, each of about the same length and sign in a coordinate,
 #: after which a jump of EXTRAPOLATION steps along those coordinates is tried.
 CRAWL_STEPS = 2
@@ -142,7 +149,8 @@ class _Crawl:
     the last one is proposed; the search takes it only if it lowers the criterion.
     """
 
-    def __init__(self, n: int):
+    def __init__(self, n: int, step_limit: np.ndarray | float = np.inf):
+        self.step_limit = step_limit
         self.previous = np.zeros(n)
         self.streak = 0
 
@@ -155,19 +163,54 @@ class _Crawl:
         if self.streak < CRAWL_STEPS:
             return None
         self.streak = 0
-        return EXTRAPOLATION * step
+        jump = EXTRAPOLATION * step
+        return np.clip(jump, -2 * self.step_limit, 2 * self.step_limit)
+
+
+#: Scoring hands over to exact Newton steps once its model predicts less than this
+#: decrease of the criterion (½gᵀF⁻¹g) and its steps are no longer held back by the
+#: trust region: close enough for quadratic convergence.
+HANDOVER_DECREASE = 1.0
+#: ... or once it converges slowly: this many full (not region-limited) steps in a
+#: row, each decreasing the criterion by more than SLOW_RATIO times the one before.
+SLOW_STEPS = 3
+SLOW_RATIO = 0.5
+#: A search that gains less than STALL_GAIN in the criterion (log-likelihood units)
+#: over STALL_STEPS accepted steps, the last about as much as the others (so not
+#: converging quadratically), where the Hessian has a flat or curved-down
+#: direction, crawls along a ridge towards a limit at infinity (a sensor's time
+#: constant → 0): it stops there, not converged, rather than crawl on for a
+#: few hundredths of a log-likelihood unit, far below what a test or an interval sees.
+STALL_STEPS = 10
+STALL_GAIN = 0.05
 
 
 def newton_trust_region(evaluate: Callable, z0: np.ndarray, maxiter: int = 500,
-                        report: Callable = _no_report) -> Optimum:
-    """Minimise with exact Newton steps in a scaled trust region; ``evaluate(z) -> (f, g, H)``.
+                        report: Callable = _no_report, scoring: Callable | None = None,
+                        value: Callable | None = None, handover: float = HANDOVER_DECREASE,
+                        step_limit: np.ndarray | float = np.inf) -> Optimum:
+    """Minimise with Newton steps in a scaled trust region; ``evaluate(z) -> (f, g, H)``.
 
-    The region is the ellipsoid ‖D p‖ ≤ Δ with D_i = √|H_ii| (the largest seen so
-    far, as in MINPACK), so steps do not depend on the units of the parameters.
+    With ``scoring(z) -> (f, g, F)`` (F the expected information, positive
+    semi-definite and about a gradient's cost) the search takes Fisher-scoring
+    steps first and hands over to exact Newton steps near the optimum or where
+    scoring converges slowly (see HANDOVER_DECREASE, SLOW_STEPS); the optimum's
+    Hessian is always the exact one.  The region is the ellipsoid ‖D p‖ ≤ Δ with
+    D_i = √|H_ii| (the largest seen so far, as in MINPACK), so steps do not depend
+    on the units of the parameters; ``step_limit`` caps each coordinate's move
+    per step (MAX_STEP for log and logistic coordinates).  ``handover=0`` keeps scoring up to its own
+    convergence (long series, where one exact Hessian costs dozens of scoring
+    steps).  With ``value(z) -> f`` a Newton trial point (or a scoring one after a
+    rejection) is judged on its value first, the derivatives taken only where it
+    is accepted.
     """
     run = _Counted(evaluate)
+    judge = None if value is None else _Counted(lambda z: (value(z),))
+    cheap = None if scoring is None else _Counted(scoring)
+    current = run if cheap is None else cheap
+    stage = "newton" if cheap is None else "scoring"
     z = np.asarray(z0, dtype=float)
-    (f, g, H), finite = run(z)
+    (f, g, H), finite = current(z)
     if not finite:
         raise NotFiniteError("the criterion or its derivatives are not finite at the starting values")
     f = float(f)
@@ -190,37 +233,108 @@ def newton_trust_region(evaluate: Callable, z0: np.ndarray, maxiter: int = 500,
     a = V.T @ (g / d)
     radius = float(np.clip(np.linalg.norm(a / w) if w[0] > 0 else np.linalg.norm(a), 1.0, 10.0))
     iterations = 0  # accepted steps
-    crawl = _Crawl(len(z))
+    ceiling = np.inf  # the last step length rejected, which the region grows back to slowly
+    crawl = _Crawl(len(z), step_limit)
+    slow, last_decrease, interior, rejected = 0, np.inf, True, False
+    gains: list[float] = []  # decrease of each accepted step, for the stall test
+
+    def hand_over():
+        """From scoring to exact Newton steps: the exact Hessian at the current point."""
+        nonlocal current, stage, f, g, H, d, w, V, crawl
+        (f_exact, g, H), finite = run(z)
+        if not finite:  # the Hessian alone can overflow where the value does not
+            raise NotFiniteError("the criterion's Hessian is not finite during the search")
+        f, current, stage, crawl = float(f_exact), run, "newton", _Crawl(len(z), step_limit)
+        d, w, V = eigen(H)
+
     converged, message = False, "maximum number of iterations reached"
     while iterations < maxiter:
-        if _stationary(f, g, w, V.T @ (g / d)):
+        a = V.T @ (g / d)
+        window = gains[-STALL_STEPS:]
+        # Crawling, not converging: the steps still gain about as much as the window's mean.
+        stalled = (len(window) == STALL_STEPS and sum(window) < STALL_GAIN and window[-1] > 0.1 * np.mean(window)
+                   and not w[0] > SINGULAR * max(abs(w[-1]), 1e-300))
+        if stage == "scoring":
+            positive = w > SINGULAR * max(abs(w[-1]), 1e-300)
+            expected = 0.5 * float(np.sum(a[positive] ** 2 / w[positive]))
+            # Close only if scoring's own steps fit in the region: steps held back by it
+            # follow a flat direction, where its small prediction says nothing.
+            close = expected < handover and interior
+            if close or slow >= SLOW_STEPS or stalled or _stationary(f, g, w, a):
+                hand_over()
+                gains.clear()
+                continue
+        elif _stationary(f, g, w, a):
             converged, message = True, "converged: Newton decrement below tolerance"
+            break
+        elif stalled:
+            message = (f"stalled: the last {STALL_STEPS} steps gained {sum(gains[-STALL_STEPS:]):.2g} in "
+                       "total along a flat or curved-down direction (the optimum may lie at a limit)")
             break
         q = trust_region_step(w, V, g / d, radius)  # the step in scaled coordinates q = D p
         p = q / d
+        if np.any(np.abs(p) > step_limit):
+            # Beyond e^±10 a log or logistic coordinate has no more to give; longer steps
+            # along a flat model only carry the search off to a bound.  Clipped coordinate
+            # by coordinate, so the others keep their step.
+            p = np.clip(p, -step_limit, step_limit)
+            q = d * p
+            clipped = True
+        else:
+            clipped = False
         predicted = -(g @ p + 0.5 * p @ (H @ p))
-        (f_new, g_new, H_new), finite = run(z + p)
+        # Judge by the value alone where a rejection is likely to waste the derivatives:
+        # exact Newton steps (costly), or scoring steps after a rejection.
+        judged = judge is not None and (stage == "newton" or rejected)
+        if judged:
+            (f_new,), finite = judge(z + p)
+        else:
+            (f_new, g_new, H_new), finite = current(z + p)
         actual = f - f_new if finite else -np.inf
         rho = actual / predicted if predicted > 0 else (1.0 if actual >= 0 else -np.inf)
         step = np.linalg.norm(q)
+        interior = step < 0.99 * radius and not clipped  # a full step of the model, not held back
         if rho < 0.25:
-            radius = 0.25 * step
+            radius, ceiling = 0.25 * step, step
         elif rho > 0.75 and step >= 0.99 * radius:
-            radius = 2.0 * radius
+            # Not straight back to a length that just failed: on a curved ridge the region
+            # would cycle 5 → 10 → 20 (rejected) → 5, wasting every third evaluation.
+            radius = 2.0 * radius if 2.0 * radius < 0.9 * ceiling else max(radius, 0.9 * ceiling)
+            ceiling *= 1.5
+        if rho > 1e-4 and judged:
+            (f_new, g_new, H_new), finite = current(z + p)
+            if not finite:  # the derivatives alone overflow: a rejected step
+                radius, rho = 0.25 * step, -np.inf
+        rejected = rho <= 1e-4
         if rho > 1e-4:
+            # Slow: full steps (not held back by the region) that gain almost as much as the last.
+            slow = slow + 1 if interior and actual > SLOW_RATIO * last_decrease else 0
+            last_decrease = actual
+            gains.append(actual)
             z, f, g, H = z + p, float(f_new), g_new, H_new
             d, w, V = eigen(H)
             iterations += 1
-            report(iterations, "newton", f, g)
+            report(iterations, stage, f, g)
             jump = crawl.update(p)
             if jump is not None:
-                (f_try, g_try, H_try), finite = run(z + jump)
+                finite = True
+                if judge is not None:
+                    (f_try,), finite = judge(z + jump)
+                    finite = finite and float(f_try) < f
+                if finite:
+                    (f_try, g_try, H_try), finite = current(z + jump)
                 if finite and float(f_try) < f:
+                    last_decrease = f - float(f_try)
+                    gains.append(last_decrease)
                     z, f, g, H = z + jump, float(f_try), g_try, H_try
                     d, w, V = eigen(H)
                     iterations += 1
                     report(iterations, "extrapolation", f, g)
         elif radius < 1e-10 * (1.0 + np.linalg.norm(d * z)):
+            if stage == "scoring":  # the expected information misleads here: exact steps decide
+                hand_over()
+                radius = max(radius, 1e-3)
+                continue
             # Rounding in f can hide the last decrease: a point without negative
             # curvature and with a small gradient is then the minimum to working precision.
             flat = w[0] >= -SINGULAR * max(abs(w[-1]), 1e-300) and np.max(np.abs(g)) < COLLAPSE_GRADIENT
@@ -228,6 +342,9 @@ def newton_trust_region(evaluate: Callable, z0: np.ndarray, maxiter: int = 500,
             message = ("converged: no step decreases the criterion at working precision" if flat
                        else "no step decreases the criterion (trust region collapsed)")
             break
+    if stage == "scoring":
+        hand_over()
     if not converged and _stationary(f, g, w, V.T @ (g / d)):
         converged, message = True, "converged: Newton decrement below tolerance"
-    return Optimum(z, f, g, H, iterations, run.evaluations, converged, message)
+    evaluations = run.evaluations + sum(c.evaluations for c in (cheap, judge) if c is not None)
+    return Optimum(z, f, g, H, iterations, evaluations, converged, message)

@@ -100,7 +100,7 @@ def accurate_options(structure: Structure, theta, prepared, method, **options):
     return filter_options(structure, method, substeps=choice.substeps, **rest), choice
 
 
-def compiled_filter(structure: Structure, options: FilterOptions, keep_outputs: bool):
+def compiled_filter(structure: Structure, options: FilterOptions, keep_outputs: bool | str):
     """The jitted filter for these settings, compiled once per model structure."""
     key = ("filter", options, keep_outputs)
     if key not in structure.cache:

@@ -234,18 +234,22 @@ def filter_steps(structure: Structure, options: FilterOptions):
     return steps
 
 
-def make_filter(structure: Structure, options: FilterOptions, keep_outputs: bool):
+def make_filter(structure: Structure, options: FilterOptions, keep_outputs: bool | str):
     """A jitted ``run(theta, data) -> (StepTerms, StepOutput | None)``.
 
     The per-step terms give the Gaussian log-likelihood (``terms.loglik.sum()``)
-    and the robust criteria alike.
+    and the robust criteria alike.  ``keep_outputs="innovations"`` keeps only
+    the innovations and their covariances, ``(ε_k, R_k)``: what the scoring
+    matrix needs, without the states' per-step storage.
     """
     form = options.form
     build = filter_steps(structure, options)
 
     def collect(x_pred, cov_pred, transition, upd, y_pred):
         out = None
-        if keep_outputs:
+        if keep_outputs == "innovations":
+            out = (upd.innovation, upd.innovation_covariance)
+        elif keep_outputs:
             out = StepOutput(x_pred, to_matrix(cov_pred, form), upd.mean, to_matrix(upd.covariance, form),
                              y_pred, upd.innovation, upd.innovation_covariance, transition)
         return upd.terms, out

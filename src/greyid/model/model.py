@@ -570,7 +570,10 @@ class Model:
         iteration).  ``cov_type`` chooses the covariance of the estimates:
         ``"hessian"`` (the default for ML and MAP), ``"sandwich"`` H⁻¹JH⁻¹ (the
         default for k-step and robust criteria, which are not likelihoods) or
-        ``"opg"`` (see :mod:`greyid.estimate.covariance`).  Settings not given come from :meth:`set_options`, then
+        ``"opg"`` (see :mod:`greyid.estimate.covariance`).  ``optimizer`` is ``"auto"``
+        (Fisher scoring far from the optimum where a Hessian is costly, then exact
+        Newton steps), ``"scoring"`` or ``"newton"`` (see :mod:`greyid.estimate.optimize`).
+        Settings not given come from :meth:`set_options`, then
         from the defaults (time column "t", zero-order hold, ML).  Returns a
         :class:`~greyid.estimate.FitResult`.
         """

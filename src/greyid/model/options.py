@@ -17,7 +17,8 @@ DATA_KEYS = ("time", "hold", "time_unit", "columns", "time_format", "time_zone")
 #: Filter settings (see :func:`greyid.filters.api.filter_options`).
 FILTER_KEYS = ("method", "form", "substeps", "iterations", "alpha", "beta", "kappa")
 #: Estimation settings of :meth:`Model.fit`.
-ESTIMATION_KEYS = ("criterion", "robust", "horizon", "starts", "seed", "maxiter", "prior_correlation", "cov_type")
+ESTIMATION_KEYS = ("criterion", "robust", "horizon", "starts", "seed", "maxiter", "prior_correlation", "cov_type",
+                   "optimizer")
 #: Where the data live, for the command line: a CSV file (relative to the model
 #: file) and its field separator.
 FILE_KEYS = ("file", "separator")
@@ -48,6 +49,8 @@ def check_options(options: Mapping) -> dict:
             raise ModelError(f"setting 'criterion' must be 'ml' or 'map', got {value!r}")
         if key == "cov_type" and value not in ("hessian", "opg", "sandwich"):
             raise ModelError(f"setting 'cov_type' must be 'hessian', 'opg' or 'sandwich', got {value!r}")
+        if key == "optimizer" and value not in ("auto", "scoring", "newton"):
+            raise ModelError(f"setting 'optimizer' must be 'auto', 'scoring' or 'newton', got {value!r}")
         if key in ("horizon", "starts", "substeps", "iterations", "maxiter") and not (
             isinstance(value, int) and not isinstance(value, bool) and value >= 1
         ):
