@@ -178,3 +178,18 @@ def test_one_step_moves_a_coordinate_at_most_max_step():
     optimize.newton_trust_region(evaluate, np.array([0.0, 1.0]), maxiter=20, step_limit=optimize.MAX_STEP)
     steps = np.abs(np.diff(np.array(moves), axis=0))
     assert steps.max() <= 2 * optimize.MAX_STEP + 1e-9  # extrapolation jumps are capped at twice
+
+
+def test_auto_starts_repeat_the_initial_values_with_newton_steps(ou_data, monkeypatch):
+    """Where "auto" scores, the first extra start repeats the initial values with Newton steps only
+    (scoring can settle in another basin); both reach this model's single optimum."""
+    import greyid.estimate.estimation as estimation
+
+    m, df = ou_data
+    monkeypatch.setattr(estimation, "SCORING_WORK", 0)
+    fit = m.fit(df, starts=3, seed=2)
+    assert [s["start"] for s in fit.starts] == ["initial values", "initial values, Newton steps", "space-filling"]
+    assert fit.starts[0]["criterion"] == pytest.approx(fit.starts[1]["criterion"], abs=1e-6)
+    assert fit.start_spread().startswith("3, 3 reached the best value")
+    forced = m.fit(df, starts=3, seed=2, optimizer="scoring")
+    assert [s["start"] for s in forced.starts] == ["initial values", "space-filling", "space-filling"]
