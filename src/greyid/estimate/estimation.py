@@ -154,16 +154,15 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
         warm_theta = np.array([warm.get(names[i], free_theta0[j]) for j, i in enumerate(free)])
         points, labels = [transform.to_z(warm_theta), z0], ["nested fit", "initial values"]
     extra = space_filling(transform, z0, starts - 1, seed)
-    newton_only = [False] * len(points)
+    labels += ["space-filling"] * (starts - 1)
+    newton_only = [False] * len(labels)
     if use_scoring and optimizer == "auto" and starts > 1:
         # Scoring's matrix has no negative curvature, so from one start it can settle in
         # another basin than exact Newton steps (PRBS1's TiThTs: 3902.5 against 3924.5):
         # the first extra start repeats the initial values with Newton steps only.
         extra[0] = z0
+        labels[len(points)], newton_only[len(points)] = "initial values, Newton steps", True
     points += extra
-    labels += ["initial values, Newton steps" if use_scoring and optimizer == "auto" and j == 0
-               else "space-filling" for j in range(starts - 1)]
-    newton_only += [use_scoring and optimizer == "auto" and j == 0 for j in range(starts - 1)]
     label = "log-likelihood" if criterion == "ml" and robust is None and horizon == 1 else "criterion"
     optima = []
     with FitProgress(progress, len(points), label) as shown, ExitStack() as open_programs:

@@ -27,7 +27,8 @@ from ..compiler import jit
 from ..errors import ModelError
 from ..filters.api import compiled_filter, filter_options, prepare_datasets
 from .criteria import log_criterion
-from .objective import forward_hessian, forward_value_and_grad, hessian_rows, whitened_sensitivities
+from .objective import (forward_hessian, forward_value_and_grad, hessian_rows, observed_innovations,
+                        whitened_sensitivities)
 
 INFORMATION_KINDS = ("fisher", "hessian", "opg")
 
@@ -55,14 +56,11 @@ def _compiled(structure, options, index: tuple[int, ...]):
         def total(sub, base, data):
             return log_criterion(run(base.at[idx].set(sub), data)[0])
 
-        run_outputs = compiled_filter(structure, options, keep_outputs=True)
+        run_innovations = compiled_filter(structure, options, keep_outputs="innovations")
 
         def innovations(sub, base, data):
-            out = run_outputs(base.at[idx].set(sub), data)[1]
-            both = data.mask[:, :, None] * data.mask[:, None, :]
-            eye = jnp.eye(data.mask.shape[1])
-            # Unobserved elements get ε = 0 and an identity block: no contribution, no derivative.
-            return out.innovation * data.mask, jnp.where(both > 0, out.innovation_cov, eye)
+            innovation, innovation_cov = run_innovations(base.at[idx].set(sub), data)[1]
+            return observed_innovations(innovation, innovation_cov, data.mask)
 
         def fisher(sub, base, data):
             (_, R), (d_eps, d_R) = innovations(sub, base, data), jax.jacfwd(innovations)(sub, base, data)

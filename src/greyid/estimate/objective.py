@@ -103,8 +103,7 @@ class Programs(NamedTuple):
     """The compiled functions of one estimation problem (see :func:`build`)."""
 
     derivatives: Callable  # (z, rows, *args) -> (f, g, rows·H)
-    negative: Callable  # (z, *args) -> f, not jitted
-    value: Callable  # the same, jitted
+    value: Callable  # (z, *args) -> f
     step_scores: Callable  # (z, base, lower, upper, data) -> ∂(term k)/∂z
     value_and_grad: Callable  # (z, *args) -> (f, g)
     scoring: Callable | None  # (z, rows, *args) -> pieces of (f, g, F); Gaussian ML/MAP only
@@ -149,8 +148,14 @@ def build(structure, problem: Problem) -> Programs:
     if problem.horizon == 1 and problem.robust is None:
         scoring = jit(expected_information(structure, problem, kinds))
     # Per-step scores (rows: steps, columns: ∂/∂z), forward mode: nothing stored per step.
-    return Programs(jit(hessian_rows(negative, forward)), negative, jit(negative), jit(jax.jacfwd(contributions)),
+    return Programs(jit(hessian_rows(negative, forward)), jit(negative), jit(jax.jacfwd(contributions)),
                     jit(forward_value_and_grad(negative)), scoring)
+
+
+def observed_innovations(innovation, innovation_cov, mask):
+    """(ε_k, R_k) with unobserved elements set to ε = 0 and an identity block: no information."""
+    both = mask[:, :, None] * mask[:, None, :]
+    return innovation * mask, jnp.where(both > 0, innovation_cov, jnp.eye(mask.shape[1]))
 
 
 def whitened_sensitivities(R, d_eps, d_R):
@@ -169,18 +174,14 @@ def whitened_sensitivities(R, d_eps, d_R):
 def expected_information(structure, problem: Problem, kinds):
     """``(z, rows, *args) -> (f, rows·g, M_rows, prior)``, the pieces of Fisher's scoring matrix.
 
-    With M the whitened innovation sensitivities (one row per direction), the
-    negative log-posterior's scoring matrix is F = MMᵀ + the prior's exact
-    Hessian (``prior`` holds its value, gradient and Hessian); see
-    :func:`combine_scoring`.
-
-    F = Σ_k J_kᵀR_k⁻¹J_k + ½ tr(R_k⁻¹∂_iR_k R_k⁻¹∂_jR_k) with J_k = ∂ε_k/∂z — the
-    expected information of the Gaussian innovations (3.33, 4.32–4.33), taken in z
-    — plus the exact Hessian of the prior's term.  It is positive semi-definite
-    everywhere and, with one tangent per parameter pushed forward through the
-    filter, costs about one forward gradient, against a Hessian's one per
-    parameter pair; near the optimum it approximates the Hessian up to terms that
-    vanish with the innovations' mean.
+    F = MMᵀ + the prior's exact Hessian (:func:`combine_scoring`), with M the
+    whitened sensitivities of the innovations to z (:func:`whitened_sensitivities`):
+    the expected information of the Gaussian innovations (3.33, 4.32–4.33), taken
+    in z; ``prior`` holds the prior term's value, gradient and Hessian.  F is
+    positive semi-definite everywhere and, with one tangent per parameter pushed
+    forward through the filter, costs about one forward gradient, against a
+    Hessian's one per parameter pair; near the optimum it approximates the
+    Hessian up to terms that vanish with the innovations' mean.
     """
     run = compiled_filter(structure, problem.options, keep_outputs="innovations")
 
@@ -193,9 +194,7 @@ def expected_information(structure, problem: Problem, kinds):
         for data in datasets:
             terms, (innovation, innovation_cov) = run(theta, data)
             value = value + log_criterion(terms, None)
-            both = data.mask[:, :, None] * data.mask[:, None, :]
-            # Unobserved elements: ε = 0 and an identity block, so no information.
-            parts.append((innovation * data.mask, jnp.where(both > 0, innovation_cov, jnp.eye(data.mask.shape[1]))))
+            parts.append(observed_innovations(innovation, innovation_cov, data.mask))
         return -value, parts
 
     def prior_term(z, base, lower, upper, prior_mean, prior_chol):

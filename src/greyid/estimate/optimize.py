@@ -1,9 +1,11 @@
 """The minimiser of the negative log-posterior in unbounded coordinates z.
 
 Fisher scoring far from the optimum, then Newton's method on the exact Hessian,
-inside a trust region (Nocedal & Wright, algorithm 4.1, with the subproblem solved exactly by eigendecomposition).
-Each evaluation returns value, gradient and Hessian from one compiled program,
-so a fit compiles one program, and convergence near the optimum is quadratic.
+inside a trust region (Nocedal & Wright, algorithm 4.1, with the subproblem
+solved exactly by eigendecomposition).  An exact evaluation returns value,
+gradient and Hessian from one compiled program, a scoring one value, gradient
+and the innovations' expected information from another, so convergence near the
+optimum is quadratic while the steps far from it cost about a gradient.
 The trust region, not a line search, keeps it safe far from the optimum: where
 the Hessian is indefinite the step follows negative curvature, and a
 non-finite evaluation is a rejected step.  A point is called converged only
@@ -185,6 +187,13 @@ STALL_STEPS = 10
 STALL_GAIN = 0.05
 
 
+def _crawling(gains: list[float]) -> bool:
+    """The last STALL_STEPS steps gained less than STALL_GAIN together, the last about as
+    much as the others: crawling, not converging."""
+    window = gains[-STALL_STEPS:]
+    return len(window) == STALL_STEPS and sum(window) < STALL_GAIN and window[-1] > 0.1 * np.mean(window)
+
+
 def newton_trust_region(evaluate: Callable, z0: np.ndarray, maxiter: int = 500,
                         report: Callable = _no_report, scoring: Callable | None = None,
                         value: Callable | None = None, handover: float = HANDOVER_DECREASE,
@@ -198,9 +207,9 @@ def newton_trust_region(evaluate: Callable, z0: np.ndarray, maxiter: int = 500,
     Hessian is always the exact one.  The region is the ellipsoid ‖D p‖ ≤ Δ with
     D_i = √|H_ii| (the largest seen so far, as in MINPACK), so steps do not depend
     on the units of the parameters; ``step_limit`` caps each coordinate's move
-    per step (MAX_STEP for log and logistic coordinates).  ``handover=0`` keeps scoring up to its own
-    convergence (long series, where one exact Hessian costs dozens of scoring
-    steps).  With ``value(z) -> f`` a Newton trial point (or a scoring one after a
+    per step (MAX_STEP for log and logistic coordinates).  ``handover=0`` keeps
+    scoring up to its own convergence (long series, where one exact Hessian
+    costs dozens of scoring steps).  With ``value(z) -> f`` a Newton trial point (or a scoring one after a
     rejection) is judged on its value first, the derivatives taken only where it
     is accepted.
     """
@@ -250,10 +259,7 @@ def newton_trust_region(evaluate: Callable, z0: np.ndarray, maxiter: int = 500,
     converged, message = False, "maximum number of iterations reached"
     while iterations < maxiter:
         a = V.T @ (g / d)
-        window = gains[-STALL_STEPS:]
-        # Crawling, not converging: the steps still gain about as much as the window's mean.
-        stalled = (len(window) == STALL_STEPS and sum(window) < STALL_GAIN and window[-1] > 0.1 * np.mean(window)
-                   and not w[0] > SINGULAR * max(abs(w[-1]), 1e-300))
+        stalled = _crawling(gains) and not w[0] > SINGULAR * max(abs(w[-1]), 1e-300)
         if stage == "scoring":
             positive = w > SINGULAR * max(abs(w[-1]), 1e-300)
             expected = 0.5 * float(np.sum(a[positive] ** 2 / w[positive]))
@@ -316,13 +322,12 @@ def newton_trust_region(evaluate: Callable, z0: np.ndarray, maxiter: int = 500,
             iterations += 1
             report(iterations, stage, f, g)
             jump = crawl.update(p)
-            if jump is not None:
-                finite = True
-                if judge is not None:
-                    (f_try,), finite = judge(z + jump)
-                    finite = finite and float(f_try) < f
-                if finite:
-                    (f_try, g_try, H_try), finite = current(z + jump)
+            promising = jump is not None
+            if promising and judge is not None:
+                (f_try,), finite = judge(z + jump)
+                promising = finite and float(f_try) < f
+            if promising:
+                (f_try, g_try, H_try), finite = current(z + jump)
                 if finite and float(f_try) < f:
                     last_decrease = f - float(f_try)
                     gains.append(last_decrease)
