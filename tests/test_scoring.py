@@ -193,3 +193,21 @@ def test_auto_starts_repeat_the_initial_values_with_newton_steps(ou_data, monkey
     assert fit.start_spread().startswith("3, 3 reached the best value")
     forced = m.fit(df, starts=3, seed=2, optimizer="scoring")
     assert [s["start"] for s in forced.starts] == ["initial values", "space-filling", "space-filling"]
+
+
+@pytest.mark.parametrize("robust", [None, ("huber", 1.5)])
+def test_long_series_criterion_summed_in_the_scan_equals_the_stacked_one(ou_data, robust):
+    """Past LONG_SERIES rows the criterion is summed in the filter's scan (nothing kept per step);
+    value, gradient and Hessian equal those from the per-step terms."""
+    from dataclasses import replace
+
+    m, df = ou_data
+    problem, theta, datasets = _problem(m, df)
+    problem = replace(problem, robust=robust)
+    args = problem.arguments(theta)
+    z = problem.transform.to_z(theta) + 0.1
+    rows = np.eye(len(z))
+    stacked = compiled(m.structure, replace(problem, long_series=False)).derivatives(z, rows, *args, datasets)
+    summed = compiled(m.structure, replace(problem, long_series=True)).derivatives(z, rows, *args, datasets)
+    for a, b in zip(summed, stacked):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10, atol=1e-10)

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..compiler import jit
 from ..filters.api import compiled_filter
-from ..filters.core import KALMAN, FilterOptions, make_ahead
+from ..filters.core import KALMAN, FilterOptions, make_ahead, make_summed_filter
 from .criteria import GaussianPrior, log_criterion, scale_consistency, step_criterion
 from .transforms import Transform
 
@@ -119,6 +119,7 @@ def build(structure, problem: Problem) -> Programs:
     grows with the number of parameters rather than its square and which is
     ten times faster through the EKF's sub-step Jacobians (Lotka–Volterra, A.66).
     """
+    kappa = scale_consistency(problem.robust)
     if problem.horizon == 1:
         run = compiled_filter(structure, problem.options, keep_outputs=False)
 
@@ -130,18 +131,26 @@ def build(structure, problem: Problem) -> Programs:
         def terms(theta, data):
             return ahead(theta, data).terms
 
+    def criterion(theta, data):
+        return log_criterion(terms(theta, data), problem.robust)
+
+    if problem.horizon == 1 and problem.long_series:
+        # Summed in the scan: nothing kept per step, so memory independent of the length.
+        criterion = make_summed_filter(structure, problem.options,
+                                       lambda step_terms: step_criterion(step_terms, problem.robust, kappa))
+
     kinds = problem.transform.kind
 
     def negative(z, base, lower, upper, prior_mean, prior_chol, datasets):
         theta = problem.theta(z, base, Transform(kinds, lower, upper), jnp)
-        total = sum(log_criterion(terms(theta, d), problem.robust) for d in datasets)
+        total = sum(criterion(theta, d) for d in datasets)
         if problem.prior is not None:
             total = total + _log_prior(theta, problem.prior_index, prior_mean, prior_chol)
         return -total
 
     def contributions(z, base, lower, upper, data):
         theta = problem.theta(z, base, Transform(kinds, lower, upper), jnp)
-        return step_criterion(terms(theta, data), problem.robust, scale_consistency(problem.robust))
+        return step_criterion(terms(theta, data), problem.robust, kappa)
 
     forward = forward_hessian(problem.options.method, len(problem.free)) or problem.long_series
     scoring = None

@@ -123,8 +123,6 @@ class Row(NamedTuple):
     y: jnp.ndarray
     mask: jnp.ndarray
     dt_index: jnp.ndarray
-    b_prev: jnp.ndarray | None = None  # f(0, u, t) at both ends (exact filter, time-invariant)
-    b_cur: jnp.ndarray | None = None
 
 
 class FilterSteps(NamedTuple):
@@ -155,13 +153,11 @@ def filter_steps(structure: Structure, options: FilterOptions):
     jac_f = jax.jacfwd(f, argnums=0)
     zeros = np.zeros(n)  # a constant of the traced code; NumPy, so nothing compiles here
 
-    def linear_terms(theta, data):
-        """Discretizations and affine drift terms b = f(0, u, t) of a time-invariant linear model."""
-        b_prev = jax.vmap(lambda u, t: f(zeros, u, t, theta))(data.u_prev, data.t_prev)
-        b_cur = jax.vmap(lambda u, t: f(zeros, u, t, theta))(data.u_cur, data.t)
+    def linear_discretization(theta, data):
+        """Discretizations of a time-invariant linear model, one per distinct sampling interval."""
         u0, t0 = data.u_cur[0], data.t[0]
         g = G(zeros, u0, t0, theta)
-        return discretize_each(jac_f(zeros, u0, t0, theta), g @ g.T, data.unique_dt), b_prev, b_cur
+        return discretize_each(jac_f(zeros, u0, t0, theta), g @ g.T, data.unique_dt)
 
     def time_varying(theta, row: Row, foh):
         """The interval's Φ, offset and Λ of a time-varying linear model (sub-stepped)."""
@@ -176,8 +172,7 @@ def filter_steps(structure: Structure, options: FilterOptions):
         first_noise = None
         rows = Row(data.t, data.t_prev, data.dt, data.u_prev, data.u_cur, data.y, data.mask, data.dt_index)
         if method == KALMAN and structure.kind == LTI:
-            cache, b_prev, b_cur = linear_terms(theta, data)
-            rows = rows._replace(b_prev=b_prev, b_cur=b_cur)
+            cache = linear_discretization(theta, data)
             first_noise = cache.noise_covariance[data.dt_index[1]]  # the first interval's Λ
         x0, P0 = initial_state(structure, theta, data, first_noise)
 
@@ -185,7 +180,10 @@ def filter_steps(structure: Structure, options: FilterOptions):
             if method == KALMAN:
                 if structure.kind == LTI:
                     disc = jax.tree_util.tree_map(lambda a: a[row.dt_index], cache)
-                    x_pred, cov_pred = linear_predict(x, cov, disc, row.b_prev, row.b_cur, data.foh, form)
+                    # The affine terms b = f(0, u, t) at both ends, in the step: stored per row
+                    # they (and their derivatives) would grow with the series.
+                    b_prev, b_cur = f(zeros, row.u_prev, row.t_prev, theta), f(zeros, row.u_cur, row.t, theta)
+                    x_pred, cov_pred = linear_predict(x, cov, disc, b_prev, b_cur, data.foh, form)
                     return x_pred, cov_pred, disc.transition
                 step = time_varying(theta, row, data.foh)
                 x_pred = small.mm(step.transition, x) + step.offset
@@ -269,6 +267,29 @@ def scan_rows(parts: FilterSteps, n_rows: int, collect: Callable):
         return (upd.mean, upd.covariance), collect(x_pred, cov_pred, transition, upd, y_pred)
 
     return jax.lax.scan(step, parts.initial, parts.rows, length=n_rows)[1]
+
+
+def make_summed_filter(structure: Structure, options: FilterOptions, per_step: Callable):
+    """``run(theta, data) -> Σ_k per_step(StepTerms_k)``, summed in the scan's carry.
+
+    Nothing is stored per step, so the memory of the value and of its forward
+    derivatives does not grow with the series (long series, issue of 10⁶ rows).
+    """
+    build = filter_steps(structure, options)
+
+    def run(theta, data: FilterInputs):
+        parts = build(theta, data)
+
+        def step(carry, row):
+            state, total = carry
+            x_pred, cov_pred, _ = parts.predict(*state, row)
+            upd, _ = parts.update(x_pred, cov_pred, row)
+            return ((upd.mean, upd.covariance), total + per_step(upd.terms)), None
+
+        zero = jnp.zeros((), dtype=jnp.float64)
+        return jax.lax.scan(step, (parts.initial, zero), parts.rows, length=data.t.shape[0])[0][1]
+
+    return run
 
 
 class AheadOutput(NamedTuple):
