@@ -258,36 +258,36 @@ def make_filter(structure: Structure, options: FilterOptions, keep_outputs: bool
     return jit(run)
 
 
-def scan_rows(parts: FilterSteps, n_rows: int, collect: Callable):
-    """Predict and update over all rows; ``collect`` picks what each step returns."""
+def scan_rows(parts: FilterSteps, n_rows: int, collect: Callable | None, accumulate: Callable | None = None):
+    """Predict and update over all rows; ``collect`` picks what each step returns.
+
+    With ``accumulate`` the scan instead sums ``accumulate(StepTerms_k)`` in its
+    carry and returns the sum: nothing is kept per step.
+    """
 
     def step(carry, row):
-        x_pred, cov_pred, transition = parts.predict(*carry, row)
+        state, total = carry
+        x_pred, cov_pred, transition = parts.predict(*state, row)
         upd, y_pred = parts.update(x_pred, cov_pred, row)
-        return (upd.mean, upd.covariance), collect(x_pred, cov_pred, transition, upd, y_pred)
+        if accumulate is not None:
+            return ((upd.mean, upd.covariance), total + accumulate(upd.terms)), None
+        return ((upd.mean, upd.covariance), total), collect(x_pred, cov_pred, transition, upd, y_pred)
 
-    return jax.lax.scan(step, parts.initial, parts.rows, length=n_rows)[1]
+    (_, total), collected = jax.lax.scan(step, (parts.initial, jnp.zeros((), dtype=jnp.float64)), parts.rows,
+                                         length=n_rows)
+    return collected if accumulate is None else total
 
 
 def make_summed_filter(structure: Structure, options: FilterOptions, per_step: Callable):
     """``run(theta, data) -> Σ_k per_step(StepTerms_k)``, summed in the scan's carry.
 
     Nothing is stored per step, so the memory of the value and of its forward
-    derivatives does not grow with the series (long series, issue of 10⁶ rows).
+    derivatives does not grow with the length of the series.
     """
     build = filter_steps(structure, options)
 
     def run(theta, data: FilterInputs):
-        parts = build(theta, data)
-
-        def step(carry, row):
-            state, total = carry
-            x_pred, cov_pred, _ = parts.predict(*state, row)
-            upd, _ = parts.update(x_pred, cov_pred, row)
-            return ((upd.mean, upd.covariance), total + per_step(upd.terms)), None
-
-        zero = jnp.zeros((), dtype=jnp.float64)
-        return jax.lax.scan(step, (parts.initial, zero), parts.rows, length=data.t.shape[0])[0][1]
+        return scan_rows(build(theta, data), data.t.shape[0], None, accumulate=per_step)
 
     return run
 
