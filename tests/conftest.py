@@ -125,6 +125,18 @@ def matrices_from_parameters(p, n=3, nu=2, ny=2, nw=2):
                 m0=np.array([p[f"m{i}"] for i in range(1, n + 1)]))
 
 
+def product_model(init: dict, lower=None) -> greyid.Model:
+    """dx = (−a·b·x + u)dt + s dω, y = x + e: the output depends on a and b only through a·b."""
+    m = greyid.Model("product")
+    m.add_system("dx = (-a*b*x + u)*dt + s*dw1")
+    m.add_inputs("u")
+    m.add_observation("y = x", variance="r")
+    m.set_initial_state(mean={"x": 0.0}, covariance=[[0.1]])
+    for name, value in init.items():
+        m.set_parameter(name, init=value, lower=lower)
+    return m
+
+
 def dense_information(params, t, U, names, foh=0.0):
     """Fisher information of all stacked observations of :func:`random_linear_model_spec`,
     ∂μᵀΣ⁻¹∂μ + ½tr(Σ⁻¹∂ΣΣ⁻¹∂Σ), with ∂μ and ∂Σ by central differences of :func:`dense_moments`."""

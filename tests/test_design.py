@@ -6,7 +6,7 @@ import pandas as pd
 import pytest
 
 import greyid
-from conftest import dense_information, random_linear_parameters
+from conftest import dense_information, product_model, random_linear_parameters
 from greyid import design
 
 NAMES = ["a11", "b11", "g11", "s1", "m1"]
@@ -72,13 +72,7 @@ def test_criteria_equal_their_formulas():
 
 def test_local_identifiability_names_a_product():
     """y depends on a·b only: the information is singular along a ridge that names a and b."""
-    m = greyid.Model("product")
-    m.add_system("dx = (-a*b*x + u)*dt + s*dw1")
-    m.add_inputs("u")
-    m.add_observation("y = x", variance="r")
-    m.set_initial_state(mean={"x": 0.0}, covariance=[[0.1]])
-    for name, value in dict(a=1.0, b=0.8, s=0.3, r=0.05).items():
-        m.set_parameter(name, init=value)
+    m = product_model(dict(a=1.0, b=0.8, s=0.3, r=0.05))
     rng = np.random.default_rng(0)
     plan = pd.DataFrame({"t": np.arange(60) * 0.5, "u": np.repeat(rng.choice([0.0, 1.0], 6), 10)})
     info = design.fisher_information(m, dict(a=1.0, b=0.8, s=0.3, r=0.05), plan, n_paths=20, seed=0)

@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 
 import greyid
-from conftest import dense_reference, random_linear_parameters
+from conftest import dense_reference, product_model, random_linear_parameters
 from test_kalman_dense import random_data
 
 TRUE = dict(a=0.8, b=1.5, s=0.5, r=0.04, x0=0.5)
@@ -200,13 +200,7 @@ def test_robust_loglik_follows_ctsm_convention(ou):
 
 
 def test_non_identifiable_product_is_reported():
-    m = greyid.Model("product")
-    m.add_system("dx = (-a*b*x + u)*dt + s*dw1")
-    m.add_inputs("u")
-    m.add_observation("y = x", variance="r")
-    m.set_initial_state(mean={"x": 0.0}, covariance=[[0.1]])
-    for name, init in dict(a=1.0, b=0.7, s=0.3, r=0.1).items():
-        m.set_parameter(name, init=init, lower=0.0)
+    m = product_model(dict(a=1.0, b=0.7, s=0.3, r=0.1), lower=0.0)
     rng = np.random.default_rng(2)
     df = pd.DataFrame({"t": np.arange(200) * 0.5, "u": np.repeat(rng.choice([0.0, 1.0], 20), 10)})
     df["y"] = m.simulate(dict(a=1.0, b=0.8, s=0.3, r=0.05), df, method="exact", seed=1).outputs[0, :, 0]
