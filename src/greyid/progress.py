@@ -50,16 +50,23 @@ class FitProgress:
     def begin_start(self, index: int) -> None:
         self._start = index
 
-    def iteration(self, iteration: int, stage: str, value: float, gradient: float) -> None:
-        """One accepted step; ``value`` is the criterion to maximise (e.g. the log-likelihood)."""
-        info = dict(start=self._start, iteration=iteration, stage=stage, value=value, max_gradient=gradient)
+    def iteration(self, iteration: int, stage: str, value: float, gradient: float, start: int | None = None) -> None:
+        """One accepted step; ``value`` is the criterion to maximise (e.g. the log-likelihood).
+
+        ``start`` names the start when several run together (batched starts).
+        """
+        info = dict(start=self._start if start is None else start, iteration=iteration, stage=stage,
+                    value=value, max_gradient=gradient)
         if self.callback is not None:
             self.callback(info)
         elif self.enabled and self.starts == 1:
             self.console.print(f"  {stage:6s} iter {iteration:4d}   {self.label} {value: .6f}   "
                                f"max|gradient| {gradient:.2e}")
 
-    def end_start(self, value: float, iterations: int, converged: bool, message: str) -> None:
+    def end_start(self, value: float, iterations: int, converged: bool, message: str,
+                  start: int | None = None) -> None:
+        if start is not None:
+            self._start = start
         if self.callback is not None:
             self.callback(dict(start=self._start, finished=True, value=value, iterations=iterations,
                                converged=converged, message=message))
@@ -68,6 +75,39 @@ class FitProgress:
             self.console.print(f"  {where}{iterations} iterations, {self.label} {value:.6f}, {message}")
             if self._bar is not None:
                 self._bar.advance(self._task)
+
+
+class CountProgress:
+    """A bar over a known number of pieces of work (the data sets of a fleet), advanced as each ends.
+
+    ``progress`` as for :func:`track`: true for a bar on standard error, a callable
+    for ``(done, total)``, false for nothing.
+    """
+
+    def __init__(self, total: int, description: str, progress=False):
+        self.total, self.description, self.progress, self.done = total, description, progress, 0
+        self._bar = None
+
+    def __enter__(self) -> "CountProgress":
+        if self.progress and not callable(self.progress):
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+            self._bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                                 TimeElapsedColumn(), console=_console())
+            self._bar.start()
+            self._task = self._bar.add_task(self.description, total=self.total)
+        return self
+
+    def advance(self, count: int = 1) -> None:
+        self.done += count
+        if callable(self.progress):
+            self.progress(self.done, self.total)
+        elif self._bar is not None:
+            self._bar.advance(self._task, count)
+
+    def __exit__(self, *exc) -> None:
+        if self._bar is not None:
+            self._bar.stop()
 
 
 def track(items: Iterable[T], total: int, description: str, progress=False) -> Iterator[T]:

@@ -12,7 +12,7 @@ mapped back to the natural parameters.
 from __future__ import annotations
 
 from contextlib import ExitStack
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -25,7 +25,8 @@ from .criteria import GaussianPrior, check_robust
 from .covariance import check_cov_type, default_cov_type, score_covariance
 from . import objective
 from .objective import Derivatives, Problem, combine_scoring, compiled, step_scores
-from .optimize import HANDOVER_DECREASE, MAX_STEP, NotFiniteError, newton_trust_region
+from .batch import BatchedPrograms, drive, prune_trailing
+from .optimize import EXACT, HANDOVER_DECREASE, MAX_STEP, SCORING, VALUE, NotFiniteError, Optimum, Search, run_alone
 from .starts import nested_start, space_filling
 from .transforms import NONE, Transform
 
@@ -76,13 +77,8 @@ def _describe(names, theta, free) -> str:
     return ", ".join(f"{names[i]}={theta[i]:.6g}" for i in free)
 
 
-def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=None, robust=None,
-        horizon=1, starts=1, seed=0, init=None, time_unit=None, maxiter=500, progress=False, cov_type=None,
-        init_from=None, optimizer="auto", **filter_settings):
-    """Estimate the free parameters of ``model`` from ``data``; see :meth:`Model.fit`."""
-    from .results import FitResult, build_result
-
-    structure = model.structure
+def check_settings(criterion, prior, robust, horizon, cov_type, optimizer, starts):
+    """The estimation settings, checked; returns ``(robust, cov_type)`` in their normal form."""
     if criterion not in CRITERIA:
         raise ModelError(f"unknown criterion '{criterion}'; use 'ml' or 'map'")
     if criterion == "map" and prior is None:
@@ -95,9 +91,28 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
         raise ModelError(f"unknown optimizer {optimizer!r}; use one of {list(OPTIMIZERS)}")
     if not isinstance(starts, int) or starts < 1:
         raise ModelError(f"starts must be a positive integer, got {starts!r}")
-    options = filter_options(structure, method, **filter_settings)
+    return robust, cov_type
 
-    names = structure.parameter_names
+
+@dataclass(frozen=True)
+class FreeParameters:
+    """Where θ starts and which of its elements are estimated, within which bounds."""
+
+    names: tuple[str, ...]
+    theta0: np.ndarray  # every parameter: the fixed ones' values, the free ones' starts
+    free: tuple[int, ...]
+    lower: tuple
+    upper: tuple
+    transform: Transform
+
+    @property
+    def z0(self) -> np.ndarray:
+        return self.transform.to_z(self.theta0[list(self.free)])
+
+
+def free_parameters(model, init=None) -> FreeParameters:
+    """The model's free parameters with their starts (``init`` overrides declared values) and bounds."""
+    names = model.structure.parameter_names
     declared = model.parameters
     init = dict(init or {})
     unknown = [k for k in init if k not in names]
@@ -126,10 +141,97 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
         upper.append(hi)
     if not free:
         raise ModelError("every parameter is fixed; there is nothing to estimate")
-    transform = Transform.from_bounds(lower, upper)
+    return FreeParameters(tuple(names), theta0, tuple(free), tuple(lower), tuple(upper),
+                          Transform.from_bounds(lower, upper))
+
+
+def make_problem(structure, parameters: FreeParameters, method, criterion_settings, filter_settings) -> Problem:
+    """The :class:`~.objective.Problem` of these parameters and settings (``(robust, horizon, prior)``)."""
+    robust, horizon, prior = criterion_settings
+    options = filter_options(structure, method, **filter_settings)
+    names = list(parameters.names)
     gaussian_prior = None if prior is None else GaussianPrior.from_spec(prior, names)
-    problem = Problem(options, robust, int(horizon), tuple(free), transform, gaussian_prior,
-                      () if gaussian_prior is None else tuple(names.index(n) for n in gaussian_prior.names))
+    return Problem(options, robust, int(horizon), parameters.free, parameters.transform, gaussian_prior,
+                   () if gaussian_prior is None else tuple(names.index(n) for n in gaussian_prior.names))
+
+
+def check_observed(prepared, n_free: int, where: str = "the data") -> None:
+    observed = sum(int(np.sum(~np.isnan(series.outputs))) for series, _ in prepared)
+    if observed <= n_free:
+        raise DataError(f"{where} hold {observed} observed output value(s) for {n_free} free parameters; "
+                        "a fit needs more observations than parameters (fix some parameters or add data)")
+
+
+def uses_scoring(optimizer: str, rows: int, n_free: int) -> bool:
+    return optimizer == "scoring" or (optimizer == "auto" and rows * n_free ** 2 >= SCORING_WORK)
+
+
+def new_search(problem: Problem, z0, maxiter: int, report, scoring: bool) -> Search:
+    """A :class:`~.optimize.Search` from ``z0`` with this problem's settings (scoring if asked and possible)."""
+    scoring = scoring and problem.horizon == 1 and problem.robust is None
+    # On long series an exact Hessian costs dozens of scoring steps, and the
+    # scoring matrix is close to it near the optimum: Newton only to finish.
+    handover = 0.0 if problem.long_series else HANDOVER_DECREASE
+    limit = np.where(problem.transform.kind == NONE, np.inf, MAX_STEP)
+    return Search(z0, maxiter, report, scoring=scoring, value=scoring, handover=handover, step_limit=limit)
+
+
+def single_programs(structure, problem: Problem, arguments: tuple, stack: ExitStack) -> dict:
+    """``{kind: evaluate(z)}`` for one search at a time, the derivatives' directions split over threads."""
+    programs = compiled(structure, problem)
+    out = {EXACT: stack.enter_context(Derivatives(programs.derivatives, len(problem.free), arguments))}
+    if programs.scoring is not None:
+        # One thread on long series: two concurrent scoring programs of 10⁶ rows
+        # have deadlocked in XLA's CPU runtime (benchmarks/length.py).
+        out[SCORING] = stack.enter_context(Derivatives(
+            programs.scoring, len(problem.free), arguments, combine=combine_scoring,
+            workers=1 if problem.long_series else None))
+
+        def value(z, program=programs.value):
+            return (program(np.asarray(z, dtype=np.float64), *arguments),)
+
+        out[VALUE] = value
+    return out
+
+
+def failed_start(z0, error: ModelError) -> Optimum:
+    n = len(z0)
+    return Optimum(np.asarray(z0), np.inf, np.full(n, np.nan), np.full((n, n), np.nan), 0, 1, False,
+                   f"failed: {error}")
+
+
+def start_points(parameters: FreeParameters, starts: int, seed: int, scoring_auto: bool, nested=None):
+    """``(points, labels, newton_only)``: the starts of a fit, in z.
+
+    The initial values (after a nested fit's estimates, if given), then
+    ``starts − 1`` points of a space-filling design (see :mod:`.starts`).
+    """
+    z0 = parameters.z0
+    points, labels = ([z0], ["initial values"]) if nested is None else ([nested, z0], ["nested fit", "initial values"])
+    extra = space_filling(parameters.transform, z0, starts - 1, seed)
+    labels += ["space-filling"] * (starts - 1)
+    newton_only = [False] * len(labels)
+    if scoring_auto and starts > 1:
+        # Scoring's matrix has no negative curvature, so from one start it can settle in
+        # another basin than exact Newton steps (PRBS1's TiThTs: 3902.5 against 3924.5):
+        # the first extra start repeats the initial values with Newton steps only.
+        extra[0] = z0
+        labels[len(points)], newton_only[len(points)] = "initial values, Newton steps", True
+    return points + extra, labels, newton_only
+
+
+def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=None, robust=None,
+        horizon=1, starts=1, seed=0, init=None, time_unit=None, maxiter=500, progress=False, cov_type=None,
+        init_from=None, optimizer="auto", **filter_settings):
+    """Estimate the free parameters of ``model`` from ``data``; see :meth:`Model.fit`."""
+    from .results import build_result
+
+    structure = model.structure
+    robust, cov_type = check_settings(criterion, prior, robust, horizon, cov_type, optimizer, starts)
+    parameters = free_parameters(model, init)
+    names, theta0, free = parameters.names, parameters.theta0, parameters.free
+    transform = parameters.transform
+    problem = make_problem(structure, parameters, method, (robust, horizon, prior), filter_settings)
 
     frames = as_frames(data)
     # The checks at θ₀ (positive variances, a valid P₀) cost a compilation of their
@@ -138,78 +240,66 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
     datasets = [inputs for _, inputs in prepared]
     if sum(series.n_rows for series, _ in prepared) > objective.LONG_SERIES:
         problem = replace(problem, long_series=True)  # memory independent of the series' length
-    observed = sum(int(np.sum(~np.isnan(series.outputs))) for series, _ in prepared)
-    if observed <= len(free):
-        raise DataError(f"the data hold {observed} observed output value(s) for {len(free)} free parameters; "
-                        "a fit needs more observations than parameters (fix some parameters or add data)")
+    check_observed(prepared, len(free))
 
     rows = sum(series.n_rows for series, _ in prepared)
-    use_scoring = optimizer == "scoring" or (optimizer == "auto" and rows * len(free) ** 2 >= SCORING_WORK)
+    use_scoring = uses_scoring(optimizer, rows, len(free))
     args = problem.arguments(theta0)
-    free_theta0 = theta0[list(free)]
-    z0 = transform.to_z(free_theta0)
-    points, labels = [z0], ["initial values"]
+    nested = None
     if init_from is not None:
-        warm = nested_start(model, init_from, names, free, lower, upper)
-        warm_theta = np.array([warm.get(names[i], free_theta0[j]) for j, i in enumerate(free)])
-        points, labels = [transform.to_z(warm_theta), z0], ["nested fit", "initial values"]
-    extra = space_filling(transform, z0, starts - 1, seed)
-    labels += ["space-filling"] * (starts - 1)
-    newton_only = [False] * len(labels)
-    if use_scoring and optimizer == "auto" and starts > 1:
-        # Scoring's matrix has no negative curvature, so from one start it can settle in
-        # another basin than exact Newton steps (PRBS1's TiThTs: 3902.5 against 3924.5):
-        # the first extra start repeats the initial values with Newton steps only.
-        extra[0] = z0
-        labels[len(points)], newton_only[len(points)] = "initial values, Newton steps", True
-    points += extra
+        warm = nested_start(model, init_from, names, free, parameters.lower, parameters.upper)
+        free_theta0 = theta0[list(free)]
+        nested = transform.to_z(np.array([warm.get(names[i], free_theta0[j]) for j, i in enumerate(free)]))
+    points, labels, newton_only = start_points(parameters, starts, seed, use_scoring and optimizer == "auto", nested)
     label = "log-likelihood" if criterion == "ml" and robust is None and horizon == 1 else "criterion"
-    optima = []
+
+    def not_finite(problem, z_start, i):
+        theta_start = problem.theta(z_start, theta0)
+        for series, inputs in prepared:
+            check_at_parameters(structure, theta_start, series, inputs)
+        return ModelError("the criterion or its derivatives are not finite at the "
+                          f"{labels[i] if i < len(labels) else 'refit'} (start {i + 1}) "
+                          f"({_describe(names, theta_start, free)}); check the initial parameter values")
+
     with FitProgress(progress, len(points), label) as shown, ExitStack() as open_programs:
         # The optimiser minimises −(criterion); progress shows the criterion itself.
-        def report(iteration, stage, f, g):
-            shown.iteration(iteration, stage, -f, float(np.max(np.abs(g))))
+        def reporter(i):
+            def report(iteration, stage, f, g):
+                shown.iteration(iteration, stage, -f, float(np.max(np.abs(g))), start=i)
+            return report
+
+        def finished(i, optimum):
+            shown.end_start(-optimum.value, optimum.iterations, optimum.converged, optimum.message, start=i)
 
         evaluators = {}  # one threaded evaluator per problem, shared by its starts
 
-        def optimize(problem, z0, i, exact_only=False):
+        def optimize(problem, z_start, i, exact_only=False):
+            """One search alone (one start, or the refit with more sub-steps)."""
             if problem.key() not in evaluators:
-                programs = compiled(structure, problem)
-                scoring = value = None
-                if programs.scoring is not None and use_scoring:
-                    # One thread on long series: two concurrent scoring programs of 10⁶ rows
-                    # have deadlocked in XLA's CPU runtime (benchmarks/length.py).
-                    scoring = open_programs.enter_context(Derivatives(
-                        programs.scoring, len(free), (*args, datasets), combine=combine_scoring,
-                        workers=1 if problem.long_series else None))
-
-                    def value(z, program=programs.value):
-                        return program(np.asarray(z, dtype=np.float64), *args, datasets)
-
-                evaluators[problem.key()] = (open_programs.enter_context(
-                    Derivatives(programs.derivatives, len(free), (*args, datasets))), scoring, value)
+                evaluators[problem.key()] = single_programs(structure, problem, (*args, datasets), open_programs)
+            search = new_search(problem, z_start, maxiter, reporter(i), use_scoring and not exact_only)
             shown.begin_start(i)
-            exact, scoring, value = evaluators[problem.key()]
-            if exact_only:
-                scoring = value = None
             try:
-                # On long series an exact Hessian costs dozens of scoring steps, and the
-                # scoring matrix is close to it near the optimum: Newton only to finish.
-                handover = 0.0 if problem.long_series else HANDOVER_DECREASE
-                limit = np.where(problem.transform.kind == NONE, np.inf, MAX_STEP)
-                optimum = newton_trust_region(exact, z0, maxiter, report, scoring, value, handover, limit)
+                optimum = run_alone(search, evaluators[problem.key()])
             except NotFiniteError:
-                theta_start = problem.theta(z0, theta0)
-                for series, inputs in prepared:
-                    check_at_parameters(structure, theta_start, series, inputs)
-                raise ModelError("the criterion or its derivatives are not finite at the "
-                                 f"{labels[i] if i < len(labels) else 'refit'} (start {i + 1}) "
-                                 f"({_describe(names, theta_start, free)}); check the initial parameter values")
-            shown.end_start(-optimum.value, optimum.iterations, optimum.converged, optimum.message)
+                raise not_finite(problem, z_start, i) from None
+            finished(i, optimum)
             return optimum
 
-        for i, z_start in enumerate(points):
-            optima.append(optimize(problem, z_start, i, newton_only[i]))
+        if len(points) == 1 or problem.long_series:
+            optima = [optimize(problem, z_start, i, newton_only[i]) for i, z_start in enumerate(points)]
+        else:
+            # All starts together, each request kind evaluated for all of them by one
+            # vectorised program; starts that trail far behind are pruned.
+            searches = [new_search(problem, z_start, maxiter, reporter(i), use_scoring and not newton_only[i])
+                        for i, z_start in enumerate(points)]
+            with BatchedPrograms(structure.cache, problem.key(), compiled(structure, problem), len(free), args,
+                                 datasets) as batched:
+                results = drive(searches, batched, prune=prune_trailing,
+                                finished=lambda i, r: None if isinstance(r, ModelError) else finished(i, r))
+            if isinstance(results[0], ModelError):
+                raise not_finite(problem, points[0], 0)
+            optima = [failed_start(points[i], r) if isinstance(r, ModelError) else r for i, r in enumerate(results)]
         best = min(optima, key=lambda o: o.value if np.isfinite(o.value) else np.inf)
         substep_choice = None
         if filter_settings.get("substeps") is None and needs_substeps(structure):

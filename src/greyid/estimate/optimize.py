@@ -57,20 +57,6 @@ def _no_report(iteration: int, stage: str, f: float, g: np.ndarray) -> None:
     pass
 
 
-class _Counted:
-    """Wraps an evaluation: counts calls and says whether everything came back finite."""
-
-    def __init__(self, fun: Callable):
-        self.fun = fun
-        self.evaluations = 0
-
-    def __call__(self, z):
-        self.evaluations += 1
-        out = tuple(np.asarray(a, dtype=float) for a in self.fun(z))
-        finite = all(np.all(np.isfinite(a)) for a in out)
-        return out, finite
-
-
 def _stationary(f: float, g: np.ndarray, w: np.ndarray, a: np.ndarray) -> bool:
     """A minimum to working precision (a = Vᵀg in the eigenbasis of the Hessian, w ascending).
 
@@ -194,162 +180,231 @@ def _crawling(gains: list[float]) -> bool:
     return len(window) == STALL_STEPS and sum(window) < STALL_GAIN and window[-1] > 0.1 * np.mean(window)
 
 
+#: Kinds of evaluation a search asks for: (f, g, H) exact, (f, g, F) scoring, (f,) value.
+EXACT, SCORING, VALUE = "exact", "scoring", "value"
+
+
+def settle(outputs) -> tuple[tuple, bool]:
+    """An evaluation's outputs as float arrays, and whether all of them are finite."""
+    out = tuple(np.asarray(a, dtype=float) for a in outputs)
+    return out, all(np.all(np.isfinite(a)) for a in out)
+
+
+class Search:
+    """One minimisation, written as a generator of evaluation requests.
+
+    :meth:`requests` yields ``(kind, z)`` (kind EXACT, SCORING or VALUE) and
+    receives ``(outputs, finite)`` (see :func:`settle`); it returns the
+    :class:`Optimum`.  So one search runs alone (:func:`newton_trust_region`) or
+    beside others whose requests are evaluated together in one batched program
+    (:mod:`.batch`: the starts of a fit, the data sets of a fleet), each with its
+    own trust region and convergence.  ``z``, ``f`` and ``iterations`` show
+    where the search stands.
+    """
+
+    def __init__(self, z0: np.ndarray, maxiter: int = 500, report: Callable = _no_report,
+                 scoring: bool = False, value: bool = False, handover: float = HANDOVER_DECREASE,
+                 step_limit: np.ndarray | float = np.inf):
+        self.z = np.asarray(z0, dtype=float)
+        self.f, self.iterations = np.inf, 0
+        self.gradient = self.hessian = None
+        self.history: list[float] = []  # the criterion after each accepted step
+        self.maxiter, self.report, self.scoring, self.value = maxiter, report, scoring, value
+        self.handover, self.step_limit = handover, step_limit
+        self.evaluations = 0
+        self.stage = SCORING if scoring else "newton"
+
+    def _ask(self, kind, z):
+        self.evaluations += 1
+        return (yield kind, z)
+
+    def requests(self):
+        """Newton steps in a scaled trust region, after Fisher scoring if it is available.
+
+        The search takes Fisher-scoring steps first (F the expected information,
+        positive semi-definite and about a gradient's cost) and hands over to exact
+        Newton steps near the optimum or where scoring converges slowly (see
+        HANDOVER_DECREASE, SLOW_STEPS); the optimum's Hessian is always the exact
+        one.  The region is the ellipsoid ‖D p‖ ≤ Δ with D_i = √|H_ii| (the largest
+        seen so far, as in MINPACK), so steps do not depend on the units of the
+        parameters; ``step_limit`` caps each coordinate's move per step (MAX_STEP
+        for log and logistic coordinates).  ``handover=0`` keeps scoring up to its
+        own convergence (long series, where one exact Hessian costs dozens of
+        scoring steps).  With value evaluations a Newton trial point (or a scoring
+        one after a rejection) is judged on its value first, the derivatives taken
+        only where it is accepted.
+        """
+        ask, step_limit, report = self._ask, self.step_limit, self.report
+        current = SCORING if self.scoring else EXACT
+        stage = "newton" if current == EXACT else "scoring"
+        z = self.z
+        (f, g, H), finite = yield from ask(current, z)
+        if not finite:
+            raise NotFiniteError("the criterion or its derivatives are not finite at the starting values")
+        f = float(f)
+        self._accept(z, f, g, H, 0)
+        scale = np.zeros(len(z))
+
+        def eigen(H):
+            nonlocal scale
+            scale = np.maximum(scale, np.sqrt(np.abs(np.diag(H))))
+            # A coordinate with (nearly) no curvature where the search starts — an initial
+            # state whose only observation lies in a robust norm's linear part — would get a
+            # scale near 0 and trial steps of 1e16 in it, and the region would collapse
+            # before any step is taken: its scale is floored relative to the others.
+            d = np.maximum(scale, SCALE_FLOOR * scale.max()) if scale.max() > 0 else np.ones_like(scale)
+            Hs = 0.5 * (H + H.T) / np.outer(d, d)
+            return d, *np.linalg.eigh(Hs)
+
+        d, w, V = eigen(H)
+        # The first region admits the full Newton step (or, where H is indefinite, a step
+        # as long as the scaled gradient) up to a length of 10 in scaled units.
+        a = V.T @ (g / d)
+        radius = float(np.clip(np.linalg.norm(a / w) if w[0] > 0 else np.linalg.norm(a), 1.0, 10.0))
+        iterations = 0  # accepted steps
+        ceiling = np.inf  # the last step length rejected, which the region grows back to slowly
+        crawl = _Crawl(len(z), step_limit)
+        slow, last_decrease, interior, rejected = 0, np.inf, True, False
+        gains: list[float] = []  # decrease of each accepted step, for the stall test
+
+        def hand_over():
+            """From scoring to exact Newton steps: the exact Hessian at the current point."""
+            nonlocal current, stage, f, g, H, d, w, V, crawl
+            (f_exact, g, H), finite = yield from ask(EXACT, z)
+            if not finite:  # the Hessian alone can overflow where the value does not
+                raise NotFiniteError("the criterion's Hessian is not finite during the search")
+            f, current, stage, crawl = float(f_exact), EXACT, "newton", _Crawl(len(z), step_limit)
+            self.stage = stage
+            d, w, V = eigen(H)
+
+        converged, message = False, "maximum number of iterations reached"
+        while iterations < self.maxiter:
+            a = V.T @ (g / d)
+            stalled = _crawling(gains) and not w[0] > SINGULAR * max(abs(w[-1]), 1e-300)
+            if stage == "scoring":
+                positive = w > SINGULAR * max(abs(w[-1]), 1e-300)
+                expected = 0.5 * float(np.sum(a[positive] ** 2 / w[positive]))
+                # Close only if scoring's own steps fit in the region: steps held back by it
+                # follow a flat direction, where its small prediction says nothing.
+                close = expected < self.handover and interior
+                if close or slow >= SLOW_STEPS or stalled or _stationary(f, g, w, a):
+                    yield from hand_over()
+                    gains.clear()
+                    continue
+            elif _stationary(f, g, w, a):
+                converged, message = True, "converged: Newton decrement below tolerance"
+                break
+            elif stalled:
+                message = (f"stalled: the last {STALL_STEPS} steps gained {sum(gains[-STALL_STEPS:]):.2g} in "
+                           "total along a flat or curved-down direction (the optimum may lie at a limit)")
+                break
+            q = trust_region_step(w, V, g / d, radius)  # the step in scaled coordinates q = D p
+            p = q / d
+            if np.any(np.abs(p) > step_limit):
+                # Beyond e^±10 a log or logistic coordinate has no more to give; longer steps
+                # along a flat model only carry the search off to a bound.  Clipped coordinate
+                # by coordinate, so the others keep their step.
+                p = np.clip(p, -step_limit, step_limit)
+                q = d * p
+                clipped = True
+            else:
+                clipped = False
+            predicted = -(g @ p + 0.5 * p @ (H @ p))
+            # Judge by the value alone where a rejection is likely to waste the derivatives:
+            # exact Newton steps (costly), or scoring steps after a rejection.
+            judged = self.value and (stage == "newton" or rejected)
+            if judged:
+                (f_new,), finite = yield from ask(VALUE, z + p)
+            else:
+                (f_new, g_new, H_new), finite = yield from ask(current, z + p)
+            actual = f - f_new if finite else -np.inf
+            rho = actual / predicted if predicted > 0 else (1.0 if actual >= 0 else -np.inf)
+            step = np.linalg.norm(q)
+            interior = step < 0.99 * radius and not clipped  # a full step of the model, not held back
+            if rho < 0.25:
+                radius, ceiling = 0.25 * step, step
+            elif rho > 0.75 and step >= 0.99 * radius:
+                # Not straight back to a length that just failed: on a curved ridge the region
+                # would cycle 5 → 10 → 20 (rejected) → 5, wasting every third evaluation.
+                radius = 2.0 * radius if 2.0 * radius < 0.9 * ceiling else max(radius, 0.9 * ceiling)
+                ceiling *= 1.5
+            if rho > 1e-4 and judged:
+                (f_new, g_new, H_new), finite = yield from ask(current, z + p)
+                if not finite:  # the derivatives alone overflow: a rejected step
+                    radius, rho = 0.25 * step, -np.inf
+            rejected = rho <= 1e-4
+            if rho > 1e-4:
+                # Slow: full steps (not held back by the region) that gain almost as much as the last.
+                slow = slow + 1 if interior and actual > SLOW_RATIO * last_decrease else 0
+                last_decrease = actual
+                gains.append(actual)
+                z, f, g, H = z + p, float(f_new), g_new, H_new
+                d, w, V = eigen(H)
+                iterations += 1
+                self._accept(z, f, g, H, iterations)
+                report(iterations, stage, f, g)
+                jump = crawl.update(p)
+                promising = jump is not None
+                if promising and self.value:
+                    (f_try,), finite = yield from ask(VALUE, z + jump)
+                    promising = finite and float(f_try) < f
+                if promising:
+                    (f_try, g_try, H_try), finite = yield from ask(current, z + jump)
+                    if finite and float(f_try) < f:
+                        last_decrease = f - float(f_try)
+                        gains.append(last_decrease)
+                        z, f, g, H = z + jump, float(f_try), g_try, H_try
+                        d, w, V = eigen(H)
+                        iterations += 1
+                        self._accept(z, f, g, H, iterations)
+                        report(iterations, "extrapolation", f, g)
+            elif radius < 1e-10 * (1.0 + np.linalg.norm(d * z)):
+                if stage == "scoring":  # the expected information misleads here: exact steps decide
+                    yield from hand_over()
+                    radius = max(radius, 1e-3)
+                    continue
+                # Rounding in f can hide the last decrease: a point without negative
+                # curvature and with a small gradient is then the minimum to working precision.
+                flat = w[0] >= -SINGULAR * max(abs(w[-1]), 1e-300) and np.max(np.abs(g)) < COLLAPSE_GRADIENT
+                converged = bool(flat)
+                message = ("converged: no step decreases the criterion at working precision" if flat
+                           else "no step decreases the criterion (trust region collapsed)")
+                break
+        if stage == "scoring":
+            yield from hand_over()
+        if not converged and _stationary(f, g, w, V.T @ (g / d)):
+            converged, message = True, "converged: Newton decrement below tolerance"
+        self._accept(z, f, g, H, iterations)
+        return Optimum(z, f, g, H, iterations, self.evaluations, converged, message)
+
+    def _accept(self, z, f, g, H, iterations):
+        if iterations > self.iterations or not self.history:
+            self.history.append(f)
+        self.z, self.f, self.gradient, self.hessian, self.iterations = z, f, g, H, iterations
+
+    def stopped(self, message: str) -> Optimum:
+        """Where the search stands, as an unconverged :class:`Optimum` (a pruned start)."""
+        return Optimum(self.z, self.f, self.gradient, self.hessian, self.iterations, self.evaluations, False,
+                       message)
+
+
+def run_alone(search: Search, programs: dict[str, Callable]) -> Optimum:
+    """Run one :class:`Search`, evaluating each request with ``programs[kind](z)``."""
+    requests = search.requests()
+    try:
+        kind, z = next(requests)
+        while True:
+            kind, z = requests.send(settle(programs[kind](z)))
+    except StopIteration as done:
+        return done.value
+
+
 def newton_trust_region(evaluate: Callable, z0: np.ndarray, maxiter: int = 500,
                         report: Callable = _no_report, scoring: Callable | None = None,
                         value: Callable | None = None, handover: float = HANDOVER_DECREASE,
                         step_limit: np.ndarray | float = np.inf) -> Optimum:
-    """Minimise with Newton steps in a scaled trust region; ``evaluate(z) -> (f, g, H)``.
-
-    With ``scoring(z) -> (f, g, F)`` (F the expected information, positive
-    semi-definite and about a gradient's cost) the search takes Fisher-scoring
-    steps first and hands over to exact Newton steps near the optimum or where
-    scoring converges slowly (see HANDOVER_DECREASE, SLOW_STEPS); the optimum's
-    Hessian is always the exact one.  The region is the ellipsoid ‖D p‖ ≤ Δ with
-    D_i = √|H_ii| (the largest seen so far, as in MINPACK), so steps do not depend
-    on the units of the parameters; ``step_limit`` caps each coordinate's move
-    per step (MAX_STEP for log and logistic coordinates).  ``handover=0`` keeps
-    scoring up to its own convergence (long series, where one exact Hessian
-    costs dozens of scoring steps).  With ``value(z) -> f`` a Newton trial point (or a scoring one after a
-    rejection) is judged on its value first, the derivatives taken only where it
-    is accepted.
-    """
-    run = _Counted(evaluate)
-    judge = None if value is None else _Counted(lambda z: (value(z),))
-    cheap = None if scoring is None else _Counted(scoring)
-    current = run if cheap is None else cheap
-    stage = "newton" if cheap is None else "scoring"
-    z = np.asarray(z0, dtype=float)
-    (f, g, H), finite = current(z)
-    if not finite:
-        raise NotFiniteError("the criterion or its derivatives are not finite at the starting values")
-    f = float(f)
-    scale = np.zeros(len(z))
-
-    def eigen(H):
-        nonlocal scale
-        scale = np.maximum(scale, np.sqrt(np.abs(np.diag(H))))
-        # A coordinate with (nearly) no curvature where the search starts — an initial
-        # state whose only observation lies in a robust norm's linear part — would get a
-        # scale near 0 and trial steps of 1e16 in it, and the region would collapse
-        # before any step is taken: its scale is floored relative to the others.
-        d = np.maximum(scale, SCALE_FLOOR * scale.max()) if scale.max() > 0 else np.ones_like(scale)
-        Hs = 0.5 * (H + H.T) / np.outer(d, d)
-        return d, *np.linalg.eigh(Hs)
-
-    d, w, V = eigen(H)
-    # The first region admits the full Newton step (or, where H is indefinite, a step
-    # as long as the scaled gradient) up to a length of 10 in scaled units.
-    a = V.T @ (g / d)
-    radius = float(np.clip(np.linalg.norm(a / w) if w[0] > 0 else np.linalg.norm(a), 1.0, 10.0))
-    iterations = 0  # accepted steps
-    ceiling = np.inf  # the last step length rejected, which the region grows back to slowly
-    crawl = _Crawl(len(z), step_limit)
-    slow, last_decrease, interior, rejected = 0, np.inf, True, False
-    gains: list[float] = []  # decrease of each accepted step, for the stall test
-
-    def hand_over():
-        """From scoring to exact Newton steps: the exact Hessian at the current point."""
-        nonlocal current, stage, f, g, H, d, w, V, crawl
-        (f_exact, g, H), finite = run(z)
-        if not finite:  # the Hessian alone can overflow where the value does not
-            raise NotFiniteError("the criterion's Hessian is not finite during the search")
-        f, current, stage, crawl = float(f_exact), run, "newton", _Crawl(len(z), step_limit)
-        d, w, V = eigen(H)
-
-    converged, message = False, "maximum number of iterations reached"
-    while iterations < maxiter:
-        a = V.T @ (g / d)
-        stalled = _crawling(gains) and not w[0] > SINGULAR * max(abs(w[-1]), 1e-300)
-        if stage == "scoring":
-            positive = w > SINGULAR * max(abs(w[-1]), 1e-300)
-            expected = 0.5 * float(np.sum(a[positive] ** 2 / w[positive]))
-            # Close only if scoring's own steps fit in the region: steps held back by it
-            # follow a flat direction, where its small prediction says nothing.
-            close = expected < handover and interior
-            if close or slow >= SLOW_STEPS or stalled or _stationary(f, g, w, a):
-                hand_over()
-                gains.clear()
-                continue
-        elif _stationary(f, g, w, a):
-            converged, message = True, "converged: Newton decrement below tolerance"
-            break
-        elif stalled:
-            message = (f"stalled: the last {STALL_STEPS} steps gained {sum(gains[-STALL_STEPS:]):.2g} in "
-                       "total along a flat or curved-down direction (the optimum may lie at a limit)")
-            break
-        q = trust_region_step(w, V, g / d, radius)  # the step in scaled coordinates q = D p
-        p = q / d
-        if np.any(np.abs(p) > step_limit):
-            # Beyond e^±10 a log or logistic coordinate has no more to give; longer steps
-            # along a flat model only carry the search off to a bound.  Clipped coordinate
-            # by coordinate, so the others keep their step.
-            p = np.clip(p, -step_limit, step_limit)
-            q = d * p
-            clipped = True
-        else:
-            clipped = False
-        predicted = -(g @ p + 0.5 * p @ (H @ p))
-        # Judge by the value alone where a rejection is likely to waste the derivatives:
-        # exact Newton steps (costly), or scoring steps after a rejection.
-        judged = judge is not None and (stage == "newton" or rejected)
-        if judged:
-            (f_new,), finite = judge(z + p)
-        else:
-            (f_new, g_new, H_new), finite = current(z + p)
-        actual = f - f_new if finite else -np.inf
-        rho = actual / predicted if predicted > 0 else (1.0 if actual >= 0 else -np.inf)
-        step = np.linalg.norm(q)
-        interior = step < 0.99 * radius and not clipped  # a full step of the model, not held back
-        if rho < 0.25:
-            radius, ceiling = 0.25 * step, step
-        elif rho > 0.75 and step >= 0.99 * radius:
-            # Not straight back to a length that just failed: on a curved ridge the region
-            # would cycle 5 → 10 → 20 (rejected) → 5, wasting every third evaluation.
-            radius = 2.0 * radius if 2.0 * radius < 0.9 * ceiling else max(radius, 0.9 * ceiling)
-            ceiling *= 1.5
-        if rho > 1e-4 and judged:
-            (f_new, g_new, H_new), finite = current(z + p)
-            if not finite:  # the derivatives alone overflow: a rejected step
-                radius, rho = 0.25 * step, -np.inf
-        rejected = rho <= 1e-4
-        if rho > 1e-4:
-            # Slow: full steps (not held back by the region) that gain almost as much as the last.
-            slow = slow + 1 if interior and actual > SLOW_RATIO * last_decrease else 0
-            last_decrease = actual
-            gains.append(actual)
-            z, f, g, H = z + p, float(f_new), g_new, H_new
-            d, w, V = eigen(H)
-            iterations += 1
-            report(iterations, stage, f, g)
-            jump = crawl.update(p)
-            promising = jump is not None
-            if promising and judge is not None:
-                (f_try,), finite = judge(z + jump)
-                promising = finite and float(f_try) < f
-            if promising:
-                (f_try, g_try, H_try), finite = current(z + jump)
-                if finite and float(f_try) < f:
-                    last_decrease = f - float(f_try)
-                    gains.append(last_decrease)
-                    z, f, g, H = z + jump, float(f_try), g_try, H_try
-                    d, w, V = eigen(H)
-                    iterations += 1
-                    report(iterations, "extrapolation", f, g)
-        elif radius < 1e-10 * (1.0 + np.linalg.norm(d * z)):
-            if stage == "scoring":  # the expected information misleads here: exact steps decide
-                hand_over()
-                radius = max(radius, 1e-3)
-                continue
-            # Rounding in f can hide the last decrease: a point without negative
-            # curvature and with a small gradient is then the minimum to working precision.
-            flat = w[0] >= -SINGULAR * max(abs(w[-1]), 1e-300) and np.max(np.abs(g)) < COLLAPSE_GRADIENT
-            converged = bool(flat)
-            message = ("converged: no step decreases the criterion at working precision" if flat
-                       else "no step decreases the criterion (trust region collapsed)")
-            break
-    if stage == "scoring":
-        hand_over()
-    if not converged and _stationary(f, g, w, V.T @ (g / d)):
-        converged, message = True, "converged: Newton decrement below tolerance"
-    evaluations = run.evaluations + sum(c.evaluations for c in (cheap, judge) if c is not None)
-    return Optimum(z, f, g, H, iterations, evaluations, converged, message)
+    """Minimise with ``evaluate(z) -> (f, g, H)``, after Fisher scoring with ``scoring(z) -> (f, g, F)``
+    if given, judging trial points by ``value(z) -> f`` if given; see :meth:`Search.requests`."""
+    search = Search(z0, maxiter, report, scoring is not None, value is not None, handover, step_limit)
+    programs = {EXACT: evaluate, SCORING: scoring, VALUE: None if value is None else lambda z: (value(z),)}
+    return run_alone(search, programs)

@@ -1,0 +1,242 @@
+"""Many searches at once: the starts of one fit, the data sets of a fleet.
+
+Each member is an :class:`~.optimize.Search` with its own trust region, stage
+and convergence; a member that has converged asks for nothing more.  In each
+round the driver (:func:`drive`) gathers the members' pending requests,
+evaluates those of one kind — value, scoring or exact derivatives — together in
+one program vectorised over the members (``jax.vmap``), and hands each member
+its answer.  The program is the one a single fit compiles, so a batch computes
+exactly what separate fits would.  The starts of a fit share the data; the
+members of a fleet each bring their own series, padded to a common length.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable, Sequence
+
+from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
+import jax
+import numpy as np
+
+from ..compiler import jit
+from ..errors import ModelError
+from .objective import Programs, combine_hessian, combine_scoring, worker_count
+from .optimize import EXACT, SCORING, VALUE, Optimum, Search, settle
+
+#: Largest number of members one program call evaluates (memory stays bounded).
+MAX_BATCH = 128
+
+
+def batch_size(count: int) -> int:
+    """Members per call for ``count`` requests: a power of two, so a handful of compiled sizes serve all."""
+    return min(MAX_BATCH, 1 << max(count - 1, 0).bit_length())
+
+
+def _stack(trees: Sequence):
+    return jax.tree_util.tree_map(lambda *leaves: np.stack(leaves), *trees)
+
+
+def _member(tree, i: int):
+    return jax.tree_util.tree_map(lambda leaf: np.asarray(leaf)[i], tree)
+
+
+class _Done:
+    def __init__(self, value):
+        self.value = value
+
+    def result(self):
+        return self.value
+
+
+class BatchedPrograms:
+    """``evaluate(groups)``: the requests of many members, each kind by one vectorised program.
+
+    ``programs`` are a problem's compiled :class:`~.objective.Programs`;
+    ``arguments`` the arguments they share (θ base, bounds, prior moments);
+    ``data`` either the data sets all members share (the starts of a fit) or,
+    with ``per_member=True``, a list with one stacked series (padded to a common
+    length, see :func:`pad_series`) whose row ``data_index[member]`` a member
+    uses (several starts of a fleet's data set share a row).  Calls are split over up to
+    ``workers`` threads, each a power-of-two number of members.
+    """
+
+    def __init__(self, structure_cache: dict, key, programs: Programs, n: int, arguments: tuple, data,
+                 per_member: bool = False, workers: int | None = None, data_index=None):
+        self.n, self.arguments, self.data, self.per_member = n, arguments, data, per_member
+        self.data_index = data_index  # the row of the stacked data each member uses (default: its own)
+        self.rows = jax.device_put(np.eye(n))
+        cache_key = ("batched", key, per_member)
+        if cache_key not in structure_cache:
+            data_axis = 0 if per_member else None
+            shared = (None,) * len(arguments)
+
+            def vectorised(fun, with_rows):
+                axes = (0, None, *shared, data_axis) if with_rows else (0, *shared, data_axis)
+                return jit(jax.vmap(fun.__wrapped__, in_axes=axes))
+
+            structure_cache[cache_key] = {
+                EXACT: vectorised(programs.derivatives, True),
+                VALUE: vectorised(programs.value, False),
+                SCORING: None if programs.scoring is None else vectorised(programs.scoring, True),
+            }
+        self.programs = structure_cache[cache_key]
+        # Sizes compiled for these data shapes (a new shape compiles anew).
+        shapes = tuple(np.shape(a) for a in jax.tree_util.tree_leaves(data))
+        self.compiled = self.programs.setdefault(("compiled", shapes), set())
+        self.pool = ThreadPoolExecutor(max(1, min(worker_count() if workers is None else workers, 8)))
+        self.workers = self.pool._max_workers
+
+    def _call(self, kind: str, members: list[int], Z: np.ndarray):
+        size = batch_size(len(members))
+        pad = size - len(members)
+        Z = np.concatenate([Z, np.repeat(Z[:1], pad, axis=0)])
+        data = self.data
+        if self.per_member:
+            index = np.array(members + [members[0]] * pad)
+            if self.data_index is not None:
+                index = np.asarray(self.data_index)[index]
+            data = jax.tree_util.tree_map(lambda leaf: leaf[index], self.data)
+        program = self.programs[kind]
+        if kind == VALUE:
+            out = program(Z, *self.arguments, data)
+        else:
+            out = program(Z, self.rows, *self.arguments, data)
+        out = jax.device_get(out)
+        combine = combine_hessian if kind == EXACT else combine_scoring
+        results = []
+        for i in range(len(members)):
+            part = _member(out, i)
+            results.append((part,) if kind == VALUE else combine([part], self.n))
+        return results
+
+    def __call__(self, groups: list[tuple[str, list[int], np.ndarray]]) -> list[list]:
+        """Outputs for each group ``(kind, members, Z)``, in order, as each member's program would give."""
+        calls = []  # (group, slice of its members)
+        for g, (kind, members, _) in enumerate(groups):
+            # Enough calls to keep every worker busy, none larger than MAX_BATCH.
+            count = max(-(-len(members) // MAX_BATCH), min(self.workers, len(members)))
+            for part in np.array_split(np.arange(len(members)), count):
+                calls.append((g, part))
+        futures = []
+        for g, part in calls:
+            kind, members, Z = groups[g]
+            args = (kind, [members[i] for i in part], Z[part])
+            signature = (kind, batch_size(len(part)))
+            if signature in self.compiled:
+                futures.append(self.pool.submit(self._call, *args))
+            else:  # compiled once, here, rather than by several threads at once
+                futures.append(_Done(self._call(*args)))
+                self.compiled.add(signature)
+        outputs: list[list] = [[None] * len(members) for _, members, _ in groups]
+        for (g, part), future in zip(calls, futures):
+            for i, out in zip(part, future.result()):
+                outputs[g][i] = out
+        return outputs
+
+    def close(self):
+        self.pool.shutdown()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+#: A start is pruned once it has taken PRUNE_AFTER steps and trails the best
+#: member by more than PRUNE_GAP (criterion units) while its last three steps
+#: gained less than a tenth of that lag: it would take dozens more steps to catch up,
+#: and a local optimum that far below the best is of no interest.
+PRUNE_AFTER = 8
+PRUNE_GAP = 50.0
+
+
+def prune_trailing(searches: Sequence[Search], running: set[int]) -> dict[int, str]:
+    """Starts to stop (see PRUNE_AFTER), with the reason."""
+    best = min(s.f for s in searches)
+    out = {}
+    for i in running:
+        s = searches[i]
+        behind = s.f - best
+        if s.iterations < PRUNE_AFTER or behind <= PRUNE_GAP or len(s.history) < 4:
+            continue
+        recent = s.history[-4] - s.history[-1]
+        if recent < 0.1 * behind:
+            out[i] = (f"pruned after {s.iterations} steps: {behind:.4g} below the best start and gaining "
+                      f"{recent:.3g} in its last three steps")
+    return out
+
+
+def drive(searches: Sequence[Search], evaluate: Callable, prune: Callable | None = None,
+          finished: Callable | None = None) -> list[Optimum | ModelError]:
+    """Run all ``searches`` together; ``evaluate(groups)`` as :class:`BatchedPrograms`.
+
+    A member whose search fails (a criterion not finite at its start) gets its
+    :class:`ModelError` in place of an optimum; the others go on.  ``prune(searches,
+    running) -> {member: reason}`` may stop members early; ``finished(member,
+    result)`` is called as each member ends.
+    """
+    results: list = [None] * len(searches)
+    generators = [s.requests() for s in searches]
+    pending: dict[int, tuple[str, np.ndarray]] = {}
+
+    def advance(i, answer):
+        try:
+            pending[i] = next(generators[i]) if answer is None else generators[i].send(answer)
+            return
+        except StopIteration as stop:
+            results[i] = stop.value
+        except ModelError as error:
+            results[i] = error
+        pending.pop(i, None)
+        if finished is not None:
+            finished(i, results[i])
+
+    for i in range(len(searches)):
+        advance(i, None)
+    while pending:
+        groups = []
+        for kind in (EXACT, SCORING, VALUE):
+            members = [i for i, (k, _) in pending.items() if k == kind]
+            if members:
+                groups.append((kind, members, np.stack([pending[i][1] for i in members])))
+        for (_, members, _), outputs in zip(groups, evaluate(groups)):
+            for i, out in zip(members, outputs):
+                advance(i, settle(out))
+        if prune is not None and pending:
+            for i, reason in prune(searches, set(pending)).items():
+                generators[i].close()
+                pending.pop(i)
+                results[i] = searches[i].stopped(reason)
+                if finished is not None:
+                    finished(i, results[i])
+    return results
+
+
+def pad_series(series: Sequence, length: int, unique: int):
+    """Stack filter inputs of several series, each padded to ``length`` rows and ``unique`` intervals.
+
+    Padding rows repeat the last time and input, carry no observation and an
+    interval of length 0 (as :func:`~greyid.filters.api.filter_inputs` pads), so
+    they change nothing.
+    """
+    padded = []
+    for s in series:
+        s = jax.device_get(s)
+        n, extra = len(s.t), length - len(s.t)
+        zero = int(np.flatnonzero(s.unique_dt == 0.0)[0])
+        last = s.t[-1]
+        padded.append(type(s)(
+            t=np.concatenate([s.t, np.full(extra, last)]),
+            t_prev=np.concatenate([s.t_prev, np.full(extra, last)]),
+            dt=np.concatenate([s.dt, np.zeros(extra)]),
+            u_prev=np.concatenate([s.u_prev, np.repeat(s.u_cur[-1:], extra, axis=0)]),
+            u_cur=np.concatenate([s.u_cur, np.repeat(s.u_cur[-1:], extra, axis=0)]),
+            y=np.concatenate([s.y, np.zeros((extra, s.y.shape[1]))]),
+            mask=np.concatenate([s.mask, np.zeros((extra, s.mask.shape[1]))]),
+            dt_index=np.concatenate([s.dt_index, np.full(extra, zero, dtype=s.dt_index.dtype)]),
+            unique_dt=np.concatenate([s.unique_dt, np.zeros(unique - len(s.unique_dt))]),
+            first_interval=s.first_interval, foh=s.foh))
+        assert n <= length
+    return _stack(padded)
