@@ -11,12 +11,14 @@ import sys
 from .errors import DataError, ModelError
 
 __version__ = "0.1.0"
-__all__ = ["Model", "FitResult", "FitWarning", "load_fit", "ModelError", "DataError", "__version__"]
+__all__ = ["Model", "FitResult", "FitWarning", "load_fit", "fit_many", "FleetResult", "ModelError", "DataError",
+           "__version__"]
 
 if "jax" in sys.modules:  # JAX is in use already: make it 64-bit now, as before any work
     from . import _jax  # noqa: F401
 
-_LAZY = {"Model": "model", "FitResult": "estimate", "FitWarning": "estimate", "load_fit": "estimate"}
+_LAZY = {"Model": "model", "FitResult": "estimate", "FitWarning": "estimate", "load_fit": "estimate",
+         "fit_many": "fleet", "FleetResult": "fleet"}
 
 
 def __getattr__(name):

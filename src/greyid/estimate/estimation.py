@@ -166,12 +166,13 @@ def uses_scoring(optimizer: str, rows: int, n_free: int) -> bool:
     return optimizer == "scoring" or (optimizer == "auto" and rows * n_free ** 2 >= SCORING_WORK)
 
 
-def new_search(problem: Problem, z0, maxiter: int, report, scoring: bool) -> Search:
+def new_search(problem: Problem, z0, maxiter: int, report, scoring: bool, handover: float | None = None) -> Search:
     """A :class:`~.optimize.Search` from ``z0`` with this problem's settings (scoring if asked and possible)."""
     scoring = scoring and problem.horizon == 1 and problem.robust is None
     # On long series an exact Hessian costs dozens of scoring steps, and the
     # scoring matrix is close to it near the optimum: Newton only to finish.
-    handover = 0.0 if problem.long_series else HANDOVER_DECREASE
+    if handover is None:
+        handover = 0.0 if problem.long_series else HANDOVER_DECREASE
     limit = np.where(problem.transform.kind == NONE, np.inf, MAX_STEP)
     return Search(z0, maxiter, report, scoring=scoring, value=scoring, handover=handover, step_limit=limit)
 

@@ -277,6 +277,15 @@ def combine_scoring(parts, n):
     return parts[0][0] + prior_value, slopes + prior_gradient, M @ M.T + prior_hessian
 
 
+def direction_blocks(n: int, workers: int | None = None) -> list:
+    """The n unit directions in equal blocks, one per worker thread (the last padded with zeros)."""
+    workers = min(worker_count() if workers is None else workers, n, 8)
+    size = -(-n // workers)
+    count = -(-n // size)
+    directions = np.vstack([np.eye(n), np.zeros((count * size - n, n))])
+    return [jax.device_put(block) for block in np.split(directions, count)]
+
+
 class Derivatives:
     """Derivatives at z from a program run on blocks of directions at once, in parallel threads.
 
@@ -290,11 +299,8 @@ class Derivatives:
 
     def __init__(self, program, n: int, arguments: tuple, workers: int | None = None,
                  combine: Callable = combine_hessian):
-        workers = min(worker_count() if workers is None else workers, n, 8)
-        size = -(-n // workers)
-        count = -(-n // size)
-        directions = np.vstack([np.eye(n), np.zeros((count * size - n, n))])
-        self.blocks = [jax.device_put(block) for block in np.split(directions, count)]
+        self.blocks = direction_blocks(n, workers)
+        size = self.blocks[0].shape[0]
         self.n, self.program, self.arguments, self.combine = n, program, arguments, combine
         self.pool = ThreadPoolExecutor(len(self.blocks)) if len(self.blocks) > 1 else None
         self.signature = (size, tuple(np.shape(a) for a in jax.tree_util.tree_leaves(arguments)))

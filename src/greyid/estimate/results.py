@@ -385,8 +385,6 @@ def filter_settings(settings: dict) -> dict:
 
 def load_fit(path) -> FitResult:
     """Read a fit written by :meth:`FitResult.save`; its ``model`` reproduces the log-likelihood."""
-    from ..model import Model
-
     path = Path(path)
     if path.is_dir() or not path.is_file():
         raise ModelError(f"fit file '{path}' {'is a folder' if path.is_dir() else 'not found'}")
@@ -396,14 +394,25 @@ def load_fit(path) -> FitResult:
         raise ModelError(f"fit file '{path}' is not valid JSON ({err})") from None
     if not isinstance(spec, dict) or spec.get("format") != "greyid-fit-1":
         raise ModelError(f"'{path}' is not a greyid fit file (no \"format\": \"greyid-fit-1\")")
+    return fit_from_dict(spec, f"fit file '{path}'")
+
+
+def fit_from_dict(spec: dict, where: str = "the fit", model=None) -> FitResult:
+    """A :class:`FitResult` from :meth:`FitResult.to_dict`'s form; errors name ``where`` it came from.
+
+    ``model``, if given, is used instead of a new one built from the stored
+    model (the same model: a fleet's fits share the caller's compiled one).
+    """
+    from ..model import Model
+
     for key in ("model", "params", "cov", "loglik", "criterion_value", "n_obs", "converged", "message",
                 "iterations", "settings"):
         if key not in spec:
-            raise ModelError(f"fit file '{path}' lacks the entry '{key}'")
+            raise ModelError(f"{where} lacks the entry '{key}'")
     for name, entry in spec["params"].items() if isinstance(spec["params"], dict) else [("params", None)]:
         if not isinstance(entry, dict) or "estimate" not in entry:
-            raise ModelError(f"fit file '{path}': parameter entry '{name}' must be a table with an 'estimate'")
-    model = Model.from_dict(spec["model"])
+            raise ModelError(f"{where}: parameter entry '{name}' must be a table with an 'estimate'")
+    model = Model.from_dict(spec["model"]) if model is None else model
     params = pd.DataFrame.from_dict(spec["params"], orient="index")
     # Files written before greyid 0.2 named the bounds "lower" and "upper".
     params = params.rename(columns={"lower": "lower_bound", "upper": "upper_bound"})

@@ -46,8 +46,11 @@ def _round_significant(values: np.ndarray, digits: int = 12) -> np.ndarray:
     return out
 
 
-def filter_inputs(series: Series, hold: str) -> FilterInputs:
-    """Arrays for the filter from a checked series (padded, see module doc)."""
+def filter_inputs(series: Series, hold: str, on_device: bool = True) -> FilterInputs:
+    """Arrays for the filter from a checked series (padded, see module doc).
+
+    With ``on_device=False`` the arrays stay NumPy arrays (a fleet stacks them first).
+    """
     if hold not in HOLDS:
         raise DataError(f"unknown hold '{hold}'; use 'zoh' (inputs held) or 'foh' (inputs interpolated)")
     n_rows = series.n_rows
@@ -69,7 +72,8 @@ def filter_inputs(series: Series, hold: str) -> FilterInputs:
     arrays = dict(t=t, t_prev=t_prev, dt=dt, u_prev=u_prev, u_cur=u, y=np.where(mask, y, 0.0),
                   mask=mask.astype(np.float64), dt_index=index.reshape(-1).astype(np.int32), unique_dt=unique,
                   first_interval=np.float64(first), foh=np.float64(HOLDS[hold]))
-    return FilterInputs(**{name: jax.device_put(np.asarray(a)) for name, a in arrays.items()})
+    put = jax.device_put if on_device else np.asarray
+    return FilterInputs(**{name: put(np.asarray(a)) for name, a in arrays.items()})
 
 
 def filter_options(structure: Structure, method: str | None, **options) -> FilterOptions:
@@ -145,12 +149,13 @@ def check_at_parameters(structure: Structure, theta: np.ndarray, series: Series,
         )
 
 
-def prepare_datasets(structure: Structure, theta: np.ndarray, data, time, hold, time_unit, check: bool = True):
+def prepare_datasets(structure: Structure, theta: np.ndarray, data, time, hold, time_unit, check: bool = True,
+                     on_device: bool = True):
     """Check every data set against the model (and, with ``check``, at θ); ``[(series, filter inputs), ...]``."""
     prepared = []
     for df in as_frames(data):
         series = prepare_series(df, structure.input_names, structure.output_names, time, time_unit)
-        inputs = filter_inputs(series, hold)
+        inputs = filter_inputs(series, hold, on_device)
         if structure.initial_covariance.kind == "process" and series.n_rows < 2:
             raise DataError("a data set with one row has no sampling interval for the 'process' initial covariance")
         if check:

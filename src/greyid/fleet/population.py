@@ -1,0 +1,89 @@
+"""How the estimates vary across a fleet: regression on covariates (thesis section 8.4).
+
+The thesis relates the fuel-film model's X, τ_s and τ_ff at eleven operating
+points to throttle angle, speed, manifold pressure and air flow by linear
+regression over all subsets of the covariates, ranked by Mallows' C_p
+(Weisberg 1985).  :func:`relate` does the same on a fleet's table, by weighted
+least squares with weights 1/SE² of the estimates (statsmodels), so a data set
+that determines a parameter poorly counts for less.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from itertools import combinations
+
+import numpy as np
+import pandas as pd
+
+from ..errors import DataError
+
+
+@dataclass
+class Relation:
+    """All subsets of the covariates ranked by C_p; ``best`` is the fitted statsmodels WLS of the first."""
+
+    parameter: str
+    subsets: pd.DataFrame  # covariates, n_terms, cp, r2, aic; sorted by cp
+    best: object  # statsmodels RegressionResults
+
+    def summary(self) -> str:
+        return (f"{self.parameter}: best subset {list(self.best.model.exog_names[1:])} by Mallows' C_p\n"
+                f"{self.subsets.to_string()}\n\n{self.best.summary()}")
+
+
+def relate(fleet, covariates: pd.DataFrame, parameter: str, candidates=None, weighted: bool = True,
+           max_terms: int | None = None) -> Relation:
+    """Regress ``parameter``'s estimates on covariates of the data sets, best subset by Mallows' C_p.
+
+    ``fleet`` is a :class:`FleetResult` (or its ``table``); ``covariates`` is
+    indexed by the data sets' names; ``candidates`` the covariate columns to
+    try (default: all).  Data sets without a fit or with a missing covariate
+    are left out (and counted in the result's subsets table as ``n``).  C_p =
+    RSS_p/σ̂² − n + 2p with σ̂² the full model's residual mean square.
+    """
+    import statsmodels.api as sm
+
+    table = getattr(fleet, "table", fleet)
+    if parameter not in table.columns:
+        raise DataError(f"'{parameter}' is not a parameter of the fleet's table; columns are {list(table.columns)}")
+    candidates = list(covariates.columns if candidates is None else candidates)
+    missing = [c for c in candidates if c not in covariates.columns]
+    if missing:
+        raise DataError(f"covariate '{missing[0]}' is not a column of covariates ({list(covariates.columns)})")
+    unknown = [n for n in table.index if n not in covariates.index]
+    if unknown:
+        raise DataError(f"covariates have no row for data set '{unknown[0]}'")
+    rows = table.index[table[parameter].notna()]
+    frame = covariates.loc[rows, candidates].astype(float)
+    y = table.loc[rows, parameter].astype(float)
+    se = table.loc[rows, f"{parameter}_se"].astype(float) if f"{parameter}_se" in table else None
+    keep = frame.notna().all(axis=1) & y.notna()
+    if weighted:
+        if se is None or not np.all(np.isfinite(se[keep])) or np.any(se[keep] <= 0):
+            raise DataError(f"weighted regression needs a positive standard error of '{parameter}' for every "
+                            "data set; use weighted=False")
+    frame, y = frame[keep], y[keep]
+    weights = 1.0 / se[keep] ** 2 if weighted else np.ones(len(y))
+    n, full_terms = len(y), len(candidates) + 1
+    if n <= full_terms:
+        raise DataError(f"{n} data sets cannot support a regression on {len(candidates)} covariates")
+
+    def wls(columns):
+        X = sm.add_constant(frame[list(columns)], has_constant="add")
+        return sm.WLS(y, X, weights=weights).fit()
+
+    sigma2 = wls(candidates).mse_resid
+    records, fitted = [], {}
+    largest = len(candidates) if max_terms is None else min(max_terms, len(candidates))
+    for k in range(largest + 1):
+        for columns in combinations(candidates, k):
+            result = wls(columns)
+            p = k + 1
+            cp = result.ssr / sigma2 - n + 2 * p
+            fitted[columns] = result
+            records.append(dict(covariates=", ".join(columns) or "(constant)", n_terms=p, cp=cp,
+                                r2=result.rsquared, aic=result.aic, n=n))
+    subsets = pd.DataFrame(records).sort_values("cp").reset_index(drop=True)
+    order = sorted(fitted, key=lambda c: fitted[c].ssr / sigma2 - n + 2 * (len(c) + 1))
+    return Relation(parameter, subsets, fitted[order[0]])

@@ -1,0 +1,91 @@
+"""The result of a fleet fit: one row per data set, and each data set's fit."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+
+class FleetResult:
+    """Estimates of one model on many data sets.
+
+    ``table``: one row per data set (index = the data sets' names) with a column
+    per parameter (its estimate), ``<parameter>_se`` (standard errors),
+    ``loglik``, ``aic``, ``n_obs``, ``converged``, ``iterations``, ``message``
+    and ``error`` (why a data set has no fit, else None).  ``fits``: name →
+    :class:`~greyid.estimate.FitResult`, None where the data set failed.
+    """
+
+    def __init__(self, model, names: list, rows: list[dict], fits: list):
+        self.model = model
+        self.fits = dict(zip(names, fits))
+        parameters = list(model.parameter_names)
+        records = []
+        for row, fit in zip(rows, fits):
+            record = {p: np.nan for p in parameters}
+            record.update({f"{p}_se": np.nan for p in parameters})
+            record.update(loglik=np.nan, aic=np.nan, n_obs=0, converged=False, iterations=0, message=None,
+                          error=row.get("error"))
+            if fit is not None:
+                estimate = fit.params["estimate"].reindex(parameters).to_numpy(dtype=float)
+                se = fit.params["std_error"].reindex(parameters).to_numpy(dtype=float)
+                record.update(zip(parameters, estimate))
+                record.update(zip([f"{p}_se" for p in parameters], se))
+                record.update(loglik=fit.loglik, aic=fit.aic, n_obs=fit.n_obs, converged=bool(fit.converged),
+                              iterations=int(fit.iterations), message=fit.message)
+            records.append(record)
+        index = pd.Index(names, name="dataset")
+        self.table = pd.DataFrame.from_records(records, index=index)
+        for column in ("message", "error"):  # None, not NaN, where there is none
+            self.table[column] = pd.Series([r[column] for r in records], index=index, dtype=object)
+
+    @property
+    def failed(self) -> pd.Series:
+        """The error of each data set that has no fit."""
+        return self.table["error"].dropna()
+
+    def estimates(self) -> pd.DataFrame:
+        """The free parameters' estimates of the data sets that were fitted (one row each)."""
+        free = [p for p in self.model.parameter_names if not self._fixed(p)]
+        return self.table.loc[self.table["error"].isna(), free]
+
+    def _fixed(self, name: str) -> bool:
+        p = self.model.parameters.get(name)
+        return p is not None and p.fixed
+
+    def summary(self) -> str:
+        """How many data sets were fitted and converged, and the spread of each estimate across them."""
+        t = self.table
+        fitted = int(t["error"].isna().sum())
+        lines = [f"fleet of {len(t)} data sets of model {self.model.name}: {fitted} fitted, "
+                 f"{int(t['converged'].sum())} converged, {len(t) - fitted} failed"]
+        estimates = self.estimates()
+        if len(estimates):
+            q = estimates.quantile([0.0, 0.25, 0.5, 0.75, 1.0]).T
+            q.columns = ["min", "25%", "median", "75%", "max"]
+            lines.append(q.to_string(float_format=lambda v: f"{v:.5g}"))
+        for name, error in self.failed.items():
+            lines.append(f"  {error}")
+        return "\n".join(lines)
+
+    def __repr__(self) -> str:
+        return self.summary()
+
+    def plot(self, parameters=None, bins: int = 20):
+        """Histograms of the estimates across the fleet (one panel per free parameter); a Figure."""
+        import matplotlib.pyplot as plt
+
+        estimates = self.estimates()
+        names = list(estimates.columns) if parameters is None else list(parameters)
+        cols = min(3, max(len(names), 1))
+        rows = -(-len(names) // cols)
+        fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3 * rows), squeeze=False)
+        for ax, name in zip(axes.flat, names):
+            ax.hist(estimates[name].dropna(), bins=bins, color="tab:blue", alpha=0.8)
+            ax.set_xlabel(name)
+            ax.set_ylabel("data sets")
+        for ax in list(axes.flat)[len(names):]:
+            ax.set_visible(False)
+        fig.suptitle(f"{self.model.name}: estimates across {len(estimates)} data sets")
+        fig.tight_layout()
+        return fig

@@ -1,0 +1,187 @@
+"""Fleets (greyid.fit_many) and the batched searches they share with multi-start fits."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+import greyid
+from greyid.datasets.building import TRUE_PARAMETERS, building_model, load_building_data
+from greyid.estimate.batch import drive, pad_series, prune_trailing
+from greyid.estimate.optimize import EXACT, Search, run_alone
+from greyid.filters.api import filter_inputs
+from greyid.data.prepare import prepare_series
+from greyid.fleet import relate
+
+
+@pytest.fixture(scope="module")
+def fleet_model():
+    """The bundled building model with its flat noise term fixed, compiled once for the module."""
+    model = building_model()
+    model.set_parameter("p22", init=-4.0, fixed=True)
+    return model
+
+
+@pytest.fixture(scope="module")
+def houses(fleet_model):
+    """Three houses of different lengths simulated from the bundled model; one has gaps in its output."""
+    data = load_building_data()
+    sim = fleet_model.simulate(TRUE_PARAMETERS, data, n_paths=3, seed=11)
+    out = {}
+    for k, rows in enumerate((300, 260, 220)):
+        frame = data.iloc[:rows].copy()
+        frame["yTi"] = sim.outputs[k, :rows, 0]
+        out[f"house{k}"] = frame
+    out["house1"].loc[[5, 6, 40, 100], "yTi"] = np.nan
+    return out
+
+
+@pytest.fixture(scope="module")
+def fleet(fleet_model, houses):
+    return greyid.fit_many(fleet_model, houses)
+
+
+def test_fleet_equals_separate_fits(fleet_model, houses, fleet):
+    """Each member of a batched fleet fit reaches what its own model.fit reaches (lengths and gaps differ)."""
+    for name, frame in houses.items():
+        alone = fleet_model.fit(frame)
+        member = fleet.fits[name]
+        assert member.converged and alone.converged
+        assert member.loglik == pytest.approx(alone.loglik, rel=1e-6)
+        free = [p for p in alone.params.index if not alone.params.loc[p, "fixed"]]
+        np.testing.assert_allclose(member.params.loc[free, "estimate"], alone.params.loc[free, "estimate"],
+                                   rtol=1e-5, atol=1e-8)
+        np.testing.assert_allclose(member.params.loc[free, "std_error"], alone.params.loc[free, "std_error"],
+                                   rtol=1e-4)
+        row = fleet.table.loc[name]
+        assert row["loglik"] == member.loglik and row["Ci"] == member.values["Ci"]
+        assert row["Ci_se"] == member.params.loc["Ci", "std_error"] and row["error"] is None
+        assert row["aic"] == pytest.approx(member.aic) and row["n_obs"] == member.n_obs
+
+
+def test_fleet_table_summary_and_plot(fleet):
+    table = fleet.table
+    assert list(table.index) == ["house0", "house1", "house2"]
+    for column in ("Ci", "Ci_se", "loglik", "aic", "converged", "iterations", "error"):
+        assert column in table.columns
+    assert table["n_obs"].tolist() == [300, 256, 220]
+    text = fleet.summary()
+    assert "3 fitted, 3 converged, 0 failed" in text and "median" in text
+    fig = fleet.plot()
+    assert len([ax for ax in fig.axes if ax.get_visible()]) == len(fleet.estimates().columns)
+
+
+def test_failed_data_sets_become_rows_with_their_error(fleet_model, houses):
+    bad_column = houses["house0"].drop(columns=["Qi"])
+    too_short = houses["house2"].iloc[:5]
+    result = greyid.fit_many(fleet_model, {"good": houses["house2"], "no_Qi": bad_column, "short": too_short})
+    table = result.table
+    assert table.loc["good", "converged"] and table.loc["good", "error"] is None
+    assert result.fits["no_Qi"] is None and not table.loc["no_Qi", "converged"]
+    assert "data set 'no_Qi'" in table.loc["no_Qi", "error"] and "Qi" in table.loc["no_Qi", "error"]
+    assert "data set 'short'" in table.loc["short", "error"] and "observed" in table.loc["short", "error"]
+    assert "2 failed" in result.summary()
+
+
+def test_list_of_datasets_init_per_dataset_and_paths(fleet_model, houses, tmp_path):
+    """A list gets names 0..n−1; init per data set as a DataFrame; a CSV path is read where it is fitted."""
+    path = tmp_path / "house2.csv"
+    houses["house2"].to_csv(path, index=False)
+    init = pd.DataFrame({"Ci": [1.5, 2.5], "Cw": [15.0, 25.0]}, index=[0, 1])
+    result = greyid.fit_many(fleet_model, [houses["house0"], str(path)], init=init)
+    assert list(result.table.index) == [0, 1]
+    assert result.fits[1].loglik == pytest.approx(fleet_model.fit(houses["house2"]).loglik, rel=1e-6)
+    assert result.fits[0].starts[0]["start"] == "initial values"
+    with pytest.raises(greyid.DataError, match="init has no row for data set '1'"):
+        greyid.fit_many(fleet_model, [houses["house0"], houses["house2"]], init=init.iloc[:1])
+    with pytest.raises(greyid.DataError, match="mapping name"):
+        greyid.fit_many(fleet_model, houses["house0"])
+
+
+def test_progress_callback_counts_data_sets(fleet_model, houses):
+    seen = []
+    greyid.fit_many(fleet_model, {"a": houses["house2"]}, progress=lambda done, total: seen.append((done, total)))
+    assert seen == [(1, 1)]
+
+
+def _quadratic_programs(center):
+    def exact(z):
+        d = z - center
+        return 0.5 * d @ d + 0.25 * d[0] ** 4, d + np.array([d[0] ** 3, 0.0]), np.diag([1 + 3 * d[0] ** 2, 1.0])
+
+    return exact
+
+
+def test_drive_equals_searches_run_alone():
+    """Searches driven together give exactly what each gives alone (own trust region, own convergence)."""
+    centers = [np.array([1.0, -2.0]), np.array([-3.0, 0.5]), np.array([0.2, 0.2])]
+    starts = [np.array([5.0, 5.0]), np.array([0.0, 0.0]), np.array([-4.0, 1.0])]
+    alone = [run_alone(Search(z0), {EXACT: _quadratic_programs(c)}) for c, z0 in zip(centers, starts)]
+
+    def evaluate(groups):
+        return [[_quadratic_programs(centers[i])(z) for i, z in zip(members, Z)] for _, members, Z in groups]
+
+    together = drive([Search(z0) for z0 in starts], evaluate)
+    for a, b in zip(alone, together):
+        np.testing.assert_array_equal(a.z, b.z)
+        assert (a.iterations, a.evaluations, a.converged) == (b.iterations, b.evaluations, b.converged)
+
+
+def test_prune_trailing_stops_only_far_behind_and_slow():
+    class Fake:
+        def __init__(self, f, iterations, history):
+            self.f, self.iterations, self.history = f, iterations, history
+
+    searches = [Fake(-1000.0, 9, [0, -900, -990, -1000]),  # the best
+                Fake(-800.0, 9, [-790, -795, -799, -800]),  # 200 behind, gaining 10: pruned
+                Fake(-800.0, 9, [-300, -500, -700, -800]),  # 200 behind, gaining 500: kept
+                Fake(-980.0, 9, [-979, -979.5, -980, -980]),  # 20 behind: kept
+                Fake(-100.0, 3, [-99, -99, -100, -100])]  # too early to judge: kept
+    assert set(prune_trailing(searches, {1, 2, 3, 4})) == {1}
+
+
+def test_pad_series_changes_nothing(fleet_model, houses):
+    """A series padded to a longer length has the same log-likelihood."""
+    structure = fleet_model.structure
+    series = prepare_series(houses["house2"], structure.input_names, structure.output_names, "t", None)
+    inputs = filter_inputs(series, "zoh", on_device=False)
+    padded = pad_series([inputs], len(inputs.t) + 37, len(inputs.unique_dt) + 3)
+    one = pd.Series(TRUE_PARAMETERS)
+    expected = fleet_model.loglik(one, houses["house2"])
+    from greyid.filters.api import compiled_filter, filter_options
+
+    run = compiled_filter(structure, filter_options(structure, None), False)
+    theta = fleet_model.parameter_vector(TRUE_PARAMETERS)
+    member = type(inputs)(*[np.asarray(leaf)[0] for leaf in padded])
+    assert float(np.sum(run(theta, member)[0].loglik)) == pytest.approx(expected, rel=1e-12)
+
+
+def test_relate_recovers_a_linear_relation_and_ranks_subsets():
+    """WLS on covariates with weights 1/SE² (against NumPy), best subset by Mallows' C_p."""
+    rng = np.random.default_rng(4)
+    n = 40
+    covariates = pd.DataFrame({"speed": rng.uniform(1, 5, n), "load": rng.uniform(0, 1, n),
+                               "noise": rng.normal(size=n)}, index=[f"p{i}" for i in range(n)])
+    se = rng.uniform(0.05, 0.2, n)
+    X = 2.0 - 0.5 * covariates["speed"] + 1.5 * covariates["load"] + se * rng.normal(size=n)
+    table = pd.DataFrame({"X": X, "X_se": se}, index=covariates.index)
+    relation = relate(table, covariates, "X")
+    assert relation.subsets.loc[0, "covariates"] == "speed, load"
+    A = np.column_stack([np.ones(n), covariates["speed"], covariates["load"]]) / se[:, None]
+    beta = np.linalg.lstsq(A, X / se, rcond=None)[0]
+    np.testing.assert_allclose(relation.best.params.to_numpy(), beta, rtol=1e-10)
+    assert len(relation.subsets) == 8
+    with pytest.raises(greyid.DataError, match="covariate 'air'"):
+        relate(table, covariates, "X", candidates=["air"])
+
+
+def test_dask_local_cluster_equals_in_process(fleet_model, houses, fleet):
+    """Chunks fitted on a real LocalCluster of two worker processes give the in-process table."""
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        remote = greyid.fit_many(fleet_model, houses, scheduler=client, chunk_size=2)
+    columns = [c for c in fleet.table.columns if c not in ("message",)]
+    pd.testing.assert_frame_equal(remote.table[columns], fleet.table[columns], rtol=1e-8)
+    assert len(remote.fits["house1"].residuals) == len(houses["house1"])
