@@ -185,3 +185,30 @@ def test_dask_local_cluster_equals_in_process(fleet_model, houses, fleet):
     columns = [c for c in fleet.table.columns if c not in ("message",)]
     pd.testing.assert_frame_equal(remote.table[columns], fleet.table[columns], rtol=1e-8)
     assert len(remote.fits["house1"].residuals) == len(houses["house1"])
+
+
+def test_batched_starts_equal_the_same_starts_run_alone(fleet_model, houses):
+    """A fit's starts run together reach exactly what each start reaches as a fit of its own."""
+    from greyid.estimate.estimation import free_parameters
+    from greyid.estimate.starts import space_filling
+
+    data = houses["house0"]
+    together = fleet_model.fit(data, starts=3, seed=5)
+    parameters = free_parameters(fleet_model)
+    points = [parameters.z0] + space_filling(parameters.transform, parameters.z0, 2, 5)
+    free_names = [parameters.names[i] for i in parameters.free]
+    assert together.starts[0]["converged"]
+    for point, start in zip(points, together.starts):
+        theta = parameters.transform.to_theta(point, np)
+        alone = fleet_model.fit(data, init=dict(zip(free_names, theta)))
+        if start["message"].startswith("pruned"):
+            # Stopped on the way: below where the same start ends alone, and below the best start.
+            assert start["criterion"] < alone.loglik and start["criterion"] < together.loglik - 50
+            assert alone.loglik <= together.loglik + 1e-6
+            continue
+        assert start["criterion"] == pytest.approx(alone.loglik, rel=1e-9, abs=1e-9)
+        assert start["iterations"] == alone.iterations
+    # A pruned start is not counted as an optimum of its own.
+    pruned = sum(s["message"].startswith("pruned") for s in together.starts)
+    assert pruned >= 1
+    assert f"{pruned} pruned" in together.start_spread() and "several optima" not in together.start_spread()

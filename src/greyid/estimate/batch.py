@@ -24,7 +24,7 @@ import numpy as np
 
 from ..compiler import jit
 from ..errors import ModelError
-from .objective import Programs, combine_hessian, direction_blocks, worker_count
+from .objective import Programs, combine_hessian, combine_scoring, direction_blocks, worker_count
 from .optimize import EXACT, SCORING, VALUE, Optimum, Search, settle
 
 #: Largest number of members one program call evaluates: memory stays bounded, and
@@ -78,11 +78,13 @@ class BatchedPrograms:
     with ``per_member=True``, a list with one stacked series (padded to a common
     length, see :func:`pad_series`) whose row ``data_index[member]`` a member
     uses (several starts of a fleet's data set share a row).  Calls are split over up to
-    ``workers`` threads, each a power-of-two number of members.
+    ``workers`` threads, each a power-of-two number of members.  Exact Hessians, and
+    every kind when fewer than ``vectorise_from`` members ask for it, are evaluated
+    member by member with the single fit's programs.
     """
 
     def __init__(self, structure_cache: dict, key, programs: Programs, n: int, arguments: tuple, data,
-                 per_member: bool = False, workers: int | None = None, data_index=None):
+                 per_member: bool = False, workers: int | None = None, data_index=None, vectorise_from: int = 1):
         self.n, self.arguments, self.data, self.per_member = n, arguments, data, per_member
         self.data_index = data_index  # the row of the stacked data each member uses (default: its own)
         self.rows = jax.device_put(np.eye(n))
@@ -100,30 +102,32 @@ class BatchedPrograms:
                 SCORING: None if programs.scoring is None else vectorised(_scoring_matrix(programs.scoring), True),
             }
         self.programs = structure_cache[cache_key]
-        self.exact = programs.derivatives
-        # The blocks a single fit uses, so the starts of a fit reuse its compiled program.
-        self.blocks = direction_blocks(n)
+        self.single, self.vectorise_from = programs, vectorise_from
+        # The starts of a fit split directions into the blocks a single fit uses, and so
+        # reuse its compiled programs; a fleet's members (with data of a shape of their
+        # own) take all directions in one call, and the threads take different members.
+        self.blocks = direction_blocks(n, 1 if per_member else None)
         # Sizes compiled for these data shapes (a new shape compiles anew).
         shapes = tuple(np.shape(a) for a in jax.tree_util.tree_leaves(data))
         self.compiled = self.programs.setdefault(("compiled", shapes), set())
         self.pool = ThreadPoolExecutor(max(1, min(worker_count() if workers is None else workers, 8)))
         self.workers = self.pool._max_workers
 
-    def _exact(self, members: list[int], Z: np.ndarray):
-        """Value, gradient and exact Hessian of each member in turn, by the single fit's program."""
-        results = []
-        for member, z in zip(members, Z):
-            data = self.data
-            if self.per_member:
-                row = member if self.data_index is None else self.data_index[member]
-                data = jax.tree_util.tree_map(lambda leaf: leaf[row], self.data)
-            parts = [jax.device_get(self.exact(z, rows, *self.arguments, data)) for rows in self.blocks]
-            results.append(combine_hessian(parts, self.n))
-        return results
+    def _member_data(self, member: int):
+        if not self.per_member:
+            return self.data
+        row = member if self.data_index is None else self.data_index[member]
+        return jax.tree_util.tree_map(lambda leaf: leaf[row], self.data)
+
+    def _block(self, kind: str, member: int, z: np.ndarray, rows):
+        """One member's value, or one block of its derivatives' directions, by the single fit's programs."""
+        data = self._member_data(member)
+        if kind == VALUE:
+            return jax.device_get(self.single.value(z, *self.arguments, data))
+        program = self.single.derivatives if kind == EXACT else self.single.scoring
+        return jax.device_get(program(z, rows, *self.arguments, data))
 
     def _call(self, kind: str, members: list[int], Z: np.ndarray):
-        if kind == EXACT:
-            return self._exact(members, Z)
         size = batch_size(len(members))
         pad = size - len(members)
         Z = np.concatenate([Z, np.repeat(Z[:1], pad, axis=0)])
@@ -147,29 +151,39 @@ class BatchedPrograms:
 
     def __call__(self, groups: list[tuple[str, list[int], np.ndarray]]) -> list[list]:
         """Outputs for each group ``(kind, members, Z)``, in order, as each member's program would give."""
-        calls = []  # (group, slice of its members)
-        for g, (kind, members, _) in enumerate(groups):
-            # Enough calls to keep every worker busy, none larger than MAX_BATCH.
-            count = max(-(-len(members) // MAX_BATCH), min(self.workers, len(members)))
-            for part in np.array_split(np.arange(len(members)), count):
-                calls.append((g, part))
+        tasks = []  # (group, members' positions in it, one block or a vectorised part, function, arguments)
+        for g, (kind, members, Z) in enumerate(groups):
+            if kind == EXACT or len(members) < self.vectorise_from:
+                # Member by member, each block of directions a task of its own, so the
+                # threads stay busy however few members ask.
+                for i, (member, z) in enumerate(zip(members, Z)):
+                    for rows in ([None] if kind == VALUE else self.blocks):
+                        tasks.append((g, i, (kind, "alone"), self._block, (kind, member, z, rows)))
+            else:
+                # Enough calls to keep every worker busy, none larger than MAX_BATCH.
+                count = max(-(-len(members) // MAX_BATCH), min(self.workers, len(members)))
+                for part in np.array_split(np.arange(len(members)), count):
+                    tasks.append((g, part, (kind, batch_size(len(part))), self._call,
+                                  (kind, [members[i] for i in part], Z[part])))
         futures = []
-        for g, part in calls:
-            kind, members, Z = groups[g]
-            args = (kind, [members[i] for i in part], Z[part])
-            signature = (kind, 1 if kind == EXACT else batch_size(len(part)))
-            if signature not in self.compiled and kind == EXACT:  # compiled here, not by several threads
-                self._call(kind, args[1][:1], args[2][:1])
-                self.compiled.add(signature)
+        for _, _, signature, function, arguments in tasks:
             if signature in self.compiled:
-                futures.append(self.pool.submit(self._call, *args))
+                futures.append(self.pool.submit(function, *arguments))
             else:  # compiled once, here, rather than by several threads at once
-                futures.append(_Done(self._call(*args)))
+                futures.append(_Done(function(*arguments)))
                 self.compiled.add(signature)
+        parts: dict = {}
         outputs: list[list] = [[None] * len(members) for _, members, _ in groups]
-        for (g, part), future in zip(calls, futures):
-            for i, out in zip(part, future.result()):
-                outputs[g][i] = out
+        for (g, where, signature, _, _), future in zip(tasks, futures):
+            if signature[1] == "alone":
+                parts.setdefault((g, where), []).append(future.result())
+            else:
+                for i, out in zip(where, future.result()):
+                    outputs[g][i] = out
+        for (g, i), blocks in parts.items():
+            kind = groups[g][0]
+            outputs[g][i] = ((blocks[0],) if kind == VALUE else
+                             (combine_hessian if kind == EXACT else combine_scoring)(blocks, self.n))
         return outputs
 
     def close(self):

@@ -198,7 +198,17 @@ class FitResult:
 
     def start_spread(self, tolerance: float = 0.01) -> str:
         """How many starts reached the best criterion (within ``tolerance``), and the next best value."""
-        values = np.sort(np.array([v for v in self.start_values if np.isfinite(v)]))[::-1]
+        # Pruned and failed starts ended nowhere in particular: not optima of their own.
+        stopped = {"pruned": 0, "failed": 0}
+        ended = []
+        for i, v in enumerate(self.start_values):
+            message = self.starts[i].get("message", "") if i < len(self.starts) else ""
+            kind = next((k for k in stopped if str(message).startswith(k)), None)
+            if kind is not None:
+                stopped[kind] += 1
+            elif np.isfinite(v):
+                ended.append(v)
+        values = np.sort(np.array(ended))[::-1]
         if len(values) == 0:
             return f"{len(self.start_values)}, none finite"
         best = values[0]
@@ -207,6 +217,9 @@ class FitResult:
         others = values[values < best - tolerance]
         if len(others):
             text += f"; next best {others[0]:.6g} (the criterion has several optima)"
+        for kind, count in stopped.items():
+            if count:
+                text += f"; {count} {kind} (see fit.starts)"
         return text
 
     def __repr__(self) -> str:
