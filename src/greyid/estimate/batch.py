@@ -112,6 +112,7 @@ class BatchedPrograms:
         self.compiled = self.programs.setdefault(("compiled", shapes), set())
         self.pool = ThreadPoolExecutor(max(1, min(worker_count() if workers is None else workers, 8)))
         self.workers = self.pool._max_workers
+        self.pending = None  # the exact program compiling in the background
 
     def _member_data(self, member: int):
         if not self.per_member:
@@ -149,8 +150,17 @@ class BatchedPrograms:
             results.append((part,) if kind == VALUE else _with_prior(*part))
         return results
 
+    def compile_exact_ahead(self, z) -> None:
+        """Compile the exact program (by a first evaluation at z) in a background thread; see
+        :meth:`~.objective.Derivatives.compile_ahead`."""
+        self.pending = self.pool.submit(lambda: [self._block(EXACT, 0, z, rows) for rows in self.blocks])
+
     def __call__(self, groups: list[tuple[str, list[int], np.ndarray]]) -> list[list]:
         """Outputs for each group ``(kind, members, Z)``, in order, as each member's program would give."""
+        if self.pending is not None and any(kind == EXACT for kind, _, _ in groups):
+            self.pending.result()
+            self.pending = None
+            self.compiled.add((EXACT, "alone"))
         tasks = []  # (group, members' positions in it, one block or a vectorised part, function, arguments)
         for g, (kind, members, Z) in enumerate(groups):
             if kind == EXACT or len(members) < self.vectorise_from:

@@ -184,10 +184,16 @@ def new_search(problem: Problem, z0, maxiter: int, report, scoring: bool, handov
     return Search(z0, maxiter, report, scoring=scoring, value=scoring, handover=handover, step_limit=limit)
 
 
-def single_programs(structure, problem: Problem, arguments: tuple, stack: ExitStack) -> dict:
-    """``{kind: evaluate(z)}`` for one search at a time, the derivatives' directions split over threads."""
+def single_programs(structure, problem: Problem, arguments: tuple, stack: ExitStack, compile_at=None) -> dict:
+    """``{kind: evaluate(z)}`` for one search at a time, the derivatives' directions split over threads.
+
+    With ``compile_at`` (a point z), the exact program compiles in the background
+    while the search takes its first (scoring) steps.
+    """
     programs = compiled(structure, problem)
     out = {EXACT: stack.enter_context(Derivatives(programs.derivatives, len(problem.free), arguments))}
+    if compile_at is not None:
+        out[EXACT].compile_ahead(compile_at)
     if programs.scoring is not None:
         # One thread on long series: two concurrent scoring programs of 10⁶ rows
         # have deadlocked in XLA's CPU runtime (benchmarks/length.py).
@@ -283,9 +289,10 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
 
         def optimize(problem, z_start, i, exact_only=False):
             """One search alone (one start, or the refit with more sub-steps)."""
-            if problem.key() not in evaluators:
-                evaluators[problem.key()] = single_programs(structure, problem, (*args, datasets), open_programs)
             search = new_search(problem, z_start, maxiter, reporter(i), use_scoring and not exact_only)
+            if problem.key() not in evaluators:
+                evaluators[problem.key()] = single_programs(structure, problem, (*args, datasets), open_programs,
+                                                            z_start if search.scoring else None)
             shown.begin_start(i)
             try:
                 optimum = run_alone(search, evaluators[problem.key()])
@@ -303,6 +310,8 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
                         for i, z_start in enumerate(points)]
             with BatchedPrograms(structure.cache, problem.key(), compiled(structure, problem), len(free), args,
                                  datasets, vectorise_from=VECTORISE_STARTS) as batched:
+                if any(search.scoring for search in searches):
+                    batched.compile_exact_ahead(points[0])
                 results = drive(searches, batched, prune=prune_trailing,
                                 finished=lambda i, r: None if isinstance(r, ModelError) else finished(i, r))
             if isinstance(results[0], ModelError):

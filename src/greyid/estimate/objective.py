@@ -308,7 +308,21 @@ class Derivatives:
     def _block(self, z, rows):
         return jax.block_until_ready(self.program(z, rows, *self.arguments))
 
+    def compile_ahead(self, z) -> None:
+        """Compile (by a first evaluation at z) in a background thread, while the search runs on.
+
+        A search that scores first needs the exact Hessian only at its hand-over; its
+        program, the costliest to compile, is then ready or nearly so.  The first
+        call waits for it rather than compile it a second time.
+        """
+        self.ahead = ThreadPoolExecutor(1)
+        self.pending = self.ahead.submit(self.__call__, z)
+
     def __call__(self, z):
+        pending, self.pending = getattr(self, "pending", None), None
+        if pending is not None:
+            pending.result()
+            self.ahead.shutdown()
         z = np.asarray(z, dtype=np.float64)  # transferred by the call, without a compiled conversion
         if self.pool is None or self.signature not in self.program.compiled_for:
             parts = [self._block(z, rows) for rows in self.blocks]  # compiles once
