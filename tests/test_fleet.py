@@ -134,8 +134,8 @@ def test_prune_trailing_stops_only_far_behind_and_slow():
             self.f, self.iterations, self.history = f, iterations, history
 
     searches = [Fake(-1000.0, 9, [0, -900, -990, -1000]),  # the best
-                Fake(-800.0, 9, [-790, -795, -799, -800]),  # 200 behind, gaining 10: pruned
-                Fake(-800.0, 9, [-300, -500, -700, -800]),  # 200 behind, gaining 500: kept
+                Fake(-800.0, 9, [-799.5, -799.8, -799.9, -800]),  # 200 behind, settled (gaining 0.5): pruned
+                Fake(-800.0, 9, [-790, -795, -799, -800]),  # 200 behind, still gaining 10: kept (a crawl may find more)
                 Fake(-980.0, 9, [-979, -979.5, -980, -980]),  # 20 behind: kept
                 Fake(-100.0, 3, [-99, -99, -100, -100])]  # too early to judge: kept
     assert set(prune_trailing(searches, {1, 2, 3, 4})) == {1}
