@@ -19,7 +19,8 @@ def test_monte_carlo_information_converges_to_the_exact_one(linear_model):
     t = np.cumsum(rng.uniform(0.3, 1.0, N))
     U = rng.normal(size=(N, 2))
     plan = pd.DataFrame({"t": t, "u1": U[:, 0], "u2": U[:, 1]})
-    info = design.fisher_information(linear_model, params, plan, free=NAMES, n_paths=400, seed=1)
+    info = design.fisher_information(linear_model, params, plan, free=NAMES, method="montecarlo", n_paths=400,
+                                     seed=1)
     assert list(info.index) == NAMES and info.attrs["n_paths"] == 400
     exact = dense_information(params, t, U, NAMES)
     error = info.attrs["standard_error"].to_numpy()
@@ -35,8 +36,38 @@ def test_plan_must_not_hold_outputs(linear_model):
     plan = pd.DataFrame({"t": [0.0, 1.0], "u1": [0.0, 1.0], "u2": [0.0, 0.0], "y1": [1.0, 2.0]})
     with pytest.raises(greyid.DataError, match="'y1'"):
         design.fisher_information(linear_model, params, plan)
-    with pytest.raises(greyid.ModelError, match="exact"):
-        design.fisher_information(linear_model, params, plan.drop(columns="y1"), method="exact")
+    with pytest.raises(greyid.ModelError, match="unknown method 'dense'"):
+        design.fisher_information(linear_model, params, plan.drop(columns="y1"), method="dense")
+
+
+@pytest.mark.parametrize("hold, foh", [("zoh", 0.0), ("foh", 1.0)])
+def test_exact_information_equals_the_dense_gaussian_one(linear_model, hold, foh):
+    """The O(N) filter-with-sensitivities information equals ∂μᵀΣ⁻¹∂μ + ½tr(Σ⁻¹∂ΣΣ⁻¹∂Σ) of all stacked
+    observations (irregular times, random 3-state model, initial transient included)."""
+    for seed in (5, 9):
+        rng = np.random.default_rng(seed)
+        params, _ = random_linear_parameters(rng)
+        N = 12
+        t = np.cumsum(rng.uniform(0.3, 1.0, N))
+        U = rng.normal(size=(N, 2))
+        plan = pd.DataFrame({"t": t, "u1": U[:, 0], "u2": U[:, 1]})
+        names = ["a11", "a23", "b11", "c2", "g11", "g21", "h12", "d11", "s1", "s2", "m1", "v11", "v13"]
+        info = design.fisher_information(linear_model, params, plan, free=names, hold=hold)
+        assert info.attrs["method"] == "exact"
+        dense = dense_information(params, t, U, names, foh)
+        scale = np.sqrt(np.outer(np.diag(dense), np.diag(dense)))
+        np.testing.assert_allclose(info.to_numpy() / scale, dense / scale, atol=1e-6)
+
+
+def test_exact_information_needs_a_linear_model():
+    m = greyid.Model("logistic")
+    m.add_system("dx = r*x*(1 - x)*dt + s*dw1")
+    m.add_observation("y = x", variance="e")
+    m.set_initial_state(mean={"x": "x0"}, covariance=[["p0"]])
+    params = dict(r=1.0, s=0.1, e=0.01, x0=0.2, p0=0.01)
+    plan = pd.DataFrame({"t": np.arange(5.0)})
+    with pytest.raises(greyid.ModelError, match="method='montecarlo'"):
+        design.fisher_information(m, params, plan, method="exact")
 
 
 def test_criteria_equal_their_formulas():

@@ -6,8 +6,9 @@ inputs, and average the outer products of the per-observation scores through
 the filter (each an unbiased estimate of the information, since the scores of
 the prediction-error decomposition are martingale differences), with the Monte
 Carlo standard error of every entry.  It serves linear and nonlinear models.
-An exact O(N) computation for linear models (the filter augmented with its
-parameter sensitivities) is not in greyid yet.
+``method="exact"`` (the default for linear models) computes the expected
+information of the finite experiment exactly, in O(N), from the filter
+augmented with its parameter sensitivities (:mod:`.exact`).
 """
 
 from __future__ import annotations
@@ -17,8 +18,10 @@ import pandas as pd
 
 from ..errors import DataError, ModelError
 from ..estimate.information import loglik_derivatives
+from ..filters.api import prepare_datasets
+from .exact import exact_information
 
-METHODS = ("montecarlo",)
+METHODS = ("exact", "montecarlo")
 
 
 def _free_names(model, free):
@@ -33,30 +36,45 @@ def _free_names(model, free):
 
 
 def fisher_information(model, params, plan: pd.DataFrame, time: str = "t", hold: str = "zoh", free=None,
-                       method: str = "montecarlo", n_paths: int = 100, seed: int = 0, filter_method=None,
+                       method: str | None = None, n_paths: int = 100, seed: int = 0, filter_method=None,
                        simulation: str | None = None, substeps: int = 20) -> pd.DataFrame:
     """Information matrix of the experiment ``plan`` at ``params`` (natural parameters).
 
-    ``plan`` holds the time column and the inputs; ``free`` names the parameters
-    the matrix is taken for (default: the model's non-fixed ones).  Returns a
-    DataFrame indexed and columned by those names; its ``attrs["standard_error"]``
-    holds the Monte Carlo standard error of each entry and ``attrs["n_paths"]``
-    the number of simulated data sets.
+    ``plan`` holds the time column and the inputs (every output is planned to be
+    observed at every row); ``free`` names the parameters the matrix is taken for
+    (default: the model's non-fixed ones).  ``method`` is ``"exact"`` (linear
+    models; the default for them) or ``"montecarlo"`` (any model; the default for
+    nonlinear ones), with ``n_paths`` simulated data sets.  Returns a DataFrame
+    indexed and columned by those names; ``attrs["method"]`` says how it was
+    computed, and for Monte Carlo ``attrs["standard_error"]`` holds the standard
+    error of each entry and ``attrs["n_paths"]`` the number of simulated data sets.
     """
+    if method is None:
+        method = "exact" if model.structure.is_linear else "montecarlo"
     if method not in METHODS:
-        raise ModelError(f"method {method!r} is not available; use one of {list(METHODS)} "
-                         "(the exact linear-model information is not implemented yet)")
+        raise ModelError(f"unknown method {method!r}; use one of {list(METHODS)}")
+    if method == "exact" and not model.structure.is_linear:
+        raise ModelError(f"method='exact' needs a linear model, and model '{model.name}' is "
+                         f"{model.structure.kind}; use method='montecarlo'")
     if not isinstance(plan, pd.DataFrame):
         raise DataError("the plan must be a DataFrame with the time column and the inputs")
     present = [o for o in model.output_names if o in plan.columns]
     if present:
         raise DataError(f"the plan holds the output column '{present[0]}'; a plan has times and inputs only")
-    if not isinstance(n_paths, int) or n_paths < 2:
+    if method == "montecarlo" and (not isinstance(n_paths, int) or n_paths < 2):
         raise ModelError(f"n_paths must be an integer of at least 2, got {n_paths!r}")
     names = _free_names(model, free)
     values = model.parameter_vector(params)
     all_names = list(model.structure.parameter_names)
     point = dict(zip(all_names, values))
+    if method == "exact":
+        observed = plan.assign(**{o: 0.0 for o in model.output_names})  # every output observed; values unused
+        prepared = prepare_datasets(model.structure, values, observed, time, hold, None)
+        index = tuple(all_names.index(n) for n in names)
+        F = sum(exact_information(model.structure, values, inputs, index) for _, inputs in prepared)
+        info = pd.DataFrame(F, index=names, columns=names)
+        info.attrs["method"] = "exact"
+        return info
     simulation = simulation or ("exact" if model.structure.is_linear else "milstein")
     sims = model.simulate(point, plan, n_paths=n_paths, seed=seed, method=simulation, substeps=substeps,
                           hold=hold, time=time)
@@ -73,6 +91,7 @@ def fisher_information(model, params, plan: pd.DataFrame, time: str = "t", hold:
     info = pd.DataFrame(0.5 * (mean + mean.T), index=names, columns=names)
     info.attrs["standard_error"] = pd.DataFrame(error, index=names, columns=names)
     info.attrs["n_paths"] = n_paths
+    info.attrs["method"] = "montecarlo"
     return info
 
 
