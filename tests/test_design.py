@@ -110,3 +110,19 @@ def test_local_identifiability_names_a_product():
     flat = design.local_identifiability(info, tolerance=1e-6)
     assert len(flat) == 1 and set(flat["parameters"].iloc[0]) == {"a", "b"}
     assert design.local_identifiability(info.loc[["a", "s", "r"], ["a", "s", "r"]]).empty
+
+
+def test_cramer_rao_bound_is_the_inverse_information_and_gauss_formula():
+    rng = np.random.default_rng(3)
+    B = rng.normal(size=(3, 3))
+    M = B @ B.T + np.eye(3)
+    names = ["a", "b", "c"]
+    info = pd.DataFrame(M, index=names, columns=names)
+    params = {"a": 2.0, "b": 3.0, "c": 0.5}
+    bound = design.cramer_rao_bound(info, params, {"ab": "a*b"})
+    cov = np.linalg.inv(M)
+    np.testing.assert_allclose(bound[names].to_numpy(), np.diag(cov))
+    J = np.array([3.0, 2.0, 0.0])  # ∂(ab)/∂(a, b, c) at the point
+    assert bound["ab"] == pytest.approx(J @ cov @ J)
+    singular = pd.DataFrame(np.diag([1.0, 0.0]), index=["a", "b"], columns=["a", "b"])
+    assert np.all(np.isinf(design.cramer_rao_bound(singular)))

@@ -3,10 +3,11 @@
 * :func:`fisher_information` — the information matrix of a planned experiment
   (a DataFrame of times and inputs, no outputs) at assumed parameter values;
 * :func:`criterion` — the optimality criteria (6.32)–(6.35), every one minimised;
+* :func:`cramer_rao_bound` — the least variance of unbiased estimates (6.30, 6.35);
 * :func:`local_identifiability` — the rank of that information at the assumed values.
 """
 
-from .criteria import CRITERIA, criterion
+from .criteria import CRITERIA, cramer_rao_bound, criterion
 from .information import fisher_information, local_identifiability
 
-__all__ = ["fisher_information", "criterion", "local_identifiability", "CRITERIA"]
+__all__ = ["fisher_information", "criterion", "cramer_rao_bound", "local_identifiability", "CRITERIA"]

@@ -100,3 +100,27 @@ def _derived_covariance(cov, names, params, derived) -> np.ndarray:
         rows.append([float(sp.diff(expr, s).subs(at)) for s in symbols])
     J = np.array(rows)
     return J @ cov @ J.T
+
+
+def cramer_rao_bound(info, params=None, derived=None) -> pd.Series:
+    """The Cramér–Rao bound: the least variance of an unbiased estimate of each parameter (the
+    diagonal of M⁻¹, 6.30) and of each ``derived`` quantity (J M⁻¹ Jᵀ by Gauss' formula, 6.35).
+
+    An infinite bound marks a parameter the experiment does not determine
+    (a singular M, see :func:`~.information.local_identifiability`).
+    """
+    M, names = _matrix(info)
+    w = np.linalg.eigvalsh(0.5 * (M + M.T))
+    if w.min() <= 1e-12 * max(w.max(), 1e-300):
+        values = np.full(len(names), np.inf)
+        out = pd.Series(values, index=names, name="variance bound")
+        if derived:
+            out = pd.concat([out, pd.Series(np.inf, index=list(derived), name="variance bound")])
+        return out
+    cov = np.linalg.inv(M)
+    out = pd.Series(np.diag(cov), index=names, name="variance bound")
+    if derived:
+        extra = pd.Series(np.diag(_derived_covariance(cov, names, params, derived)), index=list(derived),
+                          name="variance bound")
+        out = pd.concat([out, extra]).rename("variance bound")
+    return out
