@@ -126,3 +126,34 @@ def test_cramer_rao_bound_is_the_inverse_information_and_gauss_formula():
     assert bound["ab"] == pytest.approx(J @ cov @ J)
     singular = pd.DataFrame(np.diag([1.0, 0.0]), index=["a", "b"], columns=["a", "b"])
     assert np.all(np.isinf(design.cramer_rao_bound(singular)))
+
+
+def test_compare_inputs_ranks_candidates_by_each_criterion(linear_model):
+    """Criteria of each candidate equal the criteria of its own information; ranks order them."""
+    rng = np.random.default_rng(5)
+    params, _ = random_linear_parameters(rng)
+    t = np.arange(10.0)
+    plans = {"quiet": pd.DataFrame({"t": t, "u1": 0.01 * rng.normal(size=10), "u2": np.zeros(10)}),
+             "loud": pd.DataFrame({"t": t, "u1": 3.0 * rng.normal(size=10), "u2": rng.normal(size=10)})}
+    names = ["a11", "b11", "b12", "s1"]
+    table = design.compare_inputs(linear_model, params, plans, free=names, interest=["b11", "b12"],
+                                  criteria={"D": "D", "Ds": "Ds", "q": {"name": "A", "derived": {"q": "b11*b12"}}})
+    for name, plan in plans.items():
+        info = design.fisher_information(linear_model, params, plan, free=names)
+        assert table.loc[name, "D"] == pytest.approx(design.criterion(info, "D"))
+        assert table.loc[name, "Ds"] == pytest.approx(design.criterion(info, "Ds", interest=["b11", "b12"]))
+        assert table.loc[name, "q"] == pytest.approx(
+            design.criterion(info, "A", params=params, derived={"q": "b11*b12"}))
+    # Exciting the inputs tells more about their gains.
+    assert table.loc["loud", "Ds rank"] == 1 and table.loc["quiet", "Ds rank"] == 2
+    with pytest.raises(greyid.DataError, match="candidate 'bad'"):
+        design.compare_inputs(linear_model, params, {"bad": plans["loud"].drop(columns="u2")}, free=names)
+
+
+def test_derived_d_criterion_is_log_det_of_the_derived_covariance():
+    M = np.array([[4.0, 1.0], [1.0, 3.0]])
+    info = pd.DataFrame(M, index=["a", "b"], columns=["a", "b"])
+    params = {"a": 2.0, "b": 1.0}
+    J = np.array([[1.0, 1.0], [1.0, 2.0]])  # ∂(a + b, a·b)/∂(a, b) at (2, 1)
+    expected = np.log(np.linalg.det(J @ np.linalg.inv(M) @ J.T))
+    assert design.criterion(info, "D", params=params, derived={"s": "a + b", "p": "a*b"}) == pytest.approx(expected)

@@ -48,3 +48,25 @@ def test_lotka_volterra_study_reduced():
                       simulate={"method": "milstein", "substeps": 20},
                       fit={"method": "ekf", "substeps": 1})  # one sub-step, as the thesis ran it
     check(study)
+
+
+def test_table_7_4_study_runs_and_the_step_wins_for_ua(capsys):
+    """studies/table_7_4.py on a shorter experiment: both tables print, and the step signal, whose
+    power lies at the lowest frequencies, determines the UA-value best (table 7.5's finding)."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "studies"))
+    import table_7_4
+
+    table_7_4.main(["--hours", "504"])
+    out = capsys.readouterr().out
+    assert "Table 7.4" in out and "Table 7.5" in out
+    plans = table_7_4.candidates(504)
+    from greyid import design
+
+    ranks = design.compare_inputs(thesis.test_cell_model(), thesis.TEST_CELL_PARAMETERS, plans,
+                                  criteria={"UA": {"name": "A", "derived": {"UA": table_7_4.PHYSICAL["UA"]}}},
+                                  free=["Hi", "Hm", "Ci", "Cm", "s1i", "s1m", "s2"])
+    assert ranks.loc["step", "UA rank"] == 1
+    assert ranks.loc["prbs4", "UA rank"] < ranks.loc["prbs1", "UA rank"]

@@ -4,10 +4,12 @@
   (a DataFrame of times and inputs, no outputs) at assumed parameter values;
 * :func:`criterion` — the optimality criteria (6.32)–(6.35), every one minimised;
 * :func:`cramer_rao_bound` — the least variance of unbiased estimates (6.30, 6.35);
-* :func:`local_identifiability` — the rank of that information at the assumed values.
+* :func:`local_identifiability` — the rank of that information at the assumed values;
+* :func:`compare_inputs` — candidate plans side by side, criteria and ranks (tables 7.4–7.5).
 """
 
+from .compare import compare_inputs
 from .criteria import CRITERIA, cramer_rao_bound, criterion
 from .information import fisher_information, local_identifiability
 
-__all__ = ["fisher_information", "criterion", "cramer_rao_bound", "local_identifiability", "CRITERIA"]
+__all__ = ["compare_inputs", "fisher_information", "criterion", "cramer_rao_bound", "local_identifiability", "CRITERIA"]

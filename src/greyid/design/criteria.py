@@ -3,7 +3,7 @@
 * ``"D"``: −log det M (6.33, κ = −1);
 * ``"A"``: tr(M⁻¹)/p and ``"C"``: tr(V M⁻¹ V)/p with V = diag(1/θ) (6.32, k = 1):
   the mean variance, and the mean of 1/t² (scale-free);
-* ``"E"``: λ_max(M⁻¹) (6.34);
+* ``"E"``: λ_max(M⁻¹) (6.34), or λ_max(V M⁻¹ Vᵀ) with a scaling V;
 * ``"L"``: [tr((V M⁻¹ Vᵀ)^k)/p]^{1/k} for a user matrix V and power k (Kiefer's
   family (6.32); k = 1 gives A and C, k → ∞ E);
 * ``"Ds"``: −log det of the information on the parameters of ``interest`` with
@@ -33,10 +33,10 @@ def criterion(info, name: str, params=None, interest=None, V=None, k: float = 1.
     """The value of criterion ``name`` for the information ``info`` (smaller is better).
 
     ``params`` (a mapping) gives θ for ``"C"``; ``interest`` names the parameters
-    of ``"Ds"``; ``V`` and ``k`` define ``"L"``.  ``derived`` — a mapping of
+    of ``"Ds"``; ``V`` and ``k`` define ``"L"`` (``V`` also scales ``"E"``).  ``derived`` — a mapping of
     names to expressions, with ``params`` — replaces M⁻¹ by the covariance of
-    those quantities (6.35) for ``"A"``, ``"E"`` and ``"L"``.  A singular M
-    gives +inf (6.32).
+    those quantities (6.35, 7.47) for ``"D"`` (log det J M⁻¹ Jᵀ), ``"A"``, ``"C"``
+    (V = diag(1/f(θ))), ``"E"`` and ``"L"``.  A singular M gives +inf (6.32).
     """
     if name not in CRITERIA:
         raise ModelError(f"unknown criterion {name!r}; use one of {list(CRITERIA)}")
@@ -58,15 +58,21 @@ def criterion(info, name: str, params=None, interest=None, V=None, k: float = 1.
     sign, logdet = np.linalg.slogdet(M)
     if sign <= 0 or not np.isfinite(logdet):
         return float("inf")
-    if name == "D":
+    if name == "D" and derived is None:
         return float(-logdet)
     cov = np.linalg.inv(M)
     if derived is not None:
-        cov = _derived_covariance(cov, names, params, derived)
+        cov, names, params = _derived_covariance(cov, names, params, derived, with_values=True)
+        if name == "D":  # −log det of the derived quantities' information, log det J M⁻¹ Jᵀ
+            sign, logdet = np.linalg.slogdet(0.5 * (cov + cov.T))
+            return float(logdet) if sign > 0 else float("inf")
     p = cov.shape[0]
     if name == "A":
         return float(np.trace(cov) / p)
     if name == "E":
+        if V is not None:  # of a scaled covariance, V M⁻¹ Vᵀ (e.g. relative: V = diag(1/θ))
+            W = np.asarray(V, dtype=np.float64)
+            cov = W @ cov @ W.T
         return float(np.linalg.eigvalsh(0.5 * (cov + cov.T)).max())
     if name == "C":
         if params is None:
@@ -81,8 +87,9 @@ def criterion(info, name: str, params=None, interest=None, V=None, k: float = 1.
     return float((np.sum(np.maximum(eig, 0.0) ** k) / p) ** (1.0 / k))
 
 
-def _derived_covariance(cov, names, params, derived) -> np.ndarray:
-    """J M⁻¹ Jᵀ for the quantities ``derived`` (6.35), J by SymPy differentiation."""
+def _derived_covariance(cov, names, params, derived, with_values: bool = False):
+    """J M⁻¹ Jᵀ for the quantities ``derived`` (6.35), J by SymPy differentiation; with
+    ``with_values``, also the quantities' names and values (for ``"C"``)."""
     import sympy as sp
 
     from ..model.equations import parse_expression
@@ -91,14 +98,17 @@ def _derived_covariance(cov, names, params, derived) -> np.ndarray:
         raise ModelError("derived quantities need params (the point at which to differentiate)")
     symbols = [parse_expression(n, "parameter") for n in names]
     at = {s: float(params[n]) for s, n in zip(symbols, names)}
-    rows = []
+    rows, values = [], {}
     for label, text in derived.items():
         expr = parse_expression(text, f"derived quantity '{label}'")
         extra = {s.name for s in expr.free_symbols} - set(names)
         if extra:
             raise ModelError(f"derived quantity '{label}' uses '{sorted(extra)[0]}', which is not in the matrix")
         rows.append([float(sp.diff(expr, s).subs(at)) for s in symbols])
+        values[label] = float(expr.subs(at))
     J = np.array(rows)
+    if with_values:
+        return J @ cov @ J.T, list(derived), values
     return J @ cov @ J.T
 
 

@@ -1,0 +1,78 @@
+"""Candidate experiments side by side: criteria and ranks (thesis section 7.3, tables 7.4–7.5).
+
+``compare_inputs(model, params, {"prbs 1 h": plan_a, "step": plan_b, ...})``
+computes the information of every candidate plan (exact for linear models, by
+Monte Carlo otherwise, see :func:`~.information.fisher_information`) and the
+chosen criteria on it, each minimised, with the rank of every candidate per
+criterion (1 = best).
+"""
+
+from __future__ import annotations
+
+from typing import Mapping
+
+import pandas as pd
+
+from ..errors import DataError, ModelError
+from .criteria import criterion
+from .information import fisher_information
+
+#: Table 7.4's standard measures.
+STANDARD = {"D": "D", "Ds": "Ds", "C": "C", "E": "E"}
+
+
+def _spec(label, spec) -> dict:
+    if isinstance(spec, str):
+        return {"name": spec}
+    if isinstance(spec, Mapping) and "name" in spec:
+        return dict(spec)
+    raise ModelError(f"criterion '{label}' must be a criterion name such as 'D' or a mapping with a 'name' "
+                     "(and interest=, derived=, V=, k=)")
+
+
+def compare_inputs(model, params, candidates: Mapping[str, pd.DataFrame], criteria=None, interest=None,
+                   **information_options) -> pd.DataFrame:
+    """Criteria (columns) of each candidate plan (rows), with a ``<criterion> rank`` column each.
+
+    ``criteria`` maps a column label to a criterion name (``"D"``, ``"A"``, ``"C"``,
+    ``"E"``, ``"L"``, ``"Ds"``) or to a mapping with the name and its options
+    (``interest=``, ``derived=`` expressions of the parameters, ``V=``, ``k=``),
+    e.g. ``{"UA": {"name": "A", "derived": {"UA": "Hi*Hm/(Hi+Hm)"}}}``; default
+    D, Ds, C and E (Ds with ``interest``).  Other keyword arguments go to
+    :func:`fisher_information` (``time``, ``hold``, ``free``, ``method``,
+    ``n_paths``, ``seed``).  ``attrs["information"]`` holds each candidate's matrix.
+    """
+    if not isinstance(candidates, Mapping) or not candidates:
+        raise DataError("candidates must be a non-empty mapping name → plan DataFrame")
+    if criteria is None:
+        criteria = dict(STANDARD) if interest is not None else {k: v for k, v in STANDARD.items() if k != "Ds"}
+    specs = {label: _spec(label, spec) for label, spec in criteria.items()}
+    values = model.parameter_vector(params)
+    point = dict(zip(model.structure.parameter_names, values))
+    rows, matrices = {}, {}
+    for name, plan in candidates.items():
+        if not isinstance(plan, pd.DataFrame):
+            raise DataError(f"candidate '{name}' is not a DataFrame of times and inputs")
+        try:
+            info = fisher_information(model, point, plan, **information_options)
+        except (DataError, ModelError) as error:
+            raise type(error)(f"candidate '{name}': {error}") from None
+        matrices[name] = info
+        row = {}
+        for label, spec in specs.items():
+            options = {k: v for k, v in spec.items() if k != "name"}
+            if spec["name"] == "Ds" and "interest" not in options:
+                if interest is None:
+                    raise ModelError(f"criterion '{label}' (Ds) needs interest=, the parameters of interest")
+                options["interest"] = interest
+            row[label] = criterion(info, spec["name"], params=point, **options)
+        rows[name] = row
+    table = pd.DataFrame.from_dict(rows, orient="index")
+    for label in specs:
+        table[f"{label} rank"] = table[label].rank(method="min").astype(int)
+    table = table[[c for label in specs for c in (label, f"{label} rank")]]
+    table.attrs["information"] = matrices
+    return table
+
+
+__all__ = ["compare_inputs", "STANDARD"]
