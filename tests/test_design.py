@@ -157,3 +157,42 @@ def test_derived_d_criterion_is_log_det_of_the_derived_covariance():
     J = np.array([[1.0, 1.0], [1.0, 2.0]])  # ∂(a + b, a·b)/∂(a, b) at (2, 1)
     expected = np.log(np.linalg.det(J @ np.linalg.inv(M) @ J.T))
     assert design.criterion(info, "D", params=params, derived={"s": "a + b", "p": "a*b"}) == pytest.approx(expected)
+
+
+@pytest.fixture(scope="module")
+def test_cell():
+    from greyid.datasets.thesis import TEST_CELL_PARAMETERS, test_cell_model
+
+    return test_cell_model(), dict(TEST_CELL_PARAMETERS, Ti0=0.0, Tm0=0.0)
+
+
+def test_frequency_information_is_the_long_experiment_information_per_sample(test_cell):
+    """M̄_c + P·M_u(ω) against the exact information of a long sinusoidal experiment divided by its length."""
+    model, params = test_cell
+    free = ["Hi", "Hm", "Ci", "Cm", "s1i", "s1m", "s2"]
+    omega, amplitude, N = 0.3, 100.0, 3000
+    per_sample = design.frequency_information(model, params, omega, "Qh", 1.0, free=free)
+    predicted = per_sample.attrs["input_independent"].to_numpy() + amplitude**2 * per_sample.to_numpy()
+    t = np.arange(N, dtype=float)
+    plan = pd.DataFrame({"t": t, "Te": 0.0, "Qh": amplitude * np.sqrt(2) * np.cos(omega * t)})
+    exact = design.fisher_information(model, params, plan, free=free).to_numpy() / N
+    scale = np.sqrt(np.outer(np.diag(predicted), np.diag(predicted)))
+    # The experiment's ends (initial transient, last samples) make an O(1/N) difference.
+    np.testing.assert_allclose(exact / scale, predicted / scale, atol=0.02)
+    with pytest.raises(greyid.ModelError, match="'Qx' is not an input"):
+        design.frequency_information(model, params, omega, "Qx", 1.0)
+
+
+def test_optimal_multisine_satisfies_the_equivalence_theorem(test_cell):
+    """No frequency has a larger directional derivative than the design's support (the design is D-optimal)."""
+    model, params = test_cell
+    best = design.optimal_multisine(model, params, "Qh", 1.0, free=["Hi", "Hm", "Ci", "Cm"], include_noise=False)
+    assert best.weights.sum() == pytest.approx(1.0) and len(best.frequencies) <= 10
+    assert best.max_derivative <= best.support_derivative * (1 + 1e-4)
+    assert best.support_derivative == pytest.approx(4.0, rel=1e-6)  # = p for D without a fixed part
+    # Moving half the power elsewhere is worse.
+    single = design.frequency_information(model, params, 0.1, "Qh", 1.0, free=["Hi", "Hm", "Ci", "Cm"])
+    mixed = 0.5 * best.information.to_numpy() + 0.5 * single.to_numpy()
+    assert -np.linalg.slogdet(mixed)[1] > best.value
+    signal = best.signal(np.arange(200.0))
+    assert np.mean(signal**2) == pytest.approx(1.0, rel=0.15)
