@@ -196,3 +196,57 @@ def test_optimal_multisine_satisfies_the_equivalence_theorem(test_cell):
     assert -np.linalg.slogdet(mixed)[1] > best.value
     signal = best.signal(np.arange(200.0))
     assert np.mean(signal**2) == pytest.approx(1.0, rel=0.15)
+
+
+def _example_6_1():
+    """The thesis' example 6.1 (6.19) with diagonal process noise and a measurement variance."""
+    m = greyid.Model("example61")
+    m.add_system("dx1 = (-a*x1 + a*x2)*dt + sqrt(q1)*dw1")
+    m.add_system("dx2 = (b*x1 - (b + c)*x2 + d*u)*dt + sqrt(q2)*dw2")
+    m.add_inputs("u")
+    m.add_observation("y = x2", variance="r")
+    m.set_initial_state(mean={"x1": "m1", "x2": "m2"}, covariance=[["v1", 0], [0, "v2"]])
+    for name, value in dict(a=1.0, b=0.5, c=0.3, d=2.0, q1=0.1, q2=0.2, r=0.05).items():
+        m.set_parameter(name, init=value)
+    for name, value in dict(m1=0.0, m2=0.0, v1=1.0, v2=1.0).items():
+        m.set_parameter(name, init=value, fixed=True)
+    return m
+
+
+def test_identifiability_reproduces_example_6_1():
+    """a, b, c, d globally identifiable from G(p) = d(p + a)/(p² + (a+b+c)p + ac) (6.20); with diagonal
+    noise matrices the noise parameters are identifiable too."""
+    import sympy as sp
+
+    result = design.identifiability(_example_6_1())
+    assert all(result.identifiable.values())
+    assert {result.status[n] for n in "abcd"} == {"global"}
+    assert {result.status[n] for n in ("q1", "q2", "r")} == {"local"}
+    a, b, c, d, p = sp.symbols("a b c d p", real=True)
+    expected = d * (p + a) / (p**2 + (a + b + c) * p + a * c)
+    G = result.transfer_function.subs({sp.Symbol(n, real=True): s for n, s in zip("abcd", (a, b, c, d))})
+    assert sp.simplify(G[0, 0].subs(sp.Symbol("p"), p) - expected) == 0
+    assert "global" in result.summary()
+
+
+def test_identifiability_names_the_identifiable_combinations():
+    """y = g·x with x driven by a·b·u: only b·g (and the noise scaled with it) can be determined."""
+    m = greyid.Model("scaled")
+    m.add_system("dx = (-a*x + a*b*u)*dt + sqrt(q)*dw1")
+    m.add_inputs("u")
+    m.add_observation("y = g*x", variance="r")
+    m.set_initial_state(mean={"x": "0"}, covariance=[["1"]])
+    for name, value in dict(a=1.0, b=0.5, g=2.0, q=0.1, r=0.05).items():
+        m.set_parameter(name, init=value)
+    result = design.identifiability(m)
+    assert result.identifiable == {"a": True, "b": False, "q": False, "g": False, "r": True}
+    assert "b*g" in result.combinations and "q*g**2" in result.combinations
+    direction = result.directions[0]
+    assert direction["q"] == pytest.approx(-2 * direction["g"]) and direction["b"] == pytest.approx(-direction["g"])
+    with pytest.raises(greyid.ModelError, match="plan="):
+        design.identifiability(greyid.Model("logistic").add_system("dx = r*x*(1 - x)*dt + s*dw1")
+                               .add_observation("y = x", variance="e")
+                               .set_initial_state(mean={"x": "x0"}, covariance=[["p0"]])
+                               .set_parameter("r", init=1.0).set_parameter("s", init=0.1)
+                               .set_parameter("e", init=0.01).set_parameter("x0", init=0.2)
+                               .set_parameter("p0", init=0.01))

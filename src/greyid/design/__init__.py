@@ -7,12 +7,15 @@
 * :func:`local_identifiability` — the rank of that information at the assumed values;
 * :func:`compare_inputs` — candidate plans side by side, criteria and ranks (tables 7.4–7.5);
 * :func:`frequency_information` — information per sample of a sinusoid (6.47–6.49), and
-  :func:`optimal_multisine` — the optimal input of a given power (6.3, 7.49–7.50).
+  :func:`optimal_multisine` — the optimal input of a given power (6.3, 7.49–7.50);
+* :func:`identifiability` — structural identifiability before any data (6.1).
 """
 
 from .compare import compare_inputs
 from .criteria import CRITERIA, cramer_rao_bound, criterion
 from .frequency import MultisineDesign, frequency_information, optimal_multisine
+from .identifiability import Identifiability, identifiability
 from .information import fisher_information, local_identifiability
 
-__all__ = ["compare_inputs", "fisher_information", "frequency_information", "optimal_multisine", "MultisineDesign", "criterion", "cramer_rao_bound", "local_identifiability", "CRITERIA"]
+__all__ = ["compare_inputs", "fisher_information", "frequency_information", "optimal_multisine", "MultisineDesign",
+           "identifiability", "Identifiability", "criterion", "cramer_rao_bound", "local_identifiability", "CRITERIA"]

@@ -521,7 +521,8 @@ def build_result(model, frames, theta, problem, best, optima, settings, scores=N
             desc = ", ".join(f"{v:+.3f}·{n}" for n, v in loading.items())
             warn.append(f"the Hessian is {'singular' if w[j] > -1e-12 else 'not positive definite'} in the "
                         f"direction {desc}: these parameters are not determined by the data, "
-                        "their standard errors are unreliable")
+                        "their standard errors are unreliable (greyid.design.identifiability(model) says "
+                        "whether any experiment could determine them, and which combination it can)")
         J = None if scores is None else scores.matrix[np.ix_(inner, inner)] * np.outer(Jinv, Jinv)
         if scores is not None:
             for name, steps in zip(inner_names, scores.effective_steps[inner]):

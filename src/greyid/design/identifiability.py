@@ -1,0 +1,269 @@
+"""Structural identifiability before any data (thesis section 6.1).
+
+For a linear time-invariant model, what the data can reveal is the transfer
+function from the inputs to the outputs, G(p) = C(pI − A)⁻¹B + D (6.15), the
+noise model H(p) = C(pI − A)⁻¹K + I with the stationary Kalman gain K, and the
+innovations' covariance Σ (6.16, 6.18).  :func:`identifiability` writes G(p)
+with SymPy (each element a ratio of polynomials in p, the denominator monic:
+its coefficients are what the data determine, (6.17)) and decides:
+
+* **local** identifiability of every parameter from the rank of the Jacobian
+  of (G, H, Σ) with respect to θ at generic random points (G and H evaluated at
+  random complex p, K and Σ from the stationary Riccati equation);
+* **global** identifiability of the parameters of G by solving
+  coefficients(θ) = coefficients(θ*) with SymPy at a random rational θ*: one
+  solution is global, several local (when SymPy answers in time);
+* the combinations that are identifiable where single parameters are not, from
+  the null space of the Jacobian in log-parameters (e.g. "a*b" where only the
+  product enters).
+
+For other models, ``plan=`` (times and inputs) gives the local rank of the
+Fisher information (Monte Carlo, :func:`~.information.fisher_information`)
+at random points inside the bounds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+import scipy.linalg as sl
+
+from ..errors import ModelError
+
+#: Singular values of the scaled Jacobian below this, relative to the largest, are zero.
+RANK_TOLERANCE = 1e-7
+#: Generic points at which the rank is taken.
+POINTS = 3
+#: Largest number of parameters of G for which a global (symbolic) answer is attempted.
+GLOBAL_MAX = 6
+
+
+@dataclass
+class Identifiability:
+    """What the data of any experiment can determine (see the module doc)."""
+
+    identifiable: dict  # parameter → bool (locally, at generic points)
+    status: dict  # parameter → "global", "local" or "not identifiable"
+    combinations: list  # identifiable combinations of parameters that are not identifiable alone
+    directions: list  # each a mapping parameter → loading of a direction the data cannot see
+    transfer_function: object = None  # SymPy matrix G(p), for linear models
+    method: str = ""
+    notes: list = field(default_factory=list)
+
+    def summary(self) -> str:
+        lines = [f"structural identifiability ({self.method})"]
+        if self.transfer_function is not None:
+            lines.append(f"G(p) = {self.transfer_function}")
+        width = max(len(n) for n in self.status)
+        for name, status in self.status.items():
+            lines.append(f"  {name:{width}s}  {status}")
+        for combination in self.combinations:
+            lines.append(f"identifiable combination: {combination}")
+        for direction in self.directions:
+            desc = ", ".join(f"{v:+.3f}·{n}" for n, v in direction.items())
+            lines.append(f"not determined: the direction {desc} (log-parameters)")
+        lines.extend(self.notes)
+        return "\n".join(lines)
+
+    def __repr__(self) -> str:
+        return self.summary()
+
+
+def _points(model, params, names, seed):
+    """Generic parameter values: around ``params`` (or the declared initial values), inside the bounds."""
+    rng = np.random.default_rng(seed)
+    declared = model.parameters
+    base = {n: (float(params[n]) if params is not None and n in params else
+                (declared[n].init if n in declared and declared[n].init is not None else 1.0)) for n in names}
+    points = []
+    for _ in range(POINTS):
+        point = {}
+        for n in names:
+            value = base[n] * float(np.exp(rng.uniform(-0.3, 0.3))) if base[n] != 0 else rng.uniform(0.1, 1.0)
+            p = declared.get(n)
+            if p is not None and p.lower is not None and p.upper is not None:
+                value = float(np.clip(value, p.lower + 1e-3 * (p.upper - p.lower), p.upper - 1e-3 * (p.upper - p.lower)))
+            point[n] = value
+        points.append(point)
+    return points
+
+
+def _linear_parts(model):
+    """SymPy A, B, C, D (with the affine terms as a constant input), Σ₁ = GGᵀ, Σ₂."""
+    import sympy as sp
+
+    s = model.structure
+    eq = s.equations
+    x = [sp.Symbol(n, real=True) for n in s.state_names]
+    u = [sp.Symbol(n, real=True) for n in s.input_names]
+    f, g, h, v = eq["drift"], eq["diffusion"], eq["observation"], eq["variance"]
+    zero = {sym: 0 for sym in x + u}
+    A, C = f.jacobian(x), h.jacobian(x)
+    B = (f.jacobian(u) if u else sp.zeros(len(x), 0)).row_join(f.subs(zero))
+    D = (h.jacobian(u) if u else sp.zeros(len(h), 0)).row_join(h.subs(zero))
+    return A, B, C, D, g * g.T, sp.diag(*v)
+
+
+def _observables(A, B, C, D, Q, R, points_p):
+    """G and H at the complex points p, and Σ, for numeric matrices (the stationary Kalman filter)."""
+    n = A.shape[0]
+    try:
+        P = sl.solve_continuous_are(A.T, C.T, Q, R)
+        K = P @ C.T @ np.linalg.inv(R)
+    except (np.linalg.LinAlgError, ValueError):
+        K = np.zeros((n, C.shape[0]))
+    out = []
+    for p in points_p:
+        resolvent = np.linalg.inv(p * np.eye(n) - A)
+        out.append((C @ resolvent @ B + D).ravel())
+        out.append((C @ resolvent @ K).ravel())
+    values = np.concatenate(out)
+    return np.concatenate([values.real, values.imag, R.ravel()])
+
+
+def _combinations(null, names):
+    """Monomials θ^k identifiable although their factors are not: k ⟂ every null direction (in
+    log-parameters), small integer powers, fewest factors first."""
+    from itertools import product
+
+    involved = np.flatnonzero(np.any(np.abs(null) > 1e-6, axis=1))
+    if len(involved) == 0 or len(involved) > 6:
+        return []
+    sub = null[involved]
+    wanted = len(involved) - np.linalg.matrix_rank(sub, tol=1e-6)
+    candidates = [np.array(k) for k in product(range(-2, 3), repeat=len(involved)) if any(k)]
+    candidates = [k for k in candidates if np.all(np.abs(k @ sub) < 1e-5 * np.linalg.norm(k))]
+    # Fewest factors, then smallest powers, then the first factor positive (one sign of each).
+    candidates.sort(key=lambda k: (np.count_nonzero(k), np.abs(k).sum(), int(np.sum(k < 0))))
+    chosen: list = []
+    for k in candidates:
+        if k[np.flatnonzero(k)[0]] < 0:
+            continue
+        if np.linalg.matrix_rank(np.array(chosen + [k]), tol=1e-9) > len(chosen):
+            chosen.append(k)
+        if len(chosen) == wanted:
+            break
+    out = []
+    for k in chosen:
+        terms = [names[i] if power == 1 else f"{names[i]}**{power}" for power, i in zip(k, involved) if power]
+        out.append("*".join(terms))
+    return out
+
+
+def identifiability(model, params=None, plan=None, seed: int = 0, free=None) -> Identifiability:
+    """Which parameters of ``model`` any experiment can determine (section 6.1; see the module doc).
+
+    ``params`` centres the generic points (default: the declared initial values);
+    ``free`` names the parameters to judge (default: the non-fixed ones).  For a
+    model that is not linear time-invariant, ``plan`` (times and inputs) is needed.
+    """
+    from .information import _free_names
+
+    structure = model.structure
+    names = _free_names(model, free)
+    all_names = list(structure.parameter_names)
+    points = _points(model, params, all_names, seed)
+    if structure.kind != "lti":
+        return _by_information(model, names, points, plan, seed)
+    import sympy as sp
+
+    A, B, C, D, Q, R = _linear_parts(model)
+    syms = {n: sp.Symbol(n, real=True) for n in all_names}
+    p = sp.Symbol("p")
+    G = (C * (p * sp.eye(A.shape[0]) - A).inv() * B + D).applyfunc(sp.cancel)
+    numeric = sp.lambdify([syms[n] for n in all_names], [A, B, C, D, Q, R], "numpy")
+    rng = np.random.default_rng(seed + 1)
+    at_p = rng.uniform(0.2, 2.0, A.shape[0] + 2) + 1j * rng.uniform(-1.0, 1.0, A.shape[0] + 2)
+    free_index = [all_names.index(n) for n in names]
+    ranks, nulls = [], []
+    for point in points:
+        values = np.array([point[n] for n in all_names], dtype=float)
+
+        def observed(log_free):
+            v = values.copy()
+            v[free_index] = np.exp(log_free)
+            return _observables(*[np.asarray(M, dtype=float) for M in numeric(*v)], at_p)
+
+        z = np.log(np.abs(values[free_index]))
+        h = 1e-6
+        J = np.column_stack([(observed(z + h * e) - observed(z - h * e)) / (2 * h) for e in np.eye(len(z))])
+        norms = np.maximum(np.linalg.norm(J, axis=0), 1e-300)
+        U, sv, Vt = np.linalg.svd(J / norms, full_matrices=True)
+        rank = int(np.sum(sv > RANK_TOLERANCE * sv.max()))
+        ranks.append(rank)
+        # Back from the scaled columns to log-parameters, orthonormalised.
+        null_log = Vt[rank:].T / norms[:, None]
+        nulls.append(sl.orth(null_log) if null_log.size else null_log)
+    null = nulls[int(np.argmax(ranks))]
+    unseen = np.any(np.abs(null) > 1e-4, axis=1) if null.size else np.zeros(len(names), dtype=bool)
+    identifiable = {n: not bool(unseen[i]) for i, n in enumerate(names)}
+    status = {n: ("local" if identifiable[n] else "not identifiable") for n in names}
+    notes = []
+    in_G = sorted({s.name for s in G.free_symbols} - {"p"} & set(names))
+    if all(identifiable[n] for n in in_G) and 0 < len(in_G) <= GLOBAL_MAX:
+        answer = _global(G, p, in_G, syms, seed)
+        if answer is None:
+            notes.append("global identifiability of G's parameters not decided (SymPy found no closed form)")
+        else:
+            for n in in_G:
+                status[n] = "global" if answer == 1 else "local"
+            if answer > 1:
+                notes.append(f"G's parameters: {answer} solutions reproduce the same G(p) (locally identifiable)")
+    directions = []
+    for column in null.T:
+        column = column / np.max(np.abs(column))
+        directions.append({names[i]: float(column[i]) for i in np.argsort(-np.abs(column)) if abs(column[i]) > 0.05})
+    return Identifiability(identifiable, status, _combinations(null, names) if null.size else [], directions,
+                           G, "transfer functions G, H and Σ of the innovations form (6.15–6.18)", notes)
+
+
+def _global(G, p, names, syms, seed):
+    """The number of parameter vectors giving the G(p) of a random rational θ* (None if undecided)."""
+    import sympy as sp
+
+    rng = np.random.default_rng(seed + 2)
+    star = {syms[n]: sp.Rational(int(rng.integers(2, 9)), int(rng.integers(2, 5))) for n in names}
+    equations = []
+    for element in G:
+        num, den = sp.fraction(sp.cancel(sp.together(element)))
+        num, den = sp.Poly(num, p), sp.Poly(den, p)
+        lead = den.LC()
+        for c in num.all_coeffs() + den.all_coeffs()[1:]:
+            expr = sp.cancel(c / lead)
+            equations.append(sp.numer(sp.together(expr - expr.subs(star))))
+    unknowns = [syms[n] for n in names]
+    equations = [e for e in equations if e != 0 and e.free_symbols & set(unknowns)]
+    try:
+        solutions = sp.solve(equations, unknowns, dict=True)
+    except (NotImplementedError, ValueError):
+        return None
+    real = [s for s in solutions if len(s) == len(unknowns)
+            and all(v.is_real is not False and not v.free_symbols for v in s.values())]
+    return len(real) if real else None
+
+
+def _by_information(model, names, points, plan, seed):
+    """Local rank of the Fisher information of ``plan`` at generic points (models other than LTI)."""
+    from .information import fisher_information, local_identifiability
+
+    if plan is None:
+        raise ModelError(f"model '{model.name}' is {model.structure.kind}: its identifiability is judged on a "
+                         "planned experiment; give plan= (a DataFrame of times and inputs)")
+    worst = None
+    for k, point in enumerate(points):
+        info = fisher_information(model, point, plan, free=names, method="montecarlo", n_paths=20, seed=seed + k)
+        flat = local_identifiability(info, tolerance=1e-6)
+        if worst is None or len(flat) < len(worst):
+            worst = flat
+    unseen = {n for row in worst["parameters"] for n in row}
+    identifiable = {n: n not in unseen for n in names}
+    status = {n: ("local" if identifiable[n] else "not identifiable") for n in names}
+    directions = [{n: 1.0 for n in row} for row in worst["parameters"]]
+    return Identifiability(identifiable, status, [], directions, None,
+                           "rank of the Fisher information of the plan at generic points (Monte Carlo)",
+                           ["a rank judged on one plan: another experiment may determine more"])
+
+
+__all__ = ["identifiability", "Identifiability"]
