@@ -128,3 +128,26 @@ def test_help_and_version_do_not_load_jax():
             "print('ok')\n")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr
+
+
+def test_identifiability_command(capsys):
+    assert main(["identifiability", "test_cell"]) == 0
+    printed = capsys.readouterr().out
+    assert "Hi   global" in printed and "not judged: Ti0, Tm0" in printed
+
+
+def test_design_command_ranks_a_candidate_and_names_bad_input(tmp_path, capsys):
+    from greyid.datasets.thesis import test_cell_inputs
+
+    plan = test_cell_inputs(n=300)
+    plan.to_csv(tmp_path / "prbs.csv", index=False)
+    plan.assign(Qh=150.0).to_csv(tmp_path / "constant.csv", index=False)
+    assert main(["design", "test_cell", str(tmp_path / "prbs.csv"), "--candidate", str(tmp_path / "constant.csv"),
+                 "--criterion", "D", "--criterion", "A"]) == 0
+    printed = capsys.readouterr().out
+    assert "Fisher information of plan 'prbs' (exact)" in printed and "Cramér–Rao bound" in printed
+    assert "D rank" in printed and "A rank" in printed
+    assert main(["design", "test_cell", str(tmp_path / "missing.csv")]) == 2
+    assert "plan file" in capsys.readouterr().err
+    assert main(["design", "test_cell", str(tmp_path / "prbs.csv"), "--criterion", "Q"]) == 2
+    assert "--criterion 'Q'" in capsys.readouterr().err

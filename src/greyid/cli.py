@@ -4,6 +4,8 @@
     greyid simulate MODEL [DATA] --out FILE            sample paths driven by the data's inputs
     greyid validate FIT [DATA]                         the residual tests of chapter 5
     greyid report FIT [DATA] --out FILE.html           a self-contained HTML report
+    greyid design MODEL PLAN [--candidate CSV ...]    information, criteria and bounds of a planned experiment
+    greyid identifiability MODEL [--plan CSV]         which parameters any experiment can determine
     greyid models [NAME]                               the model library, or one model's file
     greyid demo [--out DIR]                            fit the bundled model to its bundled data
 
@@ -244,6 +246,89 @@ def report(fit_file: Path = typer.Argument(..., help="fit file written by 'greyi
         _fit_with_data(fit_file, data).report(out_file, level=level, steps=steps)
         err.print(f"wrote {out_file}")
         return OK
+
+    _run(command)
+
+
+def _read_plan(m, path: Path):
+    import pandas as pd
+
+    if path.is_dir():
+        raise InputProblem(f"plan '{path}' is a folder; give a CSV file")
+    if not path.is_file():
+        raise InputProblem(f"plan file '{path}' not found")
+    try:
+        return pd.read_csv(path, sep=m.options.get("separator", ","))
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as problem:
+        raise InputProblem(f"plan file '{path}' is not a readable CSV file ({problem})") from None
+
+
+@app.command(name="design")
+def design_command(model: str = typer.Argument(..., help="model file, fit file (.json) or library model name"),
+                   plan: Path = typer.Argument(..., help="CSV with the time column and the inputs (no outputs)"),
+                   candidates: Optional[list[Path]] = typer.Option(None, "--candidate",
+                                                                  help="another plan to rank against PLAN"),
+                   criterion: Optional[list[str]] = typer.Option(None, "--criterion",
+                                                                 help="D, A, C or E (repeatable; default all)"),
+                   method: Optional[str] = typer.Option(None, help="exact (linear models) or montecarlo"),
+                   paths: int = typer.Option(100, help="simulated data sets for montecarlo"),
+                   hold: Optional[str] = typer.Option(None, help="input hold between samples: zoh or foh")):
+    """The Fisher information of a planned experiment, its criteria and Cramér–Rao bounds (chapter 6)."""
+
+    def command() -> int:
+        import numpy as np
+        import pandas as pd
+
+        from . import design
+
+        m, saved = load_model_or_fit(model)
+        params = saved.values if saved is not None else m.initial_values()
+        options = dict(time=m.options.get("time", "t"), hold=hold or m.options.get("hold", "zoh"), method=method,
+                       n_paths=paths)
+        names = list(criterion or ["D", "A", "C", "E"])
+        bad = [c for c in names if c not in ("D", "A", "C", "E")]
+        if bad:
+            raise InputProblem(f"--criterion '{bad[0]}' is not one of D, A, C, E")
+        plans = {plan.stem: _read_plan(m, plan)}
+        for path in candidates or []:
+            if path.stem in plans:
+                raise InputProblem(f"two plans are named '{path.stem}'; give the files different names")
+            plans[path.stem] = _read_plan(m, path)
+        table = design.compare_inputs(m, params, plans, criteria={c: c for c in names}, **options)
+        info = table.attrs["information"][plan.stem]
+        out.print(f"Fisher information of plan '{plan.stem}' ({info.attrs.get('method')}), natural parameters:")
+        out.print(info.to_string(float_format=lambda v: f"{v:.4g}"))
+        bound = design.cramer_rao_bound(info)
+        out.print()
+        out.print("Cramér–Rao bound (least standard deviation of an unbiased estimate):")
+        out.print(pd.DataFrame({"value": pd.Series(params)[bound.index], "sd bound": np.sqrt(bound)})
+                  .to_string(float_format=lambda v: f"{v:.4g}"))
+        out.print()
+        out.print("criteria (smaller is better):")
+        out.print(table.to_string(float_format=lambda v: f"{v:.5g}"))
+        flat = design.local_identifiability(info)
+        for parameters in flat["parameters"]:
+            out.print(f"not determined by this plan: the direction involving {', '.join(parameters)}")
+        return OK if flat.empty else VERDICT
+
+    _run(command)
+
+
+@app.command(name="identifiability")
+def identifiability_command(model: str = typer.Argument(..., help="model file, fit file (.json) or library model name"),
+                           plan: Optional[Path] = typer.Option(None, "--plan",
+                                                               help="CSV plan (needed for nonlinear models)")):
+    """Which parameters any experiment can determine (section 6.1); exit code 1 if some cannot."""
+
+    def command() -> int:
+        from . import design
+
+        m, saved = load_model_or_fit(model)
+        params = saved.values if saved is not None else None
+        frame = None if plan is None else _read_plan(m, plan)
+        result = design.identifiability(m, params, plan=frame)
+        out.print(result.summary())
+        return OK if all(result.identifiable.values()) else VERDICT
 
     _run(command)
 

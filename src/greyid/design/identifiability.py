@@ -26,6 +26,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from fractions import Fraction
+
 import numpy as np
 
 import scipy.linalg as sl
@@ -162,11 +164,18 @@ def identifiability(model, params=None, plan=None, seed: int = 0, free=None) -> 
     from .information import _free_names
 
     structure = model.structure
-    names = _free_names(model, free)
     all_names = list(structure.parameter_names)
+    # Parameters of the initial state only are seen in an experiment's transient, not in
+    # the stationary G, H and Σ: they are left out of the judgement (and say so).
+    eq = structure.equations
+    in_dynamics = {sym.name for key in ("drift", "diffusion", "observation", "variance")
+                   for sym in eq[key].free_symbols}
+    judged = _free_names(model, free)
+    initial_only = [n for n in judged if n not in in_dynamics]
+    names = [n for n in judged if n in in_dynamics]
     points = _points(model, params, all_names, seed)
     if structure.kind != "lti":
-        return _by_information(model, names, points, plan, seed)
+        return _by_information(model, judged, points, plan, seed)
     import sympy as sp
 
     A, B, C, D, Q, R = _linear_parts(model)
@@ -203,7 +212,7 @@ def identifiability(model, params=None, plan=None, seed: int = 0, free=None) -> 
     notes = []
     in_G = sorted({s.name for s in G.free_symbols} - {"p"} & set(names))
     if all(identifiable[n] for n in in_G) and 0 < len(in_G) <= GLOBAL_MAX:
-        answer = _global(G, p, in_G, syms, seed)
+        answer = _global(G, p, in_G, syms, points[0], model.parameters)
         if answer is None:
             notes.append("global identifiability of G's parameters not decided (SymPy found no closed form)")
         else:
@@ -211,6 +220,9 @@ def identifiability(model, params=None, plan=None, seed: int = 0, free=None) -> 
                 status[n] = "global" if answer == 1 else "local"
             if answer > 1:
                 notes.append(f"G's parameters: {answer} solutions reproduce the same G(p) (locally identifiable)")
+    if initial_only:
+        notes.append(f"not judged: {', '.join(initial_only)} (initial state only, seen in an experiment's "
+                     "transient, not in G, H or Σ)")
     directions = []
     for column in null.T:
         column = column / np.max(np.abs(column))
@@ -219,12 +231,13 @@ def identifiability(model, params=None, plan=None, seed: int = 0, free=None) -> 
                            G, "transfer functions G, H and Σ of the innovations form (6.15–6.18)", notes)
 
 
-def _global(G, p, names, syms, seed):
-    """The number of parameter vectors giving the G(p) of a random rational θ* (None if undecided)."""
+def _global(G, p, names, syms, point, declared):
+    """The number of parameter vectors within the declared bounds giving the G(p) of a random rational θ*
+    (None if undecided)."""
     import sympy as sp
 
-    rng = np.random.default_rng(seed + 2)
-    star = {syms[n]: sp.Rational(int(rng.integers(2, 9)), int(rng.integers(2, 5))) for n in names}
+    # θ*: a generic point inside the bounds, as small rationals (exact arithmetic for SymPy).
+    star = {syms[n]: sp.Rational(Fraction(point[n]).limit_denominator(8)) for n in names}
     equations = []
     for element in G:
         num, den = sp.fraction(sp.cancel(sp.together(element)))
@@ -239,8 +252,17 @@ def _global(G, p, names, syms, seed):
         solutions = sp.solve(equations, unknowns, dict=True)
     except (NotImplementedError, ValueError):
         return None
+    def inside(symbol, value):
+        p_ = declared.get(symbol.name)
+        v = complex(value)
+        if abs(v.imag) > 1e-12 * max(1.0, abs(v)):
+            return False
+        lo = None if p_ is None else p_.lower
+        hi = None if p_ is None else p_.upper
+        return (lo is None or v.real > lo) and (hi is None or v.real < hi)
+
     real = [s for s in solutions if len(s) == len(unknowns)
-            and all(v.is_real is not False and not v.free_symbols for v in s.values())]
+            and all(not v.free_symbols and inside(k, v) for k, v in s.items())]
     return len(real) if real else None
 
 
