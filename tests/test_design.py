@@ -250,3 +250,33 @@ def test_identifiability_names_the_identifiable_combinations():
                                .set_parameter("r", init=1.0).set_parameter("s", init=0.1)
                                .set_parameter("e", init=0.01).set_parameter("x0", init=0.2)
                                .set_parameter("p0", init=0.01))
+
+
+def test_map_average_and_minimax_criteria(linear_model):
+    rng = np.random.default_rng(5)
+    params, _ = random_linear_parameters(rng)
+    t = np.cumsum(rng.uniform(0.3, 1.0, 12))
+    plan = pd.DataFrame({"t": t, "u1": rng.normal(size=12), "u2": rng.normal(size=12)})
+    names = ["a11", "b11", "s1"]
+    model = linear_model
+    info = design.fisher_information(model, params, plan, free=names)
+    # MAP form (6.53): the prior's precision added to the information.
+    prior = {"mean": {"a11": params["a11"], "b11": 0.0}, "sd": {"a11": 0.5, "b11": 2.0}}
+    M = info.to_numpy() + np.diag([1 / 0.25, 1 / 4.0, 0.0])
+    assert design.criterion(info, "D", prior=prior) == pytest.approx(-np.linalg.slogdet(M)[1])
+    # A prior concentrated at a point averages to the criterion at that point.
+    tight = {"mean": {"a11": params["a11"]}, "sd": {"a11": 1e-9}}
+    average = design.average_criterion(model, plan, "D", tight, draws=3, seed=1, params=params, free=names)
+    assert average["value"] == pytest.approx(design.criterion(info, "D"), rel=1e-6)
+    spread = design.average_criterion(model, plan, "D", {"mean": {"a11": params["a11"]}, "sd": {"a11": 0.05}},
+                                      draws=4, seed=1, params=params, free=names)
+    assert spread["standard_error"] > 0 and len(spread["values"]) == 4
+    # Minimax (6.39): the worst corner of the box, and no corner is worse.
+    box = {"a11": (params["a11"] - 0.05, params["a11"] + 0.05)}
+    worst = design.minimax_criterion(model, plan, "D", box, params=params, free=names)
+    for a in box["a11"]:
+        corner = design.fisher_information(model, dict(params, a11=a), plan, free=names)
+        assert design.criterion(corner, "D") <= worst["value"] + 1e-9
+    assert worst["at"]["a11"] in box["a11"]
+    with pytest.raises(greyid.ModelError, match="'zz'"):
+        design.minimax_criterion(model, plan, "D", {"zz": (0, 1)}, params=params, free=names)

@@ -2,7 +2,9 @@
 
 * :func:`fisher_information` — the information matrix of a planned experiment
   (a DataFrame of times and inputs, no outputs) at assumed parameter values;
-* :func:`criterion` — the optimality criteria (6.32)–(6.35), every one minimised;
+* :func:`criterion` — the optimality criteria (6.32)–(6.35), every one minimised, also in
+  their MAP forms (6.53); :func:`average_criterion` over a prior (J₃) and
+  :func:`minimax_criterion` over a box (6.39);
 * :func:`cramer_rao_bound` — the least variance of unbiased estimates (6.30, 6.35);
 * :func:`local_identifiability` — the rank of that information at the assumed values;
 * :func:`compare_inputs` — candidate plans side by side, criteria and ranks (tables 7.4–7.5);
@@ -12,10 +14,10 @@
 """
 
 from .compare import compare_inputs
-from .criteria import CRITERIA, cramer_rao_bound, criterion
+from .criteria import CRITERIA, average_criterion, cramer_rao_bound, criterion, minimax_criterion, with_prior
 from .frequency import MultisineDesign, frequency_information, optimal_multisine
 from .identifiability import Identifiability, identifiability
 from .information import fisher_information, local_identifiability
 
 __all__ = ["compare_inputs", "fisher_information", "frequency_information", "optimal_multisine", "MultisineDesign",
-           "identifiability", "Identifiability", "criterion", "cramer_rao_bound", "local_identifiability", "CRITERIA"]
+           "identifiability", "Identifiability", "average_criterion", "minimax_criterion", "with_prior", "criterion", "cramer_rao_bound", "local_identifiability", "CRITERIA"]

@@ -9,7 +9,11 @@
 * ``"Ds"``: −log det of the information on the parameters of ``interest`` with
   the others as nuisance, M_ss − M_sn M_nn⁻¹ M_ns;
 * ``derived``: any of these applied to the covariance of derived quantities by
-  Gauss' formula (6.35), J M⁻¹ Jᵀ with J = ∂f/∂θ, e.g. the model's UA.
+  Gauss' formula (6.35), J M⁻¹ Jᵀ with J = ∂f/∂θ, e.g. the model's UA;
+* ``prior``: any of these of the posterior information M + Σ_prior⁻¹ (6.53).
+
+:func:`average_criterion` and :func:`minimax_criterion` take the criterion over
+a prior distribution of θ (J₃, 6.36–6.38) or its worst case over a box (6.39).
 """
 
 from __future__ import annotations
@@ -29,17 +33,41 @@ def _matrix(info) -> tuple[np.ndarray, list[str]]:
     return M, [f"p{i}" for i in range(M.shape[0])]
 
 
-def criterion(info, name: str, params=None, interest=None, V=None, k: float = 1.0, derived=None) -> float:
+def with_prior(info, prior) -> pd.DataFrame:
+    """The posterior information M + Σ_prior⁻¹ (6.53) of a Gaussian prior on some of the parameters.
+
+    ``prior`` as for ``fit(criterion="map")``: ``{"mean": {...}, "sd": {...}, "corr": ...}``
+    (the means do not enter); parameters without a prior get no prior information.
+    """
+    from ..estimate.criteria import GaussianPrior
+
+    M, names = _matrix(info)
+    spec = prior if isinstance(prior, GaussianPrior) else GaussianPrior.from_spec(prior, names)
+    unknown = [n for n in spec.names if n not in names]
+    if unknown:
+        raise ModelError(f"the prior names '{unknown[0]}', which is not in the information matrix")
+    index = [names.index(n) for n in spec.names]
+    out = M.copy()
+    out[np.ix_(index, index)] += np.linalg.inv(spec.covariance)
+    return pd.DataFrame(out, index=names, columns=names)
+
+
+def criterion(info, name: str, params=None, interest=None, V=None, k: float = 1.0, derived=None,
+              prior=None) -> float:
     """The value of criterion ``name`` for the information ``info`` (smaller is better).
 
     ``params`` (a mapping) gives θ for ``"C"``; ``interest`` names the parameters
     of ``"Ds"``; ``V`` and ``k`` define ``"L"`` (``V`` also scales ``"E"``).  ``derived`` — a mapping of
     names to expressions, with ``params`` — replaces M⁻¹ by the covariance of
     those quantities (6.35, 7.47) for ``"D"`` (log det J M⁻¹ Jᵀ), ``"A"``, ``"C"``
-    (V = diag(1/f(θ))), ``"E"`` and ``"L"``.  A singular M gives +inf (6.32).
+    (V = diag(1/f(θ))), ``"E"`` and ``"L"``.  ``prior`` (a Gaussian prior as for
+    MAP fits) adds its precision first: the MAP criteria (6.53).  A singular M
+    gives +inf (6.32).
     """
     if name not in CRITERIA:
         raise ModelError(f"unknown criterion {name!r}; use one of {list(CRITERIA)}")
+    if prior is not None:  # the MAP forms (6.53, J₂ and J₄ of 6.65)
+        info = with_prior(info if isinstance(info, pd.DataFrame) else pd.DataFrame(info), prior)
     M, names = _matrix(info)
     M = 0.5 * (M + M.T)
     if name == "Ds":
@@ -134,3 +162,65 @@ def cramer_rao_bound(info, params=None, derived=None) -> pd.Series:
                           name="variance bound")
         out = pd.concat([out, extra]).rename("variance bound")
     return out
+
+
+def average_criterion(model, plan, name: str, prior, draws: int = 20, seed: int = 0, map_prior: bool = False,
+                      params=None, **options) -> dict:
+    """The criterion averaged over a Gaussian prior of θ (the Bayesian criterion J₃, 6.36–6.38).
+
+    The information of ``plan`` is computed at ``draws`` seeded draws from the
+    prior (``{"mean": ..., "sd": ..., "corr": ...}`` on some parameters; the others
+    at ``params``, by default their declared initial values) and the criterion averaged; with
+    ``map_prior=True`` each draw's information includes the prior's precision
+    (J₄).  Returns ``{"value", "standard_error", "values"}``; ``options`` go to
+    :func:`criterion` (``interest``, ``derived`` ...) and
+    :func:`~.information.fisher_information` (``time``, ``hold``, ``free``, ``method`` ...).
+    """
+    from ..estimate.criteria import GaussianPrior
+    from .information import fisher_information
+
+    names = list(model.structure.parameter_names)
+    spec = GaussianPrior.from_spec(prior, names)
+    criterion_keys = ("interest", "V", "k", "derived")
+    crit = {k: options.pop(k) for k in criterion_keys if k in options}
+    rng = np.random.default_rng(seed)
+    base = dict(model.initial_values() if params is None else params)
+    values = []
+    for sample in rng.multivariate_normal(spec.mean, spec.covariance, size=draws):
+        point = dict(base, **dict(zip(spec.names, sample)))
+        info = fisher_information(model, point, plan, **options)
+        values.append(criterion(info, name, params=point, prior=spec if map_prior else None, **crit))
+    values = np.asarray(values)
+    return {"value": float(values.mean()), "standard_error": float(values.std(ddof=1) / np.sqrt(draws)),
+            "values": values}
+
+
+def minimax_criterion(model, plan, name: str, box, levels: int = 2, params=None, **options) -> dict:
+    """The worst value of the criterion over a box of parameter values (6.39).
+
+    ``box`` maps parameter names to ``(low, high)``; the criterion is evaluated
+    on a grid of ``levels`` values per parameter (the corners for 2; the others
+    at ``params``, by default their declared initial values).  Returns ``{"value", "at"}`` with the
+    worst point.
+    """
+    from itertools import product
+
+    from .information import fisher_information
+
+    names = list(model.structure.parameter_names)
+    unknown = [n for n in box if n not in names]
+    if unknown:
+        raise ModelError(f"the box names '{unknown[0]}', which is not a parameter of model '{model.name}'")
+    if levels < 2:
+        raise ModelError(f"levels must be at least 2, got {levels!r}")
+    criterion_keys = ("interest", "V", "k", "derived", "prior")
+    crit = {k: options.pop(k) for k in criterion_keys if k in options}
+    base = dict(model.initial_values() if params is None else params)
+    grids = [np.linspace(float(lo), float(hi), levels) for lo, hi in box.values()]
+    worst, at = -np.inf, None
+    for corner in product(*grids):
+        point = dict(base, **dict(zip(box, corner)))
+        value = criterion(fisher_information(model, point, plan, **options), name, params=point, **crit)
+        if value > worst:
+            worst, at = value, point
+    return {"value": float(worst), "at": {n: at[n] for n in box}}
