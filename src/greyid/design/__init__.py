@@ -15,9 +15,10 @@
 
 from .compare import compare_inputs
 from .criteria import CRITERIA, average_criterion, cramer_rao_bound, criterion, minimax_criterion, with_prior
-from .frequency import MultisineDesign, frequency_information, optimal_multisine
+from .frequency import MultisineDesign, frequency_information, frequency_information_grid, optimal_multisine
 from .identifiability import Identifiability, identifiability
 from .information import fisher_information, local_identifiability
 
-__all__ = ["compare_inputs", "fisher_information", "frequency_information", "optimal_multisine", "MultisineDesign",
+__all__ = ["compare_inputs", "fisher_information", "frequency_information", "frequency_information_grid",
+           "optimal_multisine", "MultisineDesign",
            "identifiability", "Identifiability", "average_criterion", "minimax_criterion", "with_prior", "criterion", "cramer_rao_bound", "local_identifiability", "CRITERIA"]

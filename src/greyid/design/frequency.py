@@ -159,6 +159,19 @@ def frequency_information(model, params, omega: float, input: str, sampling_inte
     return info
 
 
+def frequency_information_grid(model, params, omegas, input: str, sampling_interval: float, free=None):
+    """``(M_u, M_c, names)``: :func:`frequency_information` on a grid of frequencies at once.
+
+    ``M_u`` has one p × p matrix per frequency (unit power), ``M_c`` is the
+    input-independent part; both NumPy arrays over the parameters ``names``.
+    """
+    names, theta, (input_information, noise_information) = _setup(model, params, input, free)
+    tau = float(sampling_interval)
+    M_u = np.asarray(input_information(theta, tau, jnp.asarray(np.asarray(omegas, dtype=np.float64))))
+    M_c = np.asarray(noise_information(theta, tau))
+    return 0.5 * (M_u + M_u.transpose(0, 2, 1)), 0.5 * (M_c + M_c.T), names
+
+
 @dataclass
 class MultisineDesign:
     """An optimal input: sinusoids at ``frequencies`` (rad per time unit) with power ``weights``."""
