@@ -80,3 +80,12 @@ def test_report_renders_in_headless_chromium(report, tmp_path):
     image = np.asarray(Image.open(shot).convert("L"))
     assert image.shape == (1600, 1200)
     assert np.mean(image < 128) > 0.01  # text, equations and the data figure were drawn
+
+
+def test_identifiability_section_judges_every_dynamic_parameter(report):
+    text, _ = report
+    section = text[text.find('<section id="identifiability">'):text.find('<section id="validation">')]
+    for name in ("Ci", "Cw", "Riw", "Rwe", "Aw"):
+        assert f"<td>{name}</td>" in section or f">{name}<" in section
+    assert "global" in section or "local" in section
+    assert "not judged: Ti0, Tw0" in section

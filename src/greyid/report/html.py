@@ -21,8 +21,8 @@ from .equations import model_equations
 from .figures import data_figure, embedded_png
 
 #: Section ids, in order; a complete report has every one of them.
-SECTIONS = ("model", "data", "estimation", "parameters", "correlation", "derived", "validation",
-            "residuals", "simulation", "prediction")
+SECTIONS = ("model", "data", "estimation", "parameters", "correlation", "derived", "identifiability",
+            "validation", "residuals", "simulation", "prediction")
 
 _CSS = """
 body { font-family: system-ui, -apple-system, "Segoe UI", Roboto, sans-serif; max-width: 1100px;
@@ -166,6 +166,28 @@ def _derived_section(fit) -> str:
     return _section("derived", "Derived quantities", body)
 
 
+def _identifiability_section(fit) -> str:
+    """Structural identifiability (section 6.1) of the model at the estimates, for LTI models."""
+    from ..design import identifiability
+
+    model = fit.model
+    if model.structure.kind != "lti":
+        body = (f"<p>Structural identifiability is decided before any data for linear time-invariant models; "
+                f"this model is {_esc(model.structure.kind)}: judge it on a planned experiment with "
+                "<code>greyid.design.identifiability(model, plan=...)</code>.</p>")
+        return _section("identifiability", "Structural identifiability", body)
+    result = identifiability(model, fit.values)
+    table = pd.DataFrame({"status": pd.Series(result.status)})
+    body = [_table(table, row_class=lambda r: "reject" if r["status"] == "not identifiable" else "accept",
+                   index_name="parameter")]
+    body += [f"<p>identifiable combination: <code>{_esc(c)}</code></p>" for c in result.combinations]
+    body += [f"<p>{_esc(note)}</p>" for note in result.notes]
+    body.append("<p>From the transfer functions G(p), H(p) and the innovations' covariance that any experiment "
+                "reveals (6.15–6.18), at generic points around the estimates; \"global\" where SymPy solves G's "
+                "equations uniquely within the bounds.</p>")
+    return _section("identifiability", "Structural identifiability", "\n".join(body))
+
+
 def _validation_sections(fit, validation, steps: int, n_paths: int, seed: int) -> list[str]:
     tests = validation.tests.set_index("test")
     verdict = (f"{int(tests['reject'].sum())} of {len(tests)} tests reject at level {validation.level}.")
@@ -206,7 +228,8 @@ def html_report(fit, level: float = 0.05, steps: int = 4, n_paths: int = 100, se
     sections = [_model_section(fit), _data_section(fit, fit.data), _estimation_section(fit),
                 _parameters_section(fit), _section("correlation", "Correlation of the estimates",
                                                    _correlation_table(fit.corr)),
-                _derived_section(fit), *_validation_sections(fit, validation, steps, n_paths, seed)]
+                _derived_section(fit), _identifiability_section(fit),
+                *_validation_sections(fit, validation, steps, n_paths, seed)]
     nav = "".join(f'<a href="#{sid}">{sid}</a>' for sid in SECTIONS)
     return (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
             f'<meta name="viewport" content="width=device-width, initial-scale=1">'
