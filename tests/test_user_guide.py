@@ -90,3 +90,17 @@ def test_file_examples(example):
         warnings.simplefilter("ignore")
         fit = model.fit(data)
     check(fit, output_block(f"greyid fit examples/{example}.toml"))
+
+
+@pytest.mark.skipif(not (SHARED / "prbs1_test_house" / "inputPRBS1.csv").is_file(), reason="PRBS1 data not present")
+def test_prbs1_example():
+    """Section 3: TiTeTh on the PRBS1 house with four starts, to the digits the guide prints."""
+    import pandas as pd
+
+    from greyid import library
+
+    data = pd.read_csv(SHARED / "prbs1_test_house" / "inputPRBS1.csv", sep=";")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fit = library.load_model("TiTeTh").fit(data, starts=4)
+    check(fit, output_block("greyid fit TiTeTh ../shared/data/prbs1_test_house/inputPRBS1.csv --starts 4"))
