@@ -24,6 +24,7 @@ import pandas as pd
 from scipy import special
 
 from ..errors import ModelError
+from ..schema import FIT_FORMAT, check_fit_document
 from ..model.equations import parse_expression
 from ..model.structure import lambdify_parameters
 from .covariance import FEW_STEPS, parameter_covariance
@@ -357,7 +358,7 @@ class FitResult:
             return v
 
         return {
-            "format": "greyid-fit-1",
+            "format": FIT_FORMAT,
             "model": self.model.to_dict(),
             "params": {n: {k: clean(v) for k, v in row.items()} for n, row in self.params.iterrows()},
             "cov": {"names": list(self.cov.index), "matrix": self.cov.to_numpy().tolist()},
@@ -405,8 +406,6 @@ def load_fit(path) -> FitResult:
         spec = json.loads(path.read_text(encoding="utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise ModelError(f"fit file '{path}' is not valid JSON ({err})") from None
-    if not isinstance(spec, dict) or spec.get("format") != "greyid-fit-1":
-        raise ModelError(f"'{path}' is not a greyid fit file (no \"format\": \"greyid-fit-1\")")
     return fit_from_dict(spec, f"fit file '{path}'")
 
 
@@ -418,13 +417,7 @@ def fit_from_dict(spec: dict, where: str = "the fit", model=None) -> FitResult:
     """
     from ..model import Model
 
-    for key in ("model", "params", "cov", "loglik", "criterion_value", "n_obs", "converged", "message",
-                "iterations", "settings"):
-        if key not in spec:
-            raise ModelError(f"{where} lacks the entry '{key}'")
-    for name, entry in spec["params"].items() if isinstance(spec["params"], dict) else [("params", None)]:
-        if not isinstance(entry, dict) or "estimate" not in entry:
-            raise ModelError(f"{where}: parameter entry '{name}' must be a table with an 'estimate'")
+    check_fit_document(spec, where)
     model = Model.from_dict(spec["model"]) if model is None else model
     params = pd.DataFrame.from_dict(spec["params"], orient="index")
     # Files written before greyid 0.2 named the bounds "lower" and "upper".

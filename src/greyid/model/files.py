@@ -55,18 +55,7 @@ from typing import Mapping
 import numpy as np
 
 from ..errors import DataError, ModelError
-from .options import DATA_KEYS, ESTIMATION_KEYS, FILE_KEYS, FILTER_KEYS
-
-_SECTIONS = {
-    "model": ("name", "description", "inputs", "system", "algebraic", "observations", "initial_state",
-              "initial_covariance", "initial_covariance_scale", "observation_covariance"),
-    "parameters": None,
-    "derived": None,
-    "data": DATA_KEYS + FILE_KEYS,
-    "filter": FILTER_KEYS,
-    "estimation": ESTIMATION_KEYS,
-}
-_PARAMETER_KEYS = ("init", "lower", "upper", "fixed", "prior")
+from ..schema import MODEL_SECTIONS, check_model_document, observation_entry, parameter_entry
 
 
 # ---------------------------------------------------------------------- dict form
@@ -143,59 +132,12 @@ def model_from_dict(spec: Mapping, cls=None):
 
 
 # ---------------------------------------------------------------------- reading TOML
-def _check_keys(table: Mapping, allowed, where: str) -> None:
-    for key in table:
-        if key not in allowed:
-            raise ModelError(f"unknown key '{key}' in {where}; allowed keys are {list(allowed)}")
-
-
-def _observation(name: str, value) -> dict:
-    if not isinstance(value, Mapping) or "equation" not in value or "variance" not in value:
-        raise ModelError(f"observation '{name}' must be a table {{ equation = \"...\", variance = ... }}")
-    _check_keys(value, ("equation", "variance"), f"[model.observations] {name}")
-    return {"equation": f"{name} = {value['equation']}", "variance": value["variance"]}
-
-
-def _parameter(name: str, value) -> dict:
-    if isinstance(value, (int, float)) and not isinstance(value, bool):
-        return {"init": float(value)}  # shorthand: `Ci = 1.0` gives the initial value only
-    if not isinstance(value, Mapping):
-        raise ModelError(f"parameter '{name}' must be a number or a table {{ init = ..., lower = ..., upper = ... }}")
-    _check_keys(value, _PARAMETER_KEYS, f"[parameters] {name}")
-    out = {k: value.get(k) for k in ("init", "lower", "upper")}
-    fixed = value.get("fixed", False)
-    if not isinstance(fixed, bool):
-        raise ModelError(f"[parameters] {name}: 'fixed' must be true or false, got {fixed!r}")
-    out["fixed"] = fixed
-    prior = value.get("prior")
-    if prior is not None:
-        if not isinstance(prior, Mapping) or set(prior) != {"mean", "sd"}:
-            raise ModelError(f"prior of parameter '{name}' must be {{ mean = ..., sd = ... }}")
-        out["prior"] = dict(prior)
-    return out
-
-
 def spec_from_toml(document: Mapping) -> dict:
-    """The :func:`model_to_dict` form of a parsed TOML model file."""
-    _check_keys(document, tuple(_SECTIONS), "the model file")
-    if "model" not in document:
-        raise ModelError("the model file has no [model] section")
-    for section, keys in _SECTIONS.items():
-        if keys is not None and section in document:
-            _check_keys(document[section], keys, f"[{section}]")
+    """The :func:`model_to_dict` form of a parsed TOML model file (checked by :mod:`greyid.schema`)."""
+    check_model_document(document)
     model = document["model"]
-    system = model.get("system")
-    if isinstance(system, str):
-        system = [system]
-    if not system:
-        raise ModelError("[model] needs system = [\"dx = ...*dt + ...*dw1\", ...]")
-    for key in ("system", "inputs", "algebraic"):
-        value = system if key == "system" else model.get(key, [])
-        if not (isinstance(value, list) and all(isinstance(v, str) for v in value)):
-            raise ModelError(f"[model] {key} must be a list of strings, e.g. {key} = [\"...\"], got {value!r}")
-    observations = model.get("observations")
-    if not observations:
-        raise ModelError("the model file has no [model.observations]; add e.g. y = { equation = \"x\", variance = \"s\" }")
+    system = model["system"] if isinstance(model["system"], list) else [model["system"]]
+    observations = model["observations"]
     initial = model.get("initial_state")
     options = {}
     for section in ("data", "filter", "estimation"):
@@ -206,8 +148,8 @@ def spec_from_toml(document: Mapping) -> dict:
         "system": list(system),
         "inputs": list(model.get("inputs", [])),
         "algebraic": list(model.get("algebraic", [])),
-        "observations": [_observation(n, v) for n, v in observations.items()],
-        "parameters": {n: _parameter(n, v) for n, v in document.get("parameters", {}).items()},
+        "observations": [observation_entry(n, v) for n, v in observations.items()],
+        "parameters": {n: parameter_entry(n, v) for n, v in document.get("parameters", {}).items()},
         "initial_state": None if initial is None else {
             "mean": dict(initial),
             "covariance": model.get("initial_covariance", "process"),
@@ -306,7 +248,8 @@ def model_to_toml(model) -> str:
     if spec["derived"]:
         lines += ["", "[derived]"] + [f"{_key(k)} = {_value(v)}" for k, v in spec["derived"].items()]
     options = spec["options"]
-    for section, keys in (("data", DATA_KEYS + FILE_KEYS), ("filter", FILTER_KEYS), ("estimation", ESTIMATION_KEYS)):
+    for section in ("data", "filter", "estimation"):
+        keys = MODEL_SECTIONS[section]
         simple = {k: options[k] for k in keys if k in options and not isinstance(options[k], Mapping)}
         tables = {k: options[k] for k in keys if k in options and isinstance(options[k], Mapping)}
         if simple or tables:
