@@ -280,3 +280,20 @@ def test_map_average_and_minimax_criteria(linear_model):
     assert worst["at"]["a11"] in box["a11"]
     with pytest.raises(greyid.ModelError, match="'zz'"):
         design.minimax_criterion(model, plan, "D", {"zz": (0, 1)}, params=params, free=names)
+
+
+def test_sampling_table_aliases_and_joint_design(test_cell):
+    """Per sample and per unit time against τ (6.72): a held sinusoid above π/τ is its alias, and at
+    every τ the optimal input is at least as good as a fixed one."""
+    model, params = test_cell
+    free = ["Hi", "Hm", "Ci", "Cm"]
+    tau = 4.0
+    alias = design.aliased([2.0], tau)[0]
+    assert 0 <= alias <= np.pi / tau and alias == pytest.approx(abs((2.0 + np.pi / tau) % (2 * np.pi / tau) - np.pi / tau))
+    high = design.sampling_table(model, params, "Qh", [tau], frequencies=[2.0], power=100.0, free=free)
+    low = design.sampling_table(model, params, "Qh", [tau], frequencies=[alias], power=100.0, free=free)
+    assert high["D_per_sample"].iloc[0] == pytest.approx(low["D_per_sample"].iloc[0], rel=1e-9)
+    fixed = design.sampling_table(model, params, "Qh", [1.0, 4.0], frequencies=[0.02, 0.6], power=100.0, free=free)
+    joint = design.sampling_table(model, params, "Qh", [1.0, 4.0], power=100.0, free=free)
+    assert np.all(joint["D_per_sample"].to_numpy() <= fixed["D_per_sample"].to_numpy() + 1e-6)
+    np.testing.assert_allclose(fixed["D_per_time"], fixed["D_per_sample"] + 4 * np.log(fixed["interval"]))

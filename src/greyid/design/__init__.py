@@ -10,15 +10,18 @@
 * :func:`compare_inputs` — candidate plans side by side, criteria and ranks (tables 7.4–7.5);
 * :func:`frequency_information` — information per sample of a sinusoid (6.47–6.49), and
   :func:`optimal_multisine` — the optimal input of a given power (6.3, 7.49–7.50);
+* :func:`sampling_table` — information per sample and per unit time against the
+  sampling interval, and the joint input/sampling design (6.4, 6.72);
 * :func:`identifiability` — structural identifiability before any data (6.1).
 """
 
 from .compare import compare_inputs
 from .criteria import CRITERIA, average_criterion, cramer_rao_bound, criterion, minimax_criterion, with_prior
-from .frequency import MultisineDesign, frequency_information, frequency_information_grid, optimal_multisine
+from .frequency import (MultisineDesign, aliased, frequency_information, frequency_information_grid,
+                        optimal_multisine, sampling_table)
 from .identifiability import Identifiability, identifiability
 from .information import fisher_information, local_identifiability
 
 __all__ = ["compare_inputs", "fisher_information", "frequency_information", "frequency_information_grid",
-           "optimal_multisine", "MultisineDesign",
+           "optimal_multisine", "sampling_table", "aliased", "MultisineDesign",
            "identifiability", "Identifiability", "average_criterion", "minimax_criterion", "with_prior", "criterion", "cramer_rao_bound", "local_identifiability", "CRITERIA"]
