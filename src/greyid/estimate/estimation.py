@@ -238,8 +238,6 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
         horizon=1, starts=1, seed=0, init=None, time_unit=None, maxiter=500, progress=False, cov_type=None,
         init_from=None, optimizer="auto", **filter_settings):
     """Estimate the free parameters of ``model`` from ``data``; see :meth:`Model.fit`."""
-    from .results import build_result
-
     structure = model.structure
     robust, cov_type = check_settings(criterion, prior, robust, horizon, cov_type, optimizer, starts)
     parameters = free_parameters(model, init)
@@ -322,14 +320,27 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
         if filter_settings.get("substeps") is None and needs_substeps(structure):
             problem, best, substep_choice = _accurate_substeps(structure, problem, best, args, datasets,
                                                                lambda p, z: optimize(p, z, len(optima)))
+    call = dict(time=time, hold=hold, criterion=criterion, robust=robust, horizon=int(horizon), starts=starts,
+                optimizer=optimizer, time_unit=time_unit, prior=prior, cov_type=cov_type)
+    return finish(model, frames, problem, best, optima, args, datasets, theta0, call, labels, substep_choice)
+
+
+def finish(model, frames, problem: Problem, best, optima, args, datasets, theta0, call: dict, labels,
+           substep_choice=None):
+    """The :class:`FitResult` of an optimum: θ, the score covariance if asked, the settings kept with it.
+
+    ``call`` holds the fit's own settings (time, hold, criterion, robust, horizon,
+    starts, optimizer, time_unit, prior, cov_type).
+    """
+    from .results import build_result
+
     theta = problem.theta(best.z, theta0)
     options = problem.options
     scores = None
-    if cov_type != "hessian":
-        scores = score_covariance(step_scores(structure, problem, best.z, args, datasets), int(horizon))
-    settings = dict(time=time, hold=hold, method=options.method, form=options.form, substeps=options.substeps,
-                    iterations=options.iterations, criterion=criterion, robust=robust, horizon=int(horizon),
-                    starts=starts, optimizer=optimizer, time_unit=time_unit, prior=prior, cov_type=cov_type,
+    if call["cov_type"] != "hessian":
+        scores = score_covariance(step_scores(model.structure, problem, best.z, args, datasets), int(call["horizon"]))
+    settings = dict(call, method=options.method, form=options.form, substeps=options.substeps,
+                    iterations=options.iterations,
                     substep_note=None if substep_choice is None else substep_choice.describe(),
                     substeps_accurate=None if substep_choice is None else substep_choice.accurate,
                     start_labels=labels)

@@ -27,10 +27,9 @@ from ..filters.accuracy import needs_substeps
 from ..filters.api import prepare_datasets
 from ..estimate import estimation, objective
 from ..estimate.batch import BatchedPrograms, drive, pad_series, prune_trailing
-from ..estimate.covariance import score_covariance
-from ..estimate.objective import compiled, step_scores
+from ..estimate.objective import compiled
 from ..estimate.optimize import run_alone
-from ..estimate.results import FitWarning, build_result
+from ..estimate.results import FitWarning
 from ..model.options import DATA_KEYS, ESTIMATION_KEYS, FILTER_KEYS, rename_columns, resolve
 from ..progress import CountProgress
 from .result import FleetResult
@@ -262,21 +261,13 @@ def _result(model, structure, problem, args, member, best, optima, labels, s, ro
 
             problem, best, substep_choice = estimation._accurate_substeps(structure, problem, best, args, datasets,
                                                                           optimize)
-    theta = problem.theta(best.z, member["parameters"].theta0)
-    scores = None
-    if cov_type != "hessian":
-        scores = score_covariance(step_scores(structure, problem, best.z, args, datasets), int(s["horizon"]))
-    options = problem.options
-    settings = dict(time=s["time"], hold=s["hold"], method=options.method, form=options.form,
-                    substeps=options.substeps, iterations=options.iterations, criterion=s["criterion"],
-                    robust=robust, horizon=int(s["horizon"]), starts=s["starts"], optimizer=s["optimizer"],
-                    time_unit=s["time_unit"], prior=prior, cov_type=cov_type,
-                    substep_note=None if substep_choice is None else substep_choice.describe(),
-                    substeps_accurate=None if substep_choice is None else substep_choice.accurate,
-                    start_labels=labels)
+    call = dict(time=s["time"], hold=s["hold"], criterion=s["criterion"], robust=robust, horizon=int(s["horizon"]),
+                starts=s["starts"], optimizer=s["optimizer"], time_unit=s["time_unit"], prior=prior,
+                cov_type=cov_type)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", FitWarning)
-        return build_result(model, member["frames"], theta, problem, best, optima, settings, scores)
+        return estimation.finish(model, member["frames"], problem, best, optima, args, datasets,
+                                 member["parameters"].theta0, call, labels, substep_choice)
 
 
 def _fit_alone(model, member, s, robust, cov_type, prior, filter_settings):
