@@ -192,8 +192,6 @@ def single_programs(structure, problem: Problem, arguments: tuple, stack: ExitSt
     """
     programs = compiled(structure, problem)
     out = {EXACT: stack.enter_context(Derivatives(programs.derivatives, len(problem.free), arguments))}
-    if compile_at is not None:
-        out[EXACT].compile_ahead(compile_at)
     if programs.scoring is not None:
         # One thread on long series: two concurrent scoring programs of 10⁶ rows
         # have deadlocked in XLA's CPU runtime (benchmarks/length.py).
@@ -205,6 +203,8 @@ def single_programs(structure, problem: Problem, arguments: tuple, stack: ExitSt
             return (program(np.asarray(z, dtype=np.float64), *arguments),)
 
         out[VALUE] = value
+    if compile_at is not None:
+        out[EXACT].compile_ahead(compile_at)
     return out
 
 
@@ -289,8 +289,11 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
             """One search alone (one start, or the refit with more sub-steps)."""
             search = new_search(problem, z_start, maxiter, reporter(i), use_scoring and not exact_only)
             if problem.key() not in evaluators:
+                # Compiled ahead only where compilation, not evaluation, dominates: on long
+                # series the background evaluation would cost more than it saves.
+                ahead = search.scoring and not problem.long_series
                 evaluators[problem.key()] = single_programs(structure, problem, (*args, datasets), open_programs,
-                                                            z_start if search.scoring else None)
+                                                            z_start if ahead else None)
             shown.begin_start(i)
             try:
                 optimum = run_alone(search, evaluators[problem.key()])
