@@ -22,6 +22,7 @@ from .frequency import (MultisineDesign, aliased, frequency_information, frequen
 from .identifiability import Identifiability, identifiability
 from .information import fisher_information, local_identifiability
 
-__all__ = ["compare_inputs", "fisher_information", "frequency_information", "frequency_information_grid",
-           "optimal_multisine", "sampling_table", "aliased", "MultisineDesign",
-           "identifiability", "Identifiability", "average_criterion", "minimax_criterion", "with_prior", "criterion", "cramer_rao_bound", "local_identifiability", "CRITERIA"]
+__all__ = ["fisher_information", "local_identifiability", "cramer_rao_bound", "criterion", "CRITERIA",
+           "average_criterion", "minimax_criterion", "with_prior", "compare_inputs", "frequency_information",
+           "frequency_information_grid", "optimal_multisine", "MultisineDesign", "sampling_table", "aliased",
+           "identifiability", "Identifiability"]

@@ -285,13 +285,11 @@ def optimal_multisine(model, params, input: str, sampling_interval: float, crite
     order = np.argsort(freqs)
     freqs, weights = freqs[order], weights[order]
     M = information_of(freqs, weights)
-    value, d = _criterion_and_derivatives(S @ M @ S, Ms_s, criterion)
+    # The equivalence check in the units the design was found in; the value in the model's own.
+    _, d = _criterion_and_derivatives(S @ M @ S, Ms_s, criterion)
     _, d_support = _criterion_and_derivatives(
         S @ M @ S, S @ (power * np.asarray(input_information(theta, tau, jnp.asarray(freqs)))) @ S, criterion)
-    if criterion == "D":
-        value = -np.linalg.slogdet(M)[1]
-    else:
-        value = float(np.trace(np.linalg.inv(M)) / M.shape[0])
+    value, _ = _criterion_and_derivatives(M, Ms[:1], criterion)
     return MultisineDesign(freqs, weights, float(value), criterion, float(power), float(d.max()),
                            float(weights @ d_support), pd.DataFrame(M, index=names, columns=names))
 

@@ -86,7 +86,8 @@ def _points(model, params, names, seed):
             value = base[n] * float(np.exp(rng.uniform(-0.3, 0.3))) if base[n] != 0 else rng.uniform(0.1, 1.0)
             p = declared.get(n)
             if p is not None and p.lower is not None and p.upper is not None:
-                value = float(np.clip(value, p.lower + 1e-3 * (p.upper - p.lower), p.upper - 1e-3 * (p.upper - p.lower)))
+                margin = 1e-3 * (p.upper - p.lower)
+                value = float(np.clip(value, p.lower + margin, p.upper - margin))
             point[n] = value
         points.append(point)
     return points

@@ -208,6 +208,23 @@ def single_programs(structure, problem: Problem, arguments: tuple, stack: ExitSt
     return out
 
 
+class SearchesAlone:
+    """Runs one search at a time, with each problem's :func:`single_programs` opened once
+    (a fit's starts and its refits with more sub-steps share them)."""
+
+    def __init__(self, structure, arguments: tuple, stack: ExitStack):
+        self.structure, self.arguments, self.stack, self.programs = structure, arguments, stack, {}
+
+    def run(self, problem: Problem, search: Search) -> Optimum:
+        if problem.key() not in self.programs:
+            # Compiled ahead only where compilation, not evaluation, dominates: on long
+            # series the background evaluation would cost more than it saves.
+            ahead = search.scoring and not problem.long_series
+            self.programs[problem.key()] = single_programs(self.structure, problem, self.arguments, self.stack,
+                                                           search.z if ahead else None)
+        return run_alone(search, self.programs[problem.key()])
+
+
 def failed_start(z0, error: ModelError) -> Optimum:
     n = len(z0)
     return Optimum(np.asarray(z0), np.inf, np.full(n, np.nan), np.full((n, n), np.nan), 0, 1, False,
@@ -283,20 +300,14 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
         def finished(i, optimum):
             shown.end_start(-optimum.value, optimum.iterations, optimum.converged, optimum.message, start=i)
 
-        evaluators = {}  # one threaded evaluator per problem, shared by its starts
+        alone = SearchesAlone(structure, (*args, datasets), open_programs)
 
         def optimize(problem, z_start, i, exact_only=False):
             """One search alone (one start, or the refit with more sub-steps)."""
             search = new_search(problem, z_start, maxiter, reporter(i), use_scoring and not exact_only)
-            if problem.key() not in evaluators:
-                # Compiled ahead only where compilation, not evaluation, dominates: on long
-                # series the background evaluation would cost more than it saves.
-                ahead = search.scoring and not problem.long_series
-                evaluators[problem.key()] = single_programs(structure, problem, (*args, datasets), open_programs,
-                                                            z_start if ahead else None)
             shown.begin_start(i)
             try:
-                optimum = run_alone(search, evaluators[problem.key()])
+                optimum = alone.run(problem, search)
             except NotFiniteError:
                 raise not_finite(problem, z_start, i) from None
             finished(i, optimum)

@@ -334,6 +334,8 @@ class Derivatives:
     def close(self):
         if self.pool is not None:
             self.pool.shutdown()
+        if getattr(self, "ahead", None) is not None:  # a compilation ahead never waited for
+            self.ahead.shutdown()
 
     def __enter__(self):
         return self

@@ -28,7 +28,6 @@ from ..filters.api import prepare_datasets
 from ..estimate import estimation, objective
 from ..estimate.batch import BatchedPrograms, drive, pad_series, prune_trailing
 from ..estimate.objective import compiled
-from ..estimate.optimize import run_alone
 from ..estimate.results import FitWarning
 from ..model.options import DATA_KEYS, ESTIMATION_KEYS, FILTER_KEYS, rename_columns, resolve
 from ..progress import CountProgress
@@ -252,12 +251,10 @@ def _result(model, structure, problem, args, member, best, optima, labels, s, ro
     substep_choice = None
     if filter_settings.get("substeps") is None and needs_substeps(structure):
         with ExitStack() as stack:
-            evaluators = {}
+            alone = estimation.SearchesAlone(structure, (*args, datasets), stack)
 
             def optimize(p, z):
-                if p.key() not in evaluators:
-                    evaluators[p.key()] = estimation.single_programs(structure, p, (*args, datasets), stack)
-                return run_alone(estimation.new_search(p, z, s["maxiter"], _quiet, False), evaluators[p.key()])
+                return alone.run(p, estimation.new_search(p, z, s["maxiter"], _quiet, False))
 
             problem, best, substep_choice = estimation._accurate_substeps(structure, problem, best, args, datasets,
                                                                           optimize)
@@ -277,13 +274,13 @@ def _fit_alone(model, member, s, robust, cov_type, prior, filter_settings):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", FitWarning)
             return estimation.fit(model, member["frames"], robust=robust, cov_type=cov_type, prior=prior,
-                                  init=None if member["parameters"] is None else _init_of(model, member),
+                                  init=None if member["parameters"] is None else _init_of(member),
                                   **kwargs, **filter_settings)
     except (ModelError, DataError) as error:
         return str(error)
 
 
-def _init_of(model, member) -> dict:
+def _init_of(member) -> dict:
     p = member["parameters"]
     return {p.names[i]: float(p.theta0[i]) for i in p.free}
 
