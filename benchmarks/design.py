@@ -46,6 +46,15 @@ def main():
         model, TEST_CELL_PARAMETERS, plan, method="montecarlo", n_paths=100), repeat=1)
     timed("optimal multisine (Qh, tau = 1 h, 4 parameters)", lambda: design.optimal_multisine(
         model, TEST_CELL_PARAMETERS, "Qh", 1.0, free=["Hi", "Hm", "Ci", "Cm"], include_noise=False), repeat=1)
+    free = ["Hi", "Hm", "Ci", "Cm"]
+    box = {"Ci": (0.5 * TEST_CELL_PARAMETERS["Ci"], 2 * TEST_CELL_PARAMETERS["Ci"]),
+           "Hm": (0.5 * TEST_CELL_PARAMETERS["Hm"], 2 * TEST_CELL_PARAMETERS["Hm"])}
+    timed("Bayesian multisine, 20 prior draws", lambda: design.optimal_multisine(
+        model, TEST_CELL_PARAMETERS, "Qh", 1.0, free=free, include_noise=False,
+        prior={"mean": {k: TEST_CELL_PARAMETERS[k] for k in box},
+               "sd": {k: 0.2 * TEST_CELL_PARAMETERS[k] for k in box}}), repeat=1)
+    timed("minimax multisine, 3 x 3 grid on (Ci, Hm)", lambda: design.optimal_multisine(
+        model, TEST_CELL_PARAMETERS, "Qh", 1.0, free=free, include_noise=False, minimax=box, levels=3), repeat=1)
     plans = candidates(504)
     timed("compare_inputs, 8 signals of table 7.3 (504 h)", lambda: design.compare_inputs(
         model, TEST_CELL_PARAMETERS, plans, free=["Hi", "Hm", "Ci", "Cm", "s1i", "s1m", "s2"],

@@ -198,6 +198,85 @@ def test_optimal_multisine_satisfies_the_equivalence_theorem(test_cell):
     assert np.mean(signal**2) == pytest.approx(1.0, rel=0.15)
 
 
+@pytest.fixture(scope="module")
+def scalar_example():
+    """The scalar model of section 6.5 (6.73)–(6.74): dx = (−a x + b u)dt + √r dw, y = x + e."""
+    m = greyid.Model("section_6_5")
+    m.add_system("dx = (-a*x + b*u)*dt + sqrt(r)*dw1")
+    m.add_inputs("u")
+    m.add_observation("y = x", variance="r2")
+    m.set_initial_state(mean={"x": "0"}, covariance=[["1"]])
+    for name in ("a", "b"):
+        m.set_parameter(name, init=1.0, lower=0.0, upper=100.0)
+    for name in ("r", "r2"):
+        m.set_parameter(name, init=1.0, fixed=True)
+    return m, dict(a=0.8, b=1.0, r=1.0, r2=0.1)
+
+
+def _two_sine_values(model, params, points, omegas, weights=np.linspace(0, 1, 41)):
+    """Each point's −log det M of every design of one or two sinusoids on a grid (brute force)."""
+    M_u, M_c, _ = design.frequency_information_points(model, [dict(params, **p) for p in points], omegas, "u",
+                                                      1.0, free=["a", "b"])
+    i, j = np.triu_indices(len(omegas))
+    M = (M_c[:, None, None] + weights[None, :, None, None, None] * M_u[:, None, i]
+         + (1 - weights)[None, :, None, None, None] * M_u[:, None, j])
+    return -np.linalg.slogdet(M)[1]  # (points, weights, pairs)
+
+
+def test_bayesian_multisine_beats_every_two_sine_design(scalar_example):
+    model, params = scalar_example
+    a = np.linspace(0.5, 1.1, 7)
+    prior = pd.DataFrame({"a": a, "weight": np.full(7, 1 / 7)})
+    best = design.optimal_multisine(model, params, "u", 1.0, free=["a", "b"], prior=prior)
+    assert best.kind == "Bayesian" and list(best.points.columns) == ["a", "weight", "value"]
+    assert best.max_derivative <= best.support_derivative * (1 + 1e-5)
+    assert best.value == pytest.approx(best.points.weight @ best.points.value, rel=1e-12)
+    brute = _two_sine_values(model, params, [{"a": x} for x in a], np.linspace(0.01, np.pi, 120))
+    averaged = brute.mean(axis=0)
+    assert best.value <= averaged.min() + 1e-9
+    assert best.value >= averaged.min() - 1e-3  # the grid is close to the optimum
+    # One point with all the weight is the local design there.
+    local = design.optimal_multisine(model, dict(params, a=0.9), "u", 1.0, free=["a", "b"])
+    single = design.optimal_multisine(model, params, "u", 1.0, free=["a", "b"], prior=pd.DataFrame({"a": [0.9]}))
+    assert single.value == pytest.approx(local.value, rel=1e-9)
+    np.testing.assert_allclose(single.frequencies, local.frequencies, rtol=1e-6)
+    # A Gaussian prior is drawn (seeded).
+    drawn = design.optimal_multisine(model, params, "u", 1.0, free=["a", "b"],
+                                     prior={"mean": {"a": 0.8}, "sd": {"a": 0.1}}, draws=5, seed=3)
+    assert len(drawn.points) == 5 and drawn.points["a"].std() > 0
+
+
+def test_minimax_multisine_is_a_saddle_point(scalar_example):
+    model, params = scalar_example
+    # Two systems whose worst case changes with the input: a slow one and a fast one with a large gain.
+    points = pd.DataFrame({"a": [0.2, 3.0], "b": [0.2, 80.0]})
+    best = design.optimal_multisine(model, params, "u", 1.0, free=["a", "b"], minimax=points)
+    assert best.kind == "minimax" and len(best.frequencies) == 2
+    values = best.points["value"].to_numpy()
+    assert values.max() == pytest.approx(best.value, rel=1e-12)
+    assert abs(values[0] - values[1]) < 1e-6  # an equaliser design
+    # The least favourable π certifies it (equivalence theorem of the π-averaged criterion) ...
+    pi = best.points["weight"].to_numpy()
+    assert np.all(pi > 0.1) and best.max_derivative <= best.support_derivative * (1 + 1e-4)
+    # ... and the Bayesian design under π reaches the same value (no duality gap).
+    dual = design.optimal_multisine(model, params, "u", 1.0, free=["a", "b"], prior=points.assign(weight=pi))
+    assert dual.value == pytest.approx(best.value, abs=1e-5)
+    brute = _two_sine_values(model, params, points.to_dict("records"),
+                             np.concatenate([[0.0], np.linspace(1.8, 2.4, 61)]))
+    assert best.value <= brute.max(axis=0).min() + 1e-9
+    # A box whose worst corner dominates: the local design at that corner.
+    boxed = design.optimal_multisine(model, params, "u", 1.0, free=["a", "b"], minimax={"a": (0.5, 1.1)}, levels=4)
+    corner = design.optimal_multisine(model, dict(params, a=1.1), "u", 1.0, free=["a", "b"])
+    assert boxed.value == pytest.approx(corner.value, rel=1e-9)
+    assert list(boxed.points["weight"]) == [0.0, 0.0, 0.0, 1.0]
+    with pytest.raises(greyid.ModelError, match="not both"):
+        design.optimal_multisine(model, params, "u", 1.0, prior=points, minimax=points)
+    with pytest.raises(greyid.ModelError, match="'c', which is not a parameter"):
+        design.optimal_multisine(model, params, "u", 1.0, minimax={"c": (0, 1)})
+    with pytest.raises(greyid.ModelError, match="sum to 1"):
+        design.optimal_multisine(model, params, "u", 1.0, prior=points.assign(weight=[0.5, 0.6]))
+
+
 def _example_6_1():
     """The thesis' example 6.1 (6.19) with diagonal process noise and a measurement variance."""
     m = greyid.Model("example61")

@@ -9,7 +9,8 @@
 * :func:`local_identifiability` — the rank of that information at the assumed values;
 * :func:`compare_inputs` — candidate plans side by side, criteria and ranks (tables 7.4–7.5);
 * :func:`frequency_information` — information per sample of a sinusoid (6.47–6.49), and
-  :func:`optimal_multisine` — the optimal input of a given power (6.3, 7.49–7.50);
+  :func:`optimal_multisine` — the optimal input of a given power (6.3, 7.49–7.50), local,
+  averaged over a prior (6.36–6.38) or worst case over a box (6.39);
 * :func:`sampling_table` — information per sample and per unit time against the
   sampling interval, and the joint input/sampling design (6.4, 6.72);
 * :func:`identifiability` — structural identifiability before any data (6.1).
@@ -17,12 +18,13 @@
 
 from .compare import compare_inputs
 from .criteria import CRITERIA, average_criterion, cramer_rao_bound, criterion, minimax_criterion, with_prior
-from .frequency import (MultisineDesign, aliased, frequency_information, frequency_information_grid,
-                        optimal_multisine, sampling_table)
+from .frequency import frequency_information, frequency_information_grid, frequency_information_points
+from .multisine import MultisineDesign, optimal_multisine
 from .identifiability import Identifiability, identifiability
 from .information import fisher_information, local_identifiability
+from .sampling import aliased, sampling_table
 
 __all__ = ["fisher_information", "local_identifiability", "cramer_rao_bound", "criterion", "CRITERIA",
            "average_criterion", "minimax_criterion", "with_prior", "compare_inputs", "frequency_information",
-           "frequency_information_grid", "optimal_multisine", "MultisineDesign", "sampling_table", "aliased",
+           "frequency_information_grid", "frequency_information_points", "optimal_multisine", "MultisineDesign", "sampling_table", "aliased",
            "identifiability", "Identifiability"]

@@ -1,4 +1,4 @@
-"""Information per sample in the frequency domain, and optimal multisine inputs (6.3, 6.47–6.49, 7.49–7.50).
+"""Information per sample in the frequency domain (6.47–6.49, 6.76–6.81 generalised).
 
 For a linear time-invariant model sampled every τ with the input held between
 samples, the stationary Kalman filter gives the innovations form
@@ -19,14 +19,11 @@ differentiation through the discretisation and the Riccati iteration).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
-from scipy import optimize
 
 from ..compiler import jit
 from ..errors import ModelError
@@ -120,11 +117,13 @@ def _programs(structure, input_index: int, index: tuple[int, ...]):
         circle = 2 * jnp.pi * jnp.arange(CIRCLE_POINTS) / CIRCLE_POINTS
         return part + jnp.mean(jax.vmap(at)(circle), axis=0)
 
-    structure.cache[key] = (jit(input_information), jit(noise_information))
+    structure.cache[key] = (jit(input_information), jit(noise_information),
+                            jit(jax.vmap(input_information, in_axes=(0, None, None))),
+                            jit(jax.vmap(noise_information, in_axes=(0, None))))
     return structure.cache[key]
 
 
-def _setup(model, params, input, free):
+def _setup(model, params, input, free, several: bool = False):
     from .information import _free_names
 
     structure = model.structure
@@ -135,9 +134,11 @@ def _setup(model, params, input, free):
         raise ModelError(f"'{input}' is not an input of model '{model.name}' (inputs: {list(structure.input_names)})")
     names = _free_names(model, free)
     all_names = list(structure.parameter_names)
-    theta = jnp.asarray(model.parameter_vector(params), dtype=jnp.float64)
+    vectors = [model.parameter_vector(p) for p in (params if several else [params])]
+    theta = jnp.asarray(np.array(vectors) if several else vectors[0], dtype=jnp.float64)
     index = tuple(all_names.index(n) for n in names)
-    return names, theta, _programs(structure, structure.input_names.index(input), index)
+    programs = _programs(structure, structure.input_names.index(input), index)
+    return names, theta, programs[2:] if several else programs[:2]
 
 
 def frequency_information(model, params, omega: float, input: str, sampling_interval: float,
@@ -172,165 +173,19 @@ def frequency_information_grid(model, params, omegas, input: str, sampling_inter
     return 0.5 * (M_u + M_u.transpose(0, 2, 1)), 0.5 * (M_c + M_c.T), names
 
 
-@dataclass
-class MultisineDesign:
-    """An optimal input: sinusoids at ``frequencies`` (rad per time unit) with power ``weights``."""
+def frequency_information_points(model, points, omegas, input: str, sampling_interval: float, free=None,
+                                 input_independent: bool = True):
+    """``(M_u, M_c, names)`` of :func:`frequency_information_grid` at several parameter points at once.
 
-    frequencies: np.ndarray
-    weights: np.ndarray  # fractions of the total power, summing to 1
-    value: float  # the criterion at the design (minimised)
-    criterion: str
-    power: float
-    max_derivative: float  # largest directional derivative over the frequency band
-    support_derivative: float  # the design's own (equal at an optimum: equivalence theorem)
-    information: pd.DataFrame  # per sample, of the design
-
-    def signal(self, times, offset: float = 0.0, phases="schroeder") -> np.ndarray:
-        """The input's time series at ``times`` (a sinusoid at 0 is a constant of its power)."""
-        from ..simulate.signals import multisine
-
-        times = np.asarray(times, dtype=np.float64)
-        out = np.full(times.shape, float(offset))
-        constant = self.frequencies <= 1e-12
-        if np.any(constant):
-            out += np.sqrt(self.power * self.weights[constant].sum())
-        if np.any(~constant):
-            share = self.weights[~constant]
-            out += multisine(times, self.frequencies[~constant] / (2 * np.pi), power=share,
-                             total_power=self.power * share.sum(), phases=phases)
-        return out
-
-    def table(self) -> pd.DataFrame:
-        return pd.DataFrame({"frequency": self.frequencies, "weight": self.weights})
-
-
-def _criterion_and_derivatives(M, Ms, kind):
-    """Value of the criterion at M and the directional derivative towards each M_u(ω)."""
-    M_inv = np.linalg.inv(M)
-    if kind == "D":
-        return -np.linalg.slogdet(M)[1], np.einsum("ij,lji->l", M_inv, Ms)
-    M2 = M_inv @ M_inv
-    return np.trace(M_inv) / M.shape[0], np.einsum("ij,lji->l", M2, Ms)
-
-
-def optimal_multisine(model, params, input: str, sampling_interval: float, criterion: str = "D",
-                      power: float = 1.0, band=None, free=None, include_noise: bool = True,
-                      grid: int = 400, iterations: int = 5000) -> MultisineDesign:
-    """The input of ``power`` (variance) on ``input`` that minimises ``criterion`` per sample (6.3, 7.49).
-
-    Candidate frequencies: 0 and a logarithmic grid up to the Nyquist frequency
-    π/τ (or within ``band = (low, high)``).  The weights come from the
-    multiplicative algorithm for convex design (a Fedorov–Wynn relative), the
-    support is merged and then refined locally in frequency and weight.  The
-    information is M̄_c + power·Σ α_l M_u(ω_l), or without M̄_c with
-    ``include_noise=False`` (the form of (7.50)).  ``criterion`` is ``"D"`` or
-    ``"A"``.  The result's ``max_derivative`` and ``support_derivative`` check the
-    general equivalence theorem: no frequency should have a larger directional
-    derivative than the design's own.
+    ``points`` a list of parameter mappings; ``M_u`` has shape (points,
+    frequencies, p, p) and ``M_c`` (points, p, p), or ``None`` without
+    ``input_independent`` (it costs more than a few frequencies' M_u).
     """
-    if criterion not in ("D", "A"):
-        raise ModelError(f"optimal_multisine supports criterion 'D' or 'A', not {criterion!r}")
-    if not power > 0:
-        raise ModelError(f"the input power must be positive, got {power!r}")
-    names, theta, (input_information, noise_information) = _setup(model, params, input, free)
+    names, thetas, (input_information, noise_information) = _setup(model, points, input, free, several=True)
     tau = float(sampling_interval)
-    nyquist = np.pi / tau
-    low, high = (0.0, nyquist) if band is None else (float(band[0]), min(float(band[1]), nyquist))
-    if not 0 <= low < high:
-        raise ModelError(f"band must be (low, high) with 0 ≤ low < high ≤ π/τ = {nyquist:.4g}, got {band!r}")
-    start = max(low, high * 1e-4)
-    omegas = np.unique(np.concatenate([[low], np.geomspace(start, high, grid)]))
-    Ms = power * np.asarray(input_information(theta, tau, jnp.asarray(omegas)))
-    Ms = 0.5 * (Ms + Ms.transpose(0, 2, 1))
-    base = np.asarray(noise_information(theta, tau)) if include_noise else np.zeros(Ms.shape[1:])
-    # D is computed in scaled units (the same optimum, better conditioned); A depends on the units.
-    scale = np.sqrt(np.maximum(np.einsum("lii->i", Ms) + np.diag(base), 1e-300))
-    S = np.diag(1.0 / scale) if criterion == "D" else np.eye(len(scale))
-    Ms_s, base_s = S @ Ms @ S, S @ base @ S
-    alpha = np.full(len(omegas), 1.0 / len(omegas))
-    for _ in range(iterations):
-        _, d = _criterion_and_derivatives(base_s + np.einsum("l,lij->ij", alpha, Ms_s), Ms_s, criterion)
-        alpha = alpha * d / (alpha @ d)
-    # One sinusoid per peak of the weights (its basin's weight summed, between the
-    # neighbouring minima), then refined: the algorithm leaves small weights spread
-    # around each support point, and merging all of them would average distinct peaks.
-    significant = alpha > 1e-3 * alpha.max()
-    left = np.concatenate([[-np.inf], alpha[:-1]])
-    right = np.concatenate([alpha[1:], [-np.inf]])
-    peaks = np.flatnonzero(significant & (alpha >= left) & (alpha >= right))
-    bounds = [0] + [int(p0 + np.argmin(alpha[p0:p1 + 1])) for p0, p1 in zip(peaks[:-1], peaks[1:])] + [len(alpha)]
-    freq0 = omegas[peaks]
-    w0 = np.array([alpha[lo:hi].sum() for lo, hi in zip(bounds[:-1], bounds[1:])])
-
-    def information_of(freqs, weights):
-        M_f = power * np.asarray(input_information(theta, tau, jnp.asarray(freqs)))
-        return base + np.einsum("l,lij->ij", weights, 0.5 * (M_f + M_f.transpose(0, 2, 1)))
-
-    def objective(x):
-        k = len(freq0)
-        freqs = np.clip(x[:k], low, high)
-        weights = np.exp(x[k:] - x[k:].max())
-        weights /= weights.sum()
-        value, _ = _criterion_and_derivatives(S @ information_of(freqs, weights) @ S, Ms_s[:1], criterion)
-        return value
-
-    x0 = np.concatenate([freq0, np.log(np.maximum(w0, 1e-12))])
-    refined = optimize.minimize(objective, x0, method="Nelder-Mead",
-                                options=dict(xatol=1e-8, fatol=1e-12, maxiter=4000))
-    x = refined.x if refined.fun <= objective(x0) else x0
-    k = len(freq0)
-    freqs = np.clip(x[:k], low, high)
-    weights = np.exp(x[k:] - x[k:].max())
-    weights /= weights.sum()
-    order = np.argsort(freqs)
-    freqs, weights = freqs[order], weights[order]
-    M = information_of(freqs, weights)
-    # The equivalence check in the units the design was found in; the value in the model's own.
-    _, d = _criterion_and_derivatives(S @ M @ S, Ms_s, criterion)
-    _, d_support = _criterion_and_derivatives(
-        S @ M @ S, S @ (power * np.asarray(input_information(theta, tau, jnp.asarray(freqs)))) @ S, criterion)
-    value, _ = _criterion_and_derivatives(M, Ms[:1], criterion)
-    return MultisineDesign(freqs, weights, float(value), criterion, float(power), float(d.max()),
-                           float(weights @ d_support), pd.DataFrame(M, index=names, columns=names))
-
-
-def aliased(omegas, sampling_interval: float) -> np.ndarray:
-    """The frequencies in [0, π/τ] that sampled (held) sinusoids at ``omegas`` are indistinguishable from."""
-    band = 2 * np.pi / sampling_interval
-    return np.abs((np.asarray(omegas, dtype=np.float64) + band / 2) % band - band / 2)
-
-
-def sampling_table(model, params, input: str, intervals, frequencies=None, weights=None, power: float = 1.0,
-                   free=None, include_noise: bool = True) -> pd.DataFrame:
-    """The D-criterion per sample and per unit time against the sampling interval (section 6.4, (6.72)).
-
-    For each interval τ the information per sample M(τ) = M̄_c(τ) + power·Σ w_l M_u(ω_l; τ)
-    of the input design — the given ``frequencies`` (rad per time unit; one above
-    the Nyquist frequency π/τ acts as its alias) and power ``weights``, or, without
-    ``frequencies``, the D-optimal multisine for that τ (the joint input and
-    sampling design of a fixed number of samples) — and the information per
-    unit time M(τ)/τ (a fixed experiment time).  Columns ``interval``,
-    ``D_per_sample`` = −log det M, ``D_per_time`` = −log det(M/τ), ``frequencies``
-    and ``weights`` of the design used.
-    """
-    rows = []
-    for tau in np.asarray(intervals, dtype=np.float64):
-        if not tau > 0:
-            raise ModelError(f"sampling intervals must be positive, got {tau!r}")
-        if frequencies is None:
-            best = optimal_multisine(model, params, input, float(tau), power=power, free=free,
-                                     include_noise=include_noise)
-            freqs, share, M = best.frequencies, best.weights, best.information.to_numpy()
-        else:
-            freqs = aliased(frequencies, tau)
-            share = np.full(len(freqs), 1.0 / len(freqs)) if weights is None else np.asarray(weights, float)
-            if share.shape != freqs.shape or np.any(share < 0) or not np.isclose(share.sum(), 1.0):
-                raise ModelError("weights must hold one non-negative power fraction per frequency, summing to 1")
-            M_u, M_c, _ = frequency_information_grid(model, params, freqs, input, float(tau), free)
-            M = (M_c if include_noise else 0.0) + power * np.einsum("l,lij->ij", share, M_u)
-        sign, logdet = np.linalg.slogdet(M)
-        per_sample = -logdet if sign > 0 else np.inf
-        per_time = per_sample + M.shape[0] * np.log(tau) if sign > 0 else np.inf
-        rows.append(dict(interval=float(tau), D_per_sample=float(per_sample), D_per_time=float(per_time),
-                         frequencies=tuple(np.round(freqs, 6)), weights=tuple(np.round(share, 4))))
-    return pd.DataFrame(rows)
+    M_u = np.asarray(input_information(thetas, tau, jnp.asarray(np.asarray(omegas, dtype=np.float64))))
+    M_u = 0.5 * (M_u + M_u.transpose(0, 1, 3, 2))
+    if not input_independent:
+        return M_u, None, names
+    M_c = np.asarray(noise_information(thetas, tau))
+    return M_u, 0.5 * (M_c + M_c.transpose(0, 2, 1)), names

@@ -1,0 +1,363 @@
+"""Optimal multisine inputs: local, Bayesian and minimax (thesis 6.3, theorem 6.1, 6.36–6.39, 7.49–7.50).
+
+A design ξ puts power fractions α_l on sinusoids at frequencies ω_l; its
+information per sample at parameter values θ is
+
+    M(ξ; θ) = M̄_c(θ) + P Σ_l α_l M_u(ω_l; θ)                    (6.47–6.49)
+
+(:mod:`.frequency`).  The criterion Φ (D or A) of M is convex in α, and so are
+
+* the local design: Φ(M(ξ; θ₀)) at the assumed values;
+* the Bayesian design (J₃ of 6.36–6.38): Σ_j π_j Φ(M(ξ; θ_j)) over draws or
+  quadrature points θ_j of a prior with weights π_j;
+* the minimax design (6.39): max_j Φ(M(ξ; θ_j)) over a grid θ_j on a box.
+
+The first two are solved by the multiplicative algorithm for convex design on a
+frequency grid with the averaged directional derivative.  The minimax design is
+the saddle point max_π min_ξ Σ_j π_j Φ_j(ξ) (convex in ξ, linear in π): an
+outer mirror ascent moves the weights π towards the least favourable
+distribution over the grid, each step a Bayesian design, and stops when the
+duality gap max_j Φ_j − Σ_j π_j Φ_j is small.  Every design ends with a local
+refinement of the support's frequencies and weights.  The general equivalence
+theorem (theorem 6.1) is the check: with the final π no frequency has a larger
+directional derivative than the design's support.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from itertools import product
+
+import numpy as np
+import pandas as pd
+from scipy import optimize
+
+from ..errors import ModelError
+from .frequency import frequency_information_grid, frequency_information_points
+
+#: Multiplicative iterations per Bayesian sub-problem of the minimax design.
+MINIMAX_INNER = 300
+#: Outer (mirror ascent) iterations of the minimax design at most.
+MINIMAX_OUTER = 400
+
+
+@dataclass
+class MultisineDesign:
+    """An optimal input: sinusoids at ``frequencies`` (rad per time unit) with power ``weights``."""
+
+    frequencies: np.ndarray
+    weights: np.ndarray  # fractions of the total power, summing to 1
+    value: float  # the criterion at the design (minimised): local, averaged or worst case
+    criterion: str
+    power: float
+    max_derivative: float  # largest directional derivative over the frequency band
+    support_derivative: float  # the design's own (equal at an optimum: equivalence theorem)
+    information: pd.DataFrame  # per sample, of the design, at the assumed parameter values
+    kind: str = "local"  # "local", "Bayesian" or "minimax"
+    #: The parameter points the criterion was averaged or maximised over, with
+    #: their weights π (for minimax the least favourable distribution found) and
+    #: the criterion of the design at each; ``None`` for a local design.
+    points: pd.DataFrame | None = None
+    gap: float = 0.0  # minimax: worst value minus the π-average (0 at the saddle point)
+    values: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
+
+    def signal(self, times, offset: float = 0.0, phases="schroeder") -> np.ndarray:
+        """The input's time series at ``times`` (a sinusoid at 0 is a constant of its power)."""
+        from ..simulate.signals import multisine
+
+        times = np.asarray(times, dtype=np.float64)
+        out = np.full(times.shape, float(offset))
+        constant = self.frequencies <= 1e-12
+        if np.any(constant):
+            out += np.sqrt(self.power * self.weights[constant].sum())
+        if np.any(~constant):
+            share = self.weights[~constant]
+            out += multisine(times, self.frequencies[~constant] / (2 * np.pi), power=share,
+                             total_power=self.power * share.sum(), phases=phases)
+        return out
+
+    def table(self) -> pd.DataFrame:
+        return pd.DataFrame({"frequency": self.frequencies, "weight": self.weights})
+
+
+def _criterion_and_derivatives(M, Ms, kind):
+    """Value of the criterion at M and the directional derivative towards each M_u(ω)."""
+    M_inv = np.linalg.inv(M)
+    if kind == "D":
+        return -np.linalg.slogdet(M)[1], np.einsum("ij,lji->l", M_inv, Ms)
+    M2 = M_inv @ M_inv
+    return np.trace(M_inv) / M.shape[0], np.einsum("ij,lji->l", M2, Ms)
+
+
+def parameter_points(model, params, prior=None, minimax=None, draws: int = 20, seed: int = 0,
+                     levels: int = 2) -> tuple[list[dict], np.ndarray]:
+    """The parameter values θ_j a Bayesian or minimax design looks at, and their weights π_j.
+
+    ``prior``: a Gaussian ``{"mean", "sd", "corr"}`` on some parameters (``draws``
+    seeded draws, equal weights) or a DataFrame of points, one row each, with an
+    optional ``weight`` column (a quadrature rule).  ``minimax``: a box
+    ``{name: (low, high)}`` gridded with ``levels`` values per parameter (the
+    corners for 2).  Parameters not named take their values in ``params``.
+    """
+    names = list(model.structure.parameter_names)
+    base = dict(params)
+    if prior is not None and minimax is not None:
+        raise ModelError("give prior= (a Bayesian design) or minimax= (a worst-case design), not both")
+    given = prior if isinstance(prior, pd.DataFrame) else minimax if isinstance(minimax, pd.DataFrame) else None
+    if given is not None:
+        what = "prior's" if given is prior else "minimax"
+        columns = [c for c in given.columns if c != "weight"]
+        unknown = [c for c in columns if c not in names]
+        if unknown:
+            raise ModelError(f"the {what} points name '{unknown[0]}', which is not a parameter of model "
+                             f"'{model.name}'")
+        if len(given) == 0:
+            raise ModelError(f"the {what} points are empty")
+        weights = (given["weight"].to_numpy(dtype=np.float64) if "weight" in given and given is prior
+                   else np.full(len(given), 1.0 / len(given)))
+        if np.any(~(weights >= 0)) or not np.isclose(weights.sum(), 1.0):
+            raise ModelError("the prior's 'weight' column must be non-negative and sum to 1")
+        points = [dict(base, **{c: float(row[c]) for c in columns}) for _, row in given.iterrows()]
+        return points, weights
+    if prior is not None:
+        from ..estimate.criteria import GaussianPrior
+
+        spec = GaussianPrior.from_spec(prior, names)
+        if draws < 1:
+            raise ModelError(f"draws must be at least 1, got {draws!r}")
+        sample = np.random.default_rng(seed).multivariate_normal(spec.mean, spec.covariance, size=draws)
+        return [dict(base, **dict(zip(spec.names, row))) for row in sample], np.full(draws, 1.0 / draws)
+    if minimax is not None:
+        unknown = [n for n in minimax if n not in names]
+        if unknown:
+            raise ModelError(f"the box names '{unknown[0]}', which is not a parameter of model '{model.name}'")
+        if levels < 2:
+            raise ModelError(f"levels must be at least 2, got {levels!r}")
+        for name, bounds in minimax.items():
+            low, high = (float(b) for b in bounds)
+            if not low <= high:
+                raise ModelError(f"the box of '{name}' must be (low, high) with low ≤ high, got {bounds!r}")
+        grids = [np.linspace(float(lo), float(hi), levels) for lo, hi in minimax.values()]
+        points = [dict(base, **dict(zip(minimax, corner))) for corner in product(*grids)]
+        return points, np.full(len(points), 1.0 / len(points))
+    return [base], np.ones(1)
+
+
+class _Problem:
+    """The information of every candidate frequency at every parameter point, scaled for the criterion."""
+
+    def __init__(self, model, points, input, tau, power, free, include_noise, omegas, criterion):
+        self.model, self.points, self.input, self.tau = model, points, input, tau
+        self.power, self.free, self.criterion = power, free, criterion
+        M_u, M_c, self.names = frequency_information_points(model, points, omegas, input, tau, free)
+        self.Ms = power * M_u  # (K, L, p, p)
+        self.bases = M_c if include_noise else np.zeros_like(M_c)  # (K, p, p)
+        # D is computed in scaled units (the same optimum, better conditioned; the
+        # offset restores each point's value in the model's units); A depends on units.
+        p = self.bases.shape[-1]
+        if criterion == "D":
+            scale = np.sqrt(np.maximum(np.einsum("klii->ki", self.Ms) + np.einsum("kii->ki", self.bases), 1e-300))
+            self.S = np.array([np.diag(1.0 / s) for s in scale])
+            self.offsets = -2.0 * np.log(scale).sum(axis=1)
+        else:
+            self.S = np.broadcast_to(np.eye(p), (len(points), p, p)).copy()
+            self.offsets = np.zeros(len(points))
+        self.Ms_s = np.einsum("kab,klbc,kcd->klad", self.S, self.Ms, self.S)
+        self.bases_s = np.einsum("kab,kbc,kcd->kad", self.S, self.bases, self.S)
+
+    def on_grid(self, alpha):
+        """Each point's criterion and directional derivatives (K, L) of the grid design ``alpha``."""
+        M = self.bases_s + np.einsum("l,klij->kij", alpha, self.Ms_s)
+        M_inv = np.linalg.inv(M)
+        if self.criterion == "D":
+            return -np.linalg.slogdet(M)[1] + self.offsets, np.einsum("kij,klji->kl", M_inv, self.Ms_s)
+        return (np.trace(M_inv, axis1=1, axis2=2) / M.shape[-1],
+                np.einsum("kij,klji->kl", M_inv @ M_inv, self.Ms_s))
+
+    def support_information(self, freqs):
+        """M_u at each point and each of ``freqs``, times the power: (K, k, p, p)."""
+        M_u, _, _ = frequency_information_points(self.model, self.points, freqs, self.input, self.tau, self.free,
+                                                 input_independent=False)
+        return self.power * M_u
+
+    def values(self, freqs, weights):
+        """Each point's criterion of sinusoids at ``freqs`` with power fractions ``weights``."""
+        M = self.bases + np.einsum("l,klij->kij", weights, self.support_information(freqs))
+        return np.array([_criterion_and_derivatives(Mj, Mj[None], self.criterion)[0] for Mj in M])
+
+    def at_design(self, freqs, weights):
+        """Each point's criterion at a design, and its derivatives towards the grid and the support."""
+        M_f = self.support_information(freqs)
+        M = self.bases + np.einsum("l,klij->kij", weights, M_f)
+        values, grid, support = [], [], []
+        for j in range(len(self.points)):
+            S = self.S[j]
+            values.append(_criterion_and_derivatives(M[j], M[j][None], self.criterion)[0])
+            grid.append(_criterion_and_derivatives(S @ M[j] @ S, self.Ms_s[j], self.criterion)[1])
+            support.append(_criterion_and_derivatives(S @ M[j] @ S, S @ M_f[j] @ S, self.criterion)[1])
+        return np.array(values), np.array(grid), np.array(support)
+
+
+def _multiplicative(problem, alpha, pi, iterations):
+    """The multiplicative algorithm on the π-averaged criterion (a Fedorov–Wynn relative)."""
+    for _ in range(iterations):
+        _, derivatives = problem.on_grid(alpha)
+        d = pi @ derivatives
+        alpha = alpha * d / (alpha @ d)
+    return alpha
+
+
+def _minimax_on_grid(problem, alpha):
+    """A minimax design on the frequency grid, as a start for the refinement.
+
+    Active set: the minimax over the points that have been worst so far (one
+    point: its local design), adding the point that is worst at that design.
+    Over several active points, exponentiated-gradient ascent on π with
+    decreasing steps (the points' values are the gradient of the dual), each
+    step a Bayesian design; the design with the least worst value is kept.
+    """
+    K = len(problem.points)
+    values, _ = problem.on_grid(alpha)
+    active = [int(np.argmax(values))]
+    best = (values.max(), alpha)
+    while True:
+        pi = np.zeros(K)
+        pi[active] = 1.0 / len(active)
+        alpha = _multiplicative(problem, alpha, pi, 5 * MINIMAX_INNER)
+        values, _ = problem.on_grid(alpha)
+        spread = max(values[active].max() - values[active].min(), 1e-12)
+        for step in range(MINIMAX_OUTER if len(active) > 1 else 0):
+            worst = values[active].max()
+            if worst - pi @ values <= 1e-8 * max(1.0, abs(worst)):
+                break
+            pi[active] = pi[active] * np.exp((values[active] - worst) / (spread * np.sqrt(1.0 + step)))
+            pi /= pi.sum()
+            alpha = _multiplicative(problem, alpha, pi, MINIMAX_INNER // 10)
+            values, _ = problem.on_grid(alpha)
+            if values.max() < best[0]:
+                best = (values.max(), alpha)
+        if values.max() < best[0]:
+            best = (values.max(), alpha)
+        worst = int(np.argmax(values))
+        if worst in active:
+            return best[1]
+        active.append(worst)
+
+
+def _least_favourable(values, derivatives, support, weights, tolerance=1e-6):
+    """Weights π on the worst points that make a minimax design satisfy the equivalence theorem.
+
+    A design ξ is minimax-optimal when some distribution π on the points where
+    its criterion is largest makes ξ optimal for the π-averaged criterion: no
+    frequency's directional derivative Σ_j π_j d_j(ω) exceeds the support's
+    Σ_j π_j s_j.  That is a linear programme in π (HiGHS through SciPy).
+    """
+    worst = values.max()
+    active = np.flatnonzero(values >= worst - tolerance * max(1.0, abs(worst)) - 1e-9)
+    excess = derivatives[active] - (support[active] @ weights)[:, None]  # (A, L)
+    A = len(active)
+    if A == 1:
+        pi = np.zeros(len(values))
+        pi[active] = 1.0
+        return pi
+    # minimise t subject to excessᵀπ ≤ t, Σπ = 1, π ≥ 0
+    cost = np.r_[np.zeros(A), 1.0]
+    upper = np.c_[excess.T, -np.ones(excess.shape[1])]
+    solved = optimize.linprog(cost, A_ub=upper, b_ub=np.zeros(excess.shape[1]), A_eq=np.r_[np.ones(A), 0.0][None],
+                              b_eq=[1.0], bounds=[(0, None)] * A + [(None, None)], method="highs")
+    pi = np.zeros(len(values))
+    pi[active] = solved.x[:A] if solved.success else 1.0 / A
+    return pi / pi.sum()
+
+
+def _peaks(omegas, alpha):
+    """One sinusoid per peak of the grid weights, with its basin's weight summed.
+
+    The algorithm leaves small weights spread around each support point, and
+    merging all of them would average distinct peaks.
+    """
+    significant = alpha > 1e-3 * alpha.max()
+    left = np.concatenate([[-np.inf], alpha[:-1]])
+    right = np.concatenate([alpha[1:], [-np.inf]])
+    peaks = np.flatnonzero(significant & (alpha >= left) & (alpha >= right))
+    bounds = [0] + [int(p0 + np.argmin(alpha[p0:p1 + 1])) for p0, p1 in zip(peaks[:-1], peaks[1:])] + [len(alpha)]
+    return omegas[peaks], np.array([alpha[lo:hi].sum() for lo, hi in zip(bounds[:-1], bounds[1:])])
+
+
+def optimal_multisine(model, params, input: str, sampling_interval: float, criterion: str = "D",
+                      power: float = 1.0, band=None, free=None, include_noise: bool = True,
+                      grid: int = 400, iterations: int = 5000, prior=None, minimax=None, draws: int = 20,
+                      seed: int = 0, levels: int = 2) -> MultisineDesign:
+    """The input of ``power`` (variance) on ``input`` that minimises ``criterion`` per sample (6.3, 7.49).
+
+    Candidate frequencies: 0 and a logarithmic grid up to the Nyquist frequency
+    π/τ (or within ``band = (low, high)``).  The information is M̄_c +
+    power·Σ α_l M_u(ω_l), or without M̄_c with ``include_noise=False`` (the form
+    of (7.50)).  ``criterion`` is ``"D"`` or ``"A"``.
+
+    By default the design is local, at ``params``.  ``prior=`` averages the
+    criterion over a prior (J₃, 6.36–6.38): a Gaussian ``{"mean", "sd", "corr"}``
+    (``draws`` seeded draws) or a DataFrame of points with an optional
+    ``weight`` column.  ``minimax=`` a box ``{name: (low, high)}`` minimises the
+    worst value over a grid of ``levels`` values per parameter (6.39), or
+    ``minimax=`` a DataFrame over its rows.  The
+    result's ``max_derivative`` and ``support_derivative`` check the general
+    equivalence theorem; ``points`` holds the parameter points, their weights
+    (for minimax the least favourable distribution) and the design's value at each.
+    """
+    if criterion not in ("D", "A"):
+        raise ModelError(f"optimal_multisine supports criterion 'D' or 'A', not {criterion!r}")
+    if not power > 0:
+        raise ModelError(f"the input power must be positive, got {power!r}")
+    tau = float(sampling_interval)
+    nyquist = np.pi / tau
+    low, high = (0.0, nyquist) if band is None else (float(band[0]), min(float(band[1]), nyquist))
+    if not 0 <= low < high:
+        raise ModelError(f"band must be (low, high) with 0 ≤ low < high ≤ π/τ = {nyquist:.4g}, got {band!r}")
+    points, pi = parameter_points(model, params, prior, minimax, draws, seed, levels)
+    kind = "local" if prior is None and minimax is None else ("Bayesian" if prior is not None else "minimax")
+    start = max(low, high * 1e-4)
+    omegas = np.unique(np.concatenate([[low], np.geomspace(start, high, grid)]))
+    problem = _Problem(model, points, input, tau, float(power), free, include_noise, omegas, criterion)
+
+    alpha = _multiplicative(problem, np.full(len(omegas), 1.0 / len(omegas)), pi, iterations)
+    if kind == "minimax":
+        alpha = _minimax_on_grid(problem, alpha)
+    freq0, w0 = _peaks(omegas, alpha)
+
+    def unpack(x):
+        k = len(freq0)
+        weights = np.exp(x[k:] - x[k:].max())
+        return np.clip(x[:k], low, high), weights / weights.sum()
+
+    def objective(x):
+        values = problem.values(*unpack(x))
+        return values.max() if kind == "minimax" else pi @ values
+
+    x0 = np.concatenate([freq0, np.log(np.maximum(w0, 1e-12))])
+    refined = optimize.minimize(objective, x0, method="Nelder-Mead",
+                                options=dict(xatol=1e-8, fatol=1e-12, maxiter=4000))
+    x = refined.x if refined.fun <= objective(x0) else x0
+    freqs, weights = unpack(x)
+    # Sinusoids the refinement drove to no power are dropped (the value changes by < 1e-8 relative).
+    keep = weights > 1e-8
+    order = np.argsort(freqs[keep])
+    freqs, weights = freqs[keep][order], weights[keep][order] / weights[keep].sum()
+    values, derivatives, support = problem.at_design(freqs, weights)
+    value = values.max() if kind == "minimax" else pi @ values
+    gap = 0.0
+    if kind == "minimax":
+        pi = _least_favourable(values, derivatives, support, weights)
+        gap = float(values.max() - pi @ values)
+    M_u, M_c, names = frequency_information_grid(model, params, freqs, input, tau, free)
+    nominal = (M_c if include_noise else 0.0) + power * np.einsum("l,lij->ij", weights, M_u)
+    table = None
+    if kind != "local":
+        given = prior if prior is not None else minimax
+        varied = ([c for c in given.columns if c != "weight"] if isinstance(given, pd.DataFrame)
+                  else list(given["mean"] if given is prior else given))
+        table = pd.DataFrame(points)[varied].assign(weight=pi, value=values)
+    return MultisineDesign(freqs, weights, float(value), criterion, float(power), float((pi @ derivatives).max()),
+                           float(weights @ (pi @ support)), pd.DataFrame(nominal, index=names, columns=names),
+                           kind=kind, points=table, gap=gap, values=values)
+
