@@ -119,17 +119,48 @@ class FitResult:
         return max(self.n_obs - self.n_params, 1)
 
     def conf_int(self, level: float = 0.95, method: str = "wald") -> pd.DataFrame:
-        """Confidence intervals ``lower``, ``upper`` per parameter: estimate ± t_{N−k} quantile × SE.
+        """Confidence intervals ``lower``, ``upper`` per parameter.
 
-        NaN where there is no standard error (fixed parameters, estimates at a bound).
+        ``method="wald"``: estimate ± t_{N−k} quantile × SE (NaN where there is no
+        standard error: fixed parameters, estimates at a bound).
+        ``method="profile"``: the likelihood-ratio interval from the profile of each
+        free parameter (:func:`greyid.uncertainty.profile_intervals`), which follows
+        a skewed likelihood; an end that runs into a bound is that bound, with a warning.
         """
-        if method != "wald":
-            raise ModelError(f"confidence intervals by method {method!r} are not available; use method='wald'")
+        if method not in ("wald", "profile"):
+            raise ModelError(f"confidence intervals by method {method!r} are not available; "
+                             "use method='wald' or 'profile'")
         if not 0 < level < 1:
             raise ModelError(f"level must lie between 0 and 1, got {level!r}")
+        if method == "profile":
+            from ..uncertainty.profile import profile_intervals
+
+            return profile_intervals(self, level)
         q = float(special.stdtrit(self.df_resid, 0.5 + level / 2))
         est, se = self.params["estimate"], self.params["std_error"]
         return pd.DataFrame({"lower": est - q * se, "upper": est + q * se}, index=self.params.index)
+
+    def profile(self, name: str, values=None, n: int = 21, span: float = 3.0, expression: str | None = None
+                ) -> pd.DataFrame:
+        """The profile likelihood of a parameter or derived quantity; see :func:`greyid.uncertainty.profile`."""
+        from ..uncertainty.profile import profile
+
+        return profile(self, name, values=values, n=n, span=span, expression=expression)
+
+    def sample(self, draws: int = 1000, chains: int = 4, seed: int = 0, warmup: int = 500,
+               target_accept: float = 0.8):
+        """NUTS draws from the posterior of the fit's criterion; see :func:`greyid.uncertainty.sample`."""
+        from ..uncertainty.sampling import sample
+
+        return sample(self, draws=draws, chains=chains, seed=seed, warmup=warmup, target_accept=target_accept)
+
+    def plot_profile(self, name: str, ax=None, **options):
+        """Plot :meth:`profile` of ``name`` (deviance, χ² threshold, Wald parabola); returns the axes."""
+        from ..uncertainty.profile import plot_profile
+
+        table = self.profile(name, **options)
+        se = float(self.params.loc[name, "std_error"]) if name in self.params.index else None
+        return plot_profile(table, ax=ax, wald_se=se)
 
     @property
     def aic(self) -> float:
@@ -297,17 +328,54 @@ class FitResult:
         """Rauch–Tung–Striebel smoothed states at the estimates."""
         return self.model.smooth(self.values, self._data(data), **self._filter_settings())
 
-    def predict(self, data=None, steps: int = 1, states: bool = False):
+    def predict(self, data=None, steps: int = 1, states: bool = False, interval: float | None = None,
+                parameter_uncertainty: bool = False, draws: int = 200, seed: int = 0, posterior=None):
         """``steps``-ahead predictions of the outputs (and states) with standard deviations.
 
         As :meth:`Model.predict` at the estimates; append rows of future inputs with
-        missing outputs to ``data`` to forecast past its end.
+        missing outputs to ``data`` to forecast past its end.  ``interval=0.95``
+        adds ``<y>_lower``/``<y>_upper`` columns.  With ``parameter_uncertainty=True``
+        the prediction also carries the parameters' uncertainty: ``draws`` parameter
+        vectors from the Laplace approximation (or from ``posterior=fit.sample()``),
+        the predictive mixture's mean, total ``<y>_sd`` and quantiles
+        (:func:`greyid.uncertainty.intervals.predict`).
         """
-        return self.model.predict(self.values, self._data(data), steps=steps, states=states,
-                                  **self._filter_settings())
+        if parameter_uncertainty:
+            from ..uncertainty.intervals import predict
 
-    def simulate(self, data=None, n_paths: int = 1, seed: int = 0, method: str = "euler", **options):
-        """Sample paths of the fitted model driven by the data's inputs."""
+            if states:
+                raise ModelError("states=True is not available with parameter_uncertainty=True")
+            return predict(self, data, steps=steps, interval=0.95 if interval is None else interval,
+                           draws=draws, seed=seed, posterior=posterior)
+        out = self.model.predict(self.values, self._data(data), steps=steps, states=states,
+                                 **self._filter_settings())
+        if interval is None:
+            return out
+        from ..uncertainty.intervals import _check_level
+
+        _check_level(interval)
+        q = float(special.ndtri(0.5 + interval / 2))
+        for frame in (out if isinstance(out, list) else [out]):
+            for name in self.model.output_names:
+                frame[f"{name}_lower"] = frame[name] - q * frame[f"{name}_sd"]
+                frame[f"{name}_upper"] = frame[name] + q * frame[f"{name}_sd"]
+        return out
+
+    def simulate(self, data=None, n_paths: int = 1, seed: int = 0, method: str = "euler",
+                 interval: float | None = None, parameter_uncertainty: bool = False, posterior=None, **options):
+        """Sample paths of the fitted model driven by the data's inputs.
+
+        With ``interval`` (e.g. 0.95) or ``parameter_uncertainty=True``, a DataFrame
+        of the paths' mean and central interval per output instead, each path with
+        its own parameter draw when ``parameter_uncertainty`` (Laplace, or
+        ``posterior=``); see :func:`greyid.uncertainty.intervals.simulate`.
+        """
+        if interval is not None or parameter_uncertainty:
+            from ..uncertainty.intervals import simulate
+
+            return simulate(self, data, n_paths=n_paths if n_paths > 1 else 200,
+                            interval=0.95 if interval is None else interval, seed=seed, posterior=posterior,
+                            parameter_uncertainty=parameter_uncertainty, method=method, **options)
         d = self._data(data)
         if isinstance(d, list):
             d = d[0]

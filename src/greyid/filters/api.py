@@ -272,3 +272,19 @@ def predict_data(model, params, data, steps=1, time="t", hold="zoh", method=None
                 cols[f"{name}_sd"] = x_sd[:, j]
         frames.append(pd.DataFrame(cols, index=series.index))
     return frames[0] if isinstance(data, pd.DataFrame) else frames
+
+
+def predict_draws(model, thetas, data, steps=1, time="t", hold="zoh", method=None, time_unit=None, **options):
+    """``steps``-ahead output means (draws, N, outputs) and covariances (draws, N, outputs, outputs)
+    of one data set at each parameter vector of ``thetas`` (draws, parameters), in one vectorised program."""
+    structure = model.structure
+    thetas = np.asarray(thetas, dtype=np.float64)
+    prepared = prepare_datasets(structure, thetas[0], data, time, hold, time_unit)
+    opts = accurate_options(structure, thetas[0], prepared, method, **options)[0]
+    key = ("ahead", opts, int(steps), "draws")
+    if key not in structure.cache:
+        structure.cache[key] = jit(jax.vmap(make_ahead(structure, opts, int(steps)), in_axes=(0, None)))
+    series, inputs = prepared[0]
+    out = structure.cache[key](jnp.asarray(thetas), inputs)
+    n = series.n_rows
+    return series, np.asarray(out.output_prediction)[:, :n], np.asarray(out.output_cov)[:, :n]

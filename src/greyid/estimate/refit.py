@@ -1,0 +1,125 @@
+"""A fit's criterion again, with some parameters held at chosen values (profiles, posterior sampling).
+
+:class:`Refit` rebuilds the estimation problem of a :class:`~.results.FitResult`
+— its data, filter, criterion and prior, the other parameters free within their
+bounds — once, so that many constrained re-estimations (the points of a profile
+likelihood) reuse the data preparation and the compiled programs of the fit.
+"""
+
+from __future__ import annotations
+
+from contextlib import ExitStack
+from dataclasses import replace
+
+import numpy as np
+
+from ..errors import ModelError
+from ..filters.api import prepare_datasets
+from . import objective
+from .estimation import FreeParameters, make_problem, new_search, single_programs, uses_scoring
+from .objective import compiled
+from .optimize import VALUE, Optimum, run_alone
+from .transforms import Transform
+
+
+def fit_data(fit) -> list:
+    """The fit's data frames (read from its data file if it was loaded)."""
+    frames = fit.attach_stored_data()
+    if frames is None:
+        raise ModelError("this fit carries no data (it was loaded from a file without one); "
+                         "attach it with fit.with_data(frame)")
+    return frames
+
+
+class Refit:
+    """The criterion of ``fit`` over its free parameters less ``held``, which take values per call.
+
+    The held parameters stay coordinates of the fit's own problem, set to their
+    values: the fit's compiled programs serve every held set (a profile of each
+    parameter compiles nothing new), the derivatives restricted to the others.
+    """
+
+    def __init__(self, fit, held=(), maxiter: int = 200):
+        model = fit.model
+        self.structure = model.structure
+        self.names = list(model.parameter_names)
+        declared, params = model.parameters, fit.params
+        self.theta_hat = params.loc[self.names, "estimate"].to_numpy(dtype=np.float64)
+        fixed = params.loc[self.names, "fixed"].to_numpy(dtype=bool)
+        free = [i for i, n in enumerate(self.names) if not fixed[i]]
+        not_free = [n for n in held if n not in [self.names[i] for i in free]]
+        if not_free:
+            raise ModelError(f"'{not_free[0]}' is not a free parameter of this fit of model '{model.name}'")
+        lower = [declared[self.names[i]].lower if self.names[i] in declared else None for i in free]
+        upper = [declared[self.names[i]].upper if self.names[i] in declared else None for i in free]
+        transform = Transform.from_bounds(lower, upper)
+        self.parameters = FreeParameters(tuple(self.names), self.theta_hat, tuple(free), tuple(lower), tuple(upper),
+                                         transform)
+        s = fit.settings
+        filter_settings = {k: s.get(k) for k in ("form", "substeps", "iterations")}
+        self.problem = make_problem(self.structure, self.parameters, s["method"],
+                                    (s.get("robust"), s.get("horizon", 1), s.get("prior")), filter_settings)
+        prepared = prepare_datasets(self.structure, self.theta_hat, fit_data(fit), s["time"], s["hold"],
+                                    s.get("time_unit"), check=False)
+        self.datasets = [inputs for _, inputs in prepared]
+        rows = sum(series.n_rows for series, _ in prepared)
+        if rows > objective.LONG_SERIES:
+            self.problem = replace(self.problem, long_series=True)
+        self.scoring = uses_scoring(s.get("optimizer", "auto"), rows, len(free))
+        self.maxiter = maxiter
+        free_names = [self.names[i] for i in free]
+        self.held = list(held)
+        self.held_index = [free_names.index(n) for n in self.held]
+        self.other = np.array([j for j in range(len(free)) if j not in self.held_index], dtype=int)
+        self.free_names = [free_names[j] for j in self.other]
+        self.z_full_hat = transform.to_z(self.theta_hat[free])
+        self.z_hat = self.z_full_hat[self.other]
+        self.arguments = (*self.problem.arguments(self.theta_hat), self.datasets)
+
+    def z_full(self, z, held_values) -> np.ndarray:
+        """The fit's coordinates: ``z`` for the other parameters, the held ones at their values."""
+        out = np.empty(len(self.z_full_hat))
+        out[self.other] = np.asarray(z, dtype=np.float64)
+        transform = self.parameters.transform
+        for j, value in zip(self.held_index, held_values):
+            one = Transform(transform.kind[j:j + 1], transform.lower[j:j + 1], transform.upper[j:j + 1])
+            out[j] = one.to_z([float(value)])[0]
+        return out
+
+    def theta(self, z, held_values) -> np.ndarray:
+        """The full θ at z (the other free parameters) and the held values."""
+        theta = self.problem.theta(self.z_full(z, held_values), self.theta_hat)
+        for name, value in zip(self.held, held_values):
+            theta[self.names.index(name)] = float(value)  # exactly, not through z
+        return theta
+
+    def criterion(self, z, held_values) -> float:
+        """The fit's criterion (log-likelihood or log-posterior) at z and the held values."""
+        value = compiled(self.structure, self.problem).value
+        return -float(value(self.z_full(z, held_values), *self.arguments))
+
+    def optimum(self, held_values, z0=None) -> Optimum:
+        """The other parameters re-estimated with the held ones at ``held_values``, from ``z0``."""
+        z0 = self.z_hat if z0 is None else np.asarray(z0, dtype=np.float64)
+        if len(z0) == 0:  # nothing left to estimate
+            f = -self.criterion(z0, held_values)
+            return Optimum(z0, f, np.zeros(0), np.zeros((0, 0)), 0, 1, bool(np.isfinite(f)), "nothing to estimate")
+        keep = self.other
+        with ExitStack() as stack:
+            full = single_programs(self.structure, self.problem, self.arguments, stack)
+
+            def restricted(kind):
+                def evaluate(z):
+                    out = full[kind](self.z_full(z, held_values))
+                    if kind == VALUE:
+                        return out
+                    f, g, H = out
+                    return f, np.asarray(g)[keep], np.asarray(H)[np.ix_(keep, keep)]
+                return evaluate
+
+            programs = {kind: restricted(kind) for kind in full}
+            # Warm starts lie near their optimum: Newton steps (scoring only on long series).
+            search = new_search(self.problem, z0, self.maxiter, lambda *a: None,
+                                self.scoring and self.problem.long_series)
+            search.step_limit = search.step_limit[keep] if np.ndim(search.step_limit) else search.step_limit
+            return run_alone(search, programs)

@@ -1,0 +1,290 @@
+"""Profile likelihoods and profile confidence intervals.
+
+The profile of a parameter ψ is ℓ_p(ψ) = max over the other parameters of the
+fit's criterion with ψ held; the set {ψ : 2(ℓ̂ − ℓ_p(ψ)) ≤ χ²₁(level)} is the
+likelihood-ratio confidence interval (Pawitan, *In all likelihood*, 2001,
+ch. 3–4), which follows skewed likelihoods (variances, time constants) where
+the Wald interval from the Hessian is symmetric by construction.  A derived
+quantity g(θ) is profiled by maximising the criterion under g(θ) = c (SLSQP
+with exact gradients).  For a MAP fit the profile is that of the log-posterior.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pandas as pd
+from scipy import optimize, stats
+
+from ..errors import ModelError
+from ..estimate.refit import Refit
+from ..estimate.results import FitWarning
+from ..estimate.transforms import Transform
+
+#: Steps of one Wald standard error (in the optimiser's coordinate) taken outwards
+#: looking for the end of a profile interval before giving up.
+MAX_STEPS = 40
+
+
+def _criterion_name(fit) -> str:
+    s = fit.settings
+    gaussian = s.get("criterion", "ml") == "ml" and not s.get("robust") and int(s.get("horizon", 1)) == 1
+    return "loglik" if gaussian else "criterion"
+
+
+def _free(fit) -> list[str]:
+    return [n for n in fit.params.index if not fit.params.loc[n, "fixed"]]
+
+
+def _parameter_transform(fit, name) -> Transform:
+    row = fit.params.loc[name]
+    lower = None if np.isnan(row["lower_bound"]) else float(row["lower_bound"])
+    upper = None if np.isnan(row["upper_bound"]) else float(row["upper_bound"])
+    return Transform.from_bounds([lower], [upper])
+
+
+class _ParameterProfile:
+    """Profile points of one parameter, each a refit warm-started from the nearest point solved."""
+
+    def __init__(self, fit, name):
+        self.fit, self.name = fit, name
+        self.refit = Refit(fit, held=[name])
+        self.solved: dict[float, np.ndarray] = {float(fit.params.loc[name, "estimate"]): self.refit.z_hat}
+
+    def at(self, value: float):
+        nearest = min(self.solved, key=lambda v: abs(v - value))
+        optimum = self.refit.optimum([value], self.solved[nearest])
+        self.solved[float(value)] = optimum.z
+        return optimum
+
+    def row(self, value: float, optimum) -> dict:
+        theta = self.refit.theta(optimum.z, [value])
+        row = {self.name: float(value), "criterion": -float(optimum.value)}
+        row.update({n: float(theta[self.refit.names.index(n)]) for n in self.refit.free_names})
+        row["converged"] = bool(optimum.converged)
+        return row
+
+
+def _grid(fit, name, estimate, se, values, n, span, lower, upper):
+    if values is not None:
+        grid = np.asarray(values, dtype=np.float64).ravel()
+        if grid.size == 0:
+            raise ModelError("values= is empty")
+        outside = grid[((~np.isnan(lower)) & (grid <= lower)) | ((~np.isnan(upper)) & (grid >= upper))]
+        if outside.size:
+            raise ModelError(f"profile value {outside[0]:.6g} of '{name}' lies outside its bounds "
+                             f"[{lower:.6g}, {upper:.6g}]")
+        return np.sort(grid)
+    if not (np.isfinite(se) and se > 0):
+        raise ModelError(f"'{name}' has no standard error (at a bound, or not determined by the data): "
+                         "give the profile's values= explicitly")
+    if n < 2:
+        raise ModelError(f"n must be at least 2, got {n!r}")
+    grid = np.linspace(estimate - span * se, estimate + span * se, n)
+    inside = np.ones(n, dtype=bool)
+    if not np.isnan(lower):
+        inside &= grid > lower
+    if not np.isnan(upper):
+        inside &= grid < upper
+    return grid[inside]
+
+
+def profile(fit, name: str, values=None, n: int = 21, span: float = 3.0, expression: str | None = None
+            ) -> pd.DataFrame:
+    """The profile of the fit's criterion in one parameter or derived quantity.
+
+    ``values`` where to hold it (default: ``n`` points over the estimate ± ``span``
+    standard errors, within the bounds).  Each point re-estimates the other
+    parameters, warm-started from its neighbour towards the estimate, with the
+    fit's compiled programs.  A derived quantity is one declared on the model
+    (``model.add_derived``) or given as ``expression``.  Returns a DataFrame with
+    a column named as the quantity, ``loglik`` (the profile log-likelihood; for
+    MAP, robust or k-step fits the column is ``criterion``), the re-estimated
+    parameters, ``converged``, and ``deviance`` = 2(ℓ̂ − ℓ_p); ``attrs`` holds the
+    estimate, the maximum and the 95 % χ² threshold.
+    """
+    derived = expression is not None or (name not in fit.params.index and name in fit.model.derived)
+    if derived:
+        return _derived_profile(fit, name, expression or fit.model.derived[name], values, n, span)
+    if name not in fit.params.index:
+        raise ModelError(f"'{name}' is neither a parameter nor a derived quantity of model '{fit.model.name}'")
+    row = fit.params.loc[name]
+    estimate, se = float(row["estimate"]), float(row["std_error"])
+    grid = _grid(fit, name, estimate, se, values, n, span, float(row["lower_bound"]), float(row["upper_bound"]))
+    points = _ParameterProfile(fit, name)
+    rows = {}
+    # Outwards from the estimate on each side, so every warm start is a neighbour.
+    above, below = grid[grid >= estimate], grid[grid < estimate][::-1]
+    for side in (above, below):
+        for value in side:
+            rows[float(value)] = points.row(value, points.at(value))
+    return _table(fit, name, [rows[float(v)] for v in grid], estimate)
+
+
+def _table(fit, name, rows, estimate) -> pd.DataFrame:
+    table = pd.DataFrame(rows)
+    label = _criterion_name(fit)
+    table = table.rename(columns={"criterion": label})
+    table["deviance"] = 2.0 * (fit.criterion_value - table[label])
+    table.attrs.update(estimate=float(estimate), maximum=float(fit.criterion_value), quantity=name,
+                       threshold=float(stats.chi2.ppf(0.95, 1)), criterion=label)
+    return table
+
+
+# ------------------------------------------------------------------ derived quantities
+class _DerivedProfile:
+    """max criterion(θ) subject to g(θ) = c, by SLSQP on z with exact gradients."""
+
+    def __init__(self, fit, label, expression):
+        import jax
+
+        from ..estimate.objective import compiled
+        from ..estimate.results import parameter_expression
+        from ..model.equations import parse_expression
+        from ..model.structure import lambdify_parameters
+
+        self.fit, self.label = fit, label
+        self.refit = Refit(fit)
+        names = self.refit.names
+        expr = parameter_expression(expression, names, f"derived quantity '{label}'")
+        g = lambdify_parameters([expr], [parse_expression(n, "parameter") for n in names], (1,))
+        problem, args = self.refit.problem, self.refit.arguments
+        programs = compiled(self.refit.structure, problem)
+
+        def constraint(z):
+            return g(_theta_jax(problem, z, args))[0]
+
+        self.g_value = jax.jit(constraint)
+        self.g_grad = jax.jit(jax.grad(constraint))
+        self.value_and_grad = lambda z: programs.value_and_grad(np.asarray(z, dtype=np.float64), *args)
+        self.estimate = float(self.g_value(self.refit.z_hat))
+        self.solved = {self.estimate: self.refit.z_hat}
+
+    def at(self, c: float):
+        nearest = min(self.solved, key=lambda v: abs(v - c))
+        z0 = self.solved[nearest]
+
+        def objective(z):
+            f, grad = self.value_and_grad(z)
+            return float(f), np.asarray(grad, dtype=np.float64)
+
+        result = optimize.minimize(
+            objective, z0, jac=True, method="SLSQP",
+            constraints=[{"type": "eq", "fun": lambda z: float(self.g_value(z)) - c,
+                          "jac": lambda z: np.asarray(self.g_grad(z))}],
+            options=dict(maxiter=500, ftol=1e-12))
+        self.solved[float(c)] = result.x
+        return result
+
+    def row(self, c, result) -> dict:
+        theta = self.refit.theta(result.x, [])
+        row = {self.label: float(c), "criterion": -float(result.fun)}
+        row.update({n: float(theta[self.refit.names.index(n)]) for n in self.refit.free_names})
+        row["converged"] = bool(result.success and abs(float(self.g_value(result.x)) - c) <= 1e-8 * max(1, abs(c)))
+        return row
+
+
+def _theta_jax(problem, z, args):
+    import jax.numpy as jnp
+
+    base, lower, upper = args[:3]
+    return problem.theta(z, base, Transform(problem.transform.kind, lower, upper), jnp)
+
+
+def _derived_profile(fit, label, expression, values, n, span) -> pd.DataFrame:
+    points = _DerivedProfile(fit, label, expression)
+    estimate = points.estimate
+    if values is None:
+        table = fit.derived({label: expression})
+        se = float(table.loc[label, "std_error"])
+        grid = _grid(fit, label, estimate, se, None, n, span, np.nan, np.nan)
+    else:
+        grid = _grid(fit, label, estimate, np.nan, values, n, span, np.nan, np.nan)
+    rows = {}
+    above, below = grid[grid >= estimate], grid[grid < estimate][::-1]
+    for side in (above, below):
+        for c in side:
+            rows[float(c)] = points.row(c, points.at(c))
+    return _table(fit, label, [rows[float(c)] for c in grid], estimate)
+
+
+# ------------------------------------------------------------------ intervals
+def profile_interval(fit, name: str, level: float = 0.95) -> tuple[float, float]:
+    """The ends of the profile-likelihood interval of one parameter (root finding on the profile).
+
+    Steps of one Wald standard error outwards in the optimiser's coordinate of
+    the parameter (log or logistic where it is bounded, so a skewed profile is
+    followed) until 2(ℓ̂ − ℓ_p) exceeds the χ²₁(level) quantile, then Brent's
+    method between the last two points.  An end that reaches the parameter's
+    bound is the bound, with a :class:`FitWarning` naming it; NaN where the
+    profile never crosses the threshold within MAX_STEPS steps.
+    """
+    threshold = float(stats.chi2.ppf(level, 1))
+    points = _ParameterProfile(fit, name)
+    transform = _parameter_transform(fit, name)
+    estimate = float(fit.params.loc[name, "estimate"])
+    z_hat = float(transform.to_z([estimate])[0])
+    se = float(fit.params.loc[name, "std_error"])
+    slope = float(abs(transform.derivative([z_hat])[0]))
+    step = se / slope if np.isfinite(se) and se > 0 and slope > 0 else 0.5
+
+    def excess(z):
+        value = float(transform.to_theta(np.array([z]), np)[0])
+        optimum = points.at(value)
+        return 2.0 * (fit.criterion_value + float(optimum.value)) - threshold
+
+    ends = []
+    for direction, side in ((-1.0, "lower"), (1.0, "upper")):
+        inner, end = z_hat, np.nan
+        for k in range(1, MAX_STEPS + 1):
+            z = z_hat + direction * k * step
+            bound = transform.at_bound(np.array([z]), np.zeros(1), np.ones(1))[0] or abs(z) > 35
+            if bound:
+                end = float(fit.params.loc[name, f"{side}_bound"])
+                warnings.warn(f"{fit.model.name}: the {side} end of the profile interval of '{name}' runs into "
+                              f"its bound {end:.6g} (the likelihood stays within the threshold up to there)",
+                              FitWarning, stacklevel=3)
+                break
+            if excess(z) > 0:
+                root = optimize.brentq(excess, inner, z, xtol=1e-10 * max(1.0, abs(z)), rtol=1e-10)
+                end = float(transform.to_theta(np.array([root]), np)[0])
+                break
+            inner = z
+        else:
+            warnings.warn(f"{fit.model.name}: the profile of '{name}' does not reach the {level:.0%} threshold "
+                          f"within {MAX_STEPS} standard errors on its {side} side", FitWarning, stacklevel=3)
+        ends.append(end)
+    return ends[0], ends[1]
+
+
+def profile_intervals(fit, level: float = 0.95, names=None) -> pd.DataFrame:
+    """``lower`` and ``upper`` of the profile-likelihood interval of each free parameter (NaN for fixed ones)."""
+    if not 0 < level < 1:
+        raise ModelError(f"level must lie between 0 and 1, got {level!r}")
+    names = list(fit.params.index) if names is None else list(names)
+    free = _free(fit)
+    out = pd.DataFrame({"lower": np.nan, "upper": np.nan}, index=names)
+    for name in names:
+        if name in free:
+            out.loc[name, ["lower", "upper"]] = profile_interval(fit, name, level)
+    return out
+
+
+def plot_profile(table: pd.DataFrame, ax=None, wald_se: float | None = None):
+    """The deviance 2(ℓ̂ − ℓ_p) of a :func:`profile` table with the 95 % χ² threshold (and the Wald parabola)."""
+    import matplotlib.pyplot as plt
+
+    if ax is None:
+        _, ax = plt.subplots(figsize=(5, 3.5))
+    name = table.attrs.get("quantity", table.columns[0])
+    x = table[name].to_numpy()
+    ax.plot(x, table["deviance"], "o-", label="profile")
+    if wald_se is not None and np.isfinite(wald_se):
+        ax.plot(x, ((x - table.attrs["estimate"]) / wald_se) ** 2, "--", label="Wald (quadratic)")
+    ax.axhline(table.attrs["threshold"], color="grey", lw=0.8, label="95 % χ²₁")
+    ax.axvline(table.attrs["estimate"], color="grey", lw=0.5, ls=":")
+    ax.set_xlabel(name)
+    ax.set_ylabel("2 (ℓ̂ − ℓ_p)")
+    ax.legend(fontsize=8)
+    return ax
