@@ -12,24 +12,12 @@ candidate signals of table 7.3 (studies/table_7_4.py's plans).
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "studies"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-
-def timed(label, fun, repeat=1):
-    start = time.perf_counter()
-    out = fun()
-    first = time.perf_counter() - start
-    again = []
-    for _ in range(repeat):
-        start = time.perf_counter()
-        fun()
-        again.append(time.perf_counter() - start)
-    extra = f", compiled {min(again):.3f} s (best of {repeat})" if repeat else ""
-    print(f"  {label}: first call {first:.2f} s{extra}")
-    return out
+from timing import timed  # noqa: E402
 
 
 def main():

@@ -49,6 +49,12 @@ def test_content_matches_the_fit(report):
     assert text.count('<math display="block">') == 2 + 2  # two states, one observation and its variance
     assert "dTi = (1/(Ci*Riw)*(Tw-Ti)" in text  # the equations as written
     assert "ljung_box" in text and "cumulative_periodogram" in text
+    # Profile-likelihood intervals beside the Wald ones, each around its estimate.
+    parameters = text[text.find('<section id="parameters">'):text.find('<section id="correlation">')]
+    assert "wald_lower" in parameters and "profile_lower" in parameters and "profile_upper" in parameters
+    name = fit.params.index[~fit.params["fixed"]][0]
+    profile = fit.with_data(load_building_data()).conf_int(method="profile").loc[name]
+    assert f"<td>{profile['lower']:.5g}</td><td>{profile['upper']:.5g}</td>" in parameters
 
 
 def test_loaded_fit_reads_its_data(report):

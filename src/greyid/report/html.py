@@ -2,7 +2,7 @@
 
 Sections: model (equations rendered from SymPy as MathML), data, estimation
 (criterion, log-likelihood, information criteria, warnings), parameters with
-standard errors, correlation matrix, derived quantities, the residual tests of
+standard errors and 95 % Wald and profile-likelihood intervals, correlation matrix, derived quantities, the residual tests of
 chapter 5 with their verdicts, the residual dashboard and coherency of each
 output, measured versus simulated outputs, and k-step predictions.
 """
@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import html
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -145,16 +146,32 @@ def _estimation_section(fit) -> str:
     return _section("estimation", "Estimation", "\n".join(body))
 
 
-def _parameters_section(fit) -> str:
+def _parameters_section(fit, profile: bool = True) -> str:
     columns = ["estimate", "std_error", "t_value", "p_value", "lower_bound", "upper_bound"]
     table = fit.params[columns].copy()
+    wald = fit.conf_int(0.95)
+    table["wald_lower"], table["wald_upper"] = wald["lower"], wald["upper"]
+    notes = []
+    if profile:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
+                likelihood_ratio = fit.conf_int(0.95, method="profile")
+                table["profile_lower"], table["profile_upper"] = likelihood_ratio["lower"], likelihood_ratio["upper"]
+            except ModelError as error:  # e.g. a fit that cannot be re-optimised: said, not hidden
+                notes.append(f"profile intervals not available: {error}")
+        notes += [str(w.message) for w in caught if "profile" in str(w.message)]
     table["note"] = ["fixed" if r["fixed"] else ("at bound" if r["at_bound"] else
                                                  ("unreliable" if not r["reliable"] else ""))
                      for _, r in fit.params.iterrows()]
+    text = ("<p>Standard errors from the exact Hessian of the negative log-likelihood, mapped to the natural "
+            "parameters; 95 % intervals by Wald (estimate ± t quantile × SE) and, where computed, by the "
+            "profile likelihood (where 2(ℓ̂ − ℓ_p) reaches the χ²₁ quantile; it follows a skewed "
+            "likelihood).</p>")
+    text += "".join(f"<p>{_esc(n)}</p>" for n in notes)
     return _section("parameters", "Parameters",
                     _table(table, 5, row_class=lambda r: "reject" if r["note"] in ("at bound", "unreliable") else "")
-                    + "<p>Standard errors from the exact Hessian of the negative log-likelihood, mapped to the "
-                      "natural parameters.</p>")
+                    + text)
 
 
 def _derived_section(fit) -> str:
@@ -216,7 +233,7 @@ def _validation_sections(fit, validation, steps: int, n_paths: int, seed: int) -
 
 
 def html_report(fit, level: float = 0.05, steps: int = 4, n_paths: int = 100, seed: int = 0,
-                title: str | None = None) -> str:
+                title: str | None = None, profile: bool = True) -> str:
     """The report of ``fit`` as one HTML document (a string); see the module docstring."""
     if fit.attach_stored_data() is None:
         raise ModelError("this fit carries no data (it was loaded from a file); attach it with fit.with_data(data)")
@@ -226,7 +243,7 @@ def html_report(fit, level: float = 0.05, steps: int = 4, n_paths: int = 100, se
     title = title or f"greyid report: {fit.model.name}"
     stamp = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
     sections = [_model_section(fit), _data_section(fit, fit.data), _estimation_section(fit),
-                _parameters_section(fit), _section("correlation", "Correlation of the estimates",
+                _parameters_section(fit, profile), _section("correlation", "Correlation of the estimates",
                                                    _correlation_table(fit.corr)),
                 _derived_section(fit), _identifiability_section(fit),
                 *_validation_sections(fit, validation, steps, n_paths, seed)]

@@ -215,7 +215,7 @@ def profile_interval(fit, name: str, level: float = 0.95) -> tuple[float, float]
 
     Steps of one Wald standard error outwards in the optimiser's coordinate of
     the parameter (log or logistic where it is bounded, so a skewed profile is
-    followed) until 2(ℓ̂ − ℓ_p) exceeds the χ²₁(level) quantile, then Brent's
+    followed; growing by half after the fourth) until 2(ℓ̂ − ℓ_p) exceeds the χ²₁(level) quantile, then Brent's
     method between the last two points.  An end that reaches the parameter's
     bound is the bound, with a :class:`FitWarning` naming it; NaN where the
     profile never crosses the threshold within MAX_STEPS steps.
@@ -236,9 +236,11 @@ def profile_interval(fit, name: str, level: float = 0.95) -> tuple[float, float]
 
     ends = []
     for direction, side in ((-1.0, "lower"), (1.0, "upper")):
-        inner, end = z_hat, np.nan
+        inner, end, offset = z_hat, np.nan, 0.0
         for k in range(1, MAX_STEPS + 1):
-            z = z_hat + direction * k * step
+            # Unit steps first, then growing ones, so a long flat side reaches its bound.
+            offset += step * (1.0 if k <= 4 else 0.5 * (offset / step))
+            z = z_hat + direction * offset
             bound = transform.at_bound(np.array([z]), np.zeros(1), np.ones(1))[0] or abs(z) > 35
             if bound:
                 end = float(fit.params.loc[name, f"{side}_bound"])
@@ -253,7 +255,8 @@ def profile_interval(fit, name: str, level: float = 0.95) -> tuple[float, float]
             inner = z
         else:
             warnings.warn(f"{fit.model.name}: the profile of '{name}' does not reach the {level:.0%} threshold "
-                          f"within {MAX_STEPS} standard errors on its {side} side", FitWarning, stacklevel=3)
+                          f"on its {side} side within {MAX_STEPS} steps (the data do not bound it there)",
+                          FitWarning, stacklevel=3)
         ends.append(end)
     return ends[0], ends[1]
 

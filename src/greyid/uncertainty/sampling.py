@@ -147,7 +147,10 @@ def sample(fit, draws: int = 1000, chains: int = 4, seed: int = 0, warmup: int =
     Returns a :class:`Posterior` (draws, R-hat, ESS, divergences; ArviZ
     ``InferenceData`` through ``to_inference_data()``).
     """
-    import blackjax
+    try:
+        import blackjax
+    except ImportError:
+        raise ModelError("posterior sampling needs BlackJAX and ArviZ: pip install \"greyid[sampling]\"") from None
 
     for name, value, least in (("draws", draws, 1), ("chains", chains, 1), ("warmup", warmup, 10)):
         if not isinstance(value, (int, np.integer)) or value < least:

@@ -1,0 +1,20 @@
+"""The timer of the benchmark scripts: a first call (with compilation) and the best of repeated ones."""
+
+from __future__ import annotations
+
+import time
+
+
+def timed(label, fun, repeat=1):
+    """Run ``fun`` once, then ``repeat`` more times; print the first call and the best again; return its result."""
+    start = time.perf_counter()
+    out = fun()
+    first = time.perf_counter() - start
+    again = []
+    for _ in range(repeat):
+        start = time.perf_counter()
+        fun()
+        again.append(time.perf_counter() - start)
+    extra = f", compiled {min(again):.3f} s (best of {repeat})" if repeat else ""
+    print(f"  {label}: first call {first:.2f} s{extra}")
+    return out
