@@ -10,6 +10,7 @@ import pytest
 from scipy import stats
 
 import greyid
+from greyid import uncertainty
 from test_estimation import TRUE, ou_model
 
 THRESHOLD = stats.chi2.ppf(0.95, 1)
@@ -214,3 +215,8 @@ def test_simulation_bands_with_parameter_uncertainty_are_wider(ou_fit):
     # Coverage of the fitted data by the 95 % simulation band (the model is right).
     inside = ((df["y"] >= with_parameters["y_lower"]) & (df["y"] <= with_parameters["y_upper"])).mean()
     assert 0.88 <= inside <= 1.0
+    figure = uncertainty.plot_intervals(with_parameters, df)
+    line = figure.axes[0].lines[0]
+    np.testing.assert_allclose(line.get_ydata(), with_parameters["y"])
+    with pytest.raises(greyid.ModelError, match="no <output>_lower"):
+        uncertainty.plot_intervals(fit.predict())

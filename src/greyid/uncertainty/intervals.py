@@ -152,3 +152,27 @@ def simulate(fit, data=None, n_paths: int = 200, interval: float = 0.95, seed: i
         columns[f"{name}_lower"] = np.quantile(outputs[:, :, j], tail, axis=0)
         columns[f"{name}_upper"] = np.quantile(outputs[:, :, j], 1 - tail, axis=0)
     return pd.DataFrame(columns, index=frame.index)
+
+
+def plot_intervals(table: pd.DataFrame, data: pd.DataFrame | None = None, title: str | None = None):
+    """A figure of a :func:`predict` or :func:`simulate` table: the mean, the band and the measured outputs.
+
+    The outputs are the columns with ``_lower``/``_upper`` companions, the time
+    the table's first column; ``data`` (the measured outputs, rows aligned with
+    the table's) adds the measurements as dots.
+    """
+    from ..validation.plots import band_figure
+
+    time_name = table.columns[0]
+    outputs = [c[:-len("_lower")] for c in table.columns if c.endswith("_lower") and f"{c[:-6]}_upper" in table]
+    if not outputs:
+        raise ModelError("the table has no <output>_lower/<output>_upper columns; make it with interval= or "
+                         "parameter_uncertainty=True")
+    frame = pd.DataFrame({time_name: table[time_name]}, index=table.index)
+    for name in outputs:
+        measured = data[name] if data is not None and name in data else np.nan
+        frame[name] = measured
+        frame[f"{name}_simulated"] = table[name]
+        frame[f"{name}_lower"], frame[f"{name}_upper"] = table[f"{name}_lower"], table[f"{name}_upper"]
+    return band_figure(frame, time_name, outputs, title or "outputs with their intervals", "interval",
+                       centre_label="mean")

@@ -99,15 +99,16 @@ def coherency_figure(residuals: pd.Series, inputs: pd.DataFrame, m: int | None =
     return fig
 
 
-def band_figure(frame: pd.DataFrame, time_name: str, outputs, title: str, band_label: str) -> Figure:
-    """Measured outputs against a central curve and a band (simulation or bootstrap)."""
+def band_figure(frame: pd.DataFrame, time_name: str, outputs, title: str, band_label: str,
+                centre_label: str = "simulated (deterministic)") -> Figure:
+    """Measured outputs against a central curve (``<y>_simulated``) and a band (``<y>_lower``, ``<y>_upper``)."""
     fig = Figure(figsize=(11, 3.2 * len(outputs)), layout="constrained")
     axes = fig.subplots(len(outputs), 1, squeeze=False)[:, 0]
     t = frame[time_name]
     for ax, name in zip(axes, outputs):
         ax.fill_between(t, frame[f"{name}_lower"], frame[f"{name}_upper"], color="C0", alpha=0.25, lw=0,
                         label=band_label)
-        ax.plot(t, frame[f"{name}_simulated"], color="C0", lw=1.0, label="simulated (deterministic)")
+        ax.plot(t, frame[f"{name}_simulated"], color="C0", lw=1.0, label=centre_label)
         ax.plot(t, frame[name], ".", color="k", ms=2, label="measured")
         ax.set_ylabel(name)
         ax.legend(fontsize=7, loc="best")
