@@ -121,6 +121,36 @@ def regression_model():
     return m
 
 
+def test_to_prior_carries_one_experiment_into_the_next(tmp_path):
+    """For a linear regression the likelihood is exactly Gaussian in (a, b): MAP on the second data set with
+    the first fit as prior equals the ML fit of both data sets together (section 7.4's sequential use)."""
+    m = regression_model()
+    rng = np.random.default_rng(8)
+    frames = []
+    for n, slope in ((30, 2.0), (50, 2.0)):
+        u = rng.normal(size=n)
+        frames.append(pd.DataFrame({"t": np.arange(float(n)), "u": u, "y": 1.0 + slope * u + 0.5 * rng.normal(size=n)}))
+    first = m.fit(frames[0])
+    prior = first.to_prior()
+    assert set(prior) == {"mean", "sd", "corr"} and list(prior["corr"]) == [("a", "b")]
+    assert prior["sd"]["b"] == pytest.approx(first.bse["b"])
+    sequential = m.fit(frames[1], criterion="map", prior=prior)
+    joint = m.fit(frames)
+    np.testing.assert_allclose([sequential.values["a"], sequential.values["b"]],
+                               [joint.values["a"], joint.values["b"]], rtol=1e-7)
+    np.testing.assert_allclose(sequential.cov.to_numpy(), joint.cov.to_numpy(), rtol=1e-6)
+    assert first.to_prior(names=["b"]) == {"mean": {"b": first.values["b"]}, "sd": {"b": prior["sd"]["b"]},
+                                            "corr": {}}
+    with pytest.raises(greyid.ModelError, match="'x' is not a free parameter"):
+        first.to_prior(names=["x"])
+    # A MAP fit with a correlated prior saves and loads (pairs written "a,b"), and refits the same.
+    sequential.save(tmp_path / "map.json")
+    loaded = greyid.load_fit(tmp_path / "map.json")
+    assert list(loaded.settings["prior"]["corr"]) == ["a,b"]
+    again = m.fit(frames[1], criterion="map", prior=loaded.settings["prior"])
+    assert again.values["b"] == pytest.approx(sequential.values["b"], rel=1e-10)
+
+
 def test_map_equals_closed_form_posterior_mode():
     m = regression_model()
     rng = np.random.default_rng(3)

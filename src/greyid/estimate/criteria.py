@@ -110,7 +110,12 @@ class GaussianPrior:
         corr = np.eye(len(names))
         given = spec.get("corr")
         if isinstance(given, Mapping):
-            for (a, b), rho in given.items():
+            from ..schema import prior_correlation
+
+            for (a, b), rho in prior_correlation(given).items():
+                missing = [n for n in (a, b) if n not in names]
+                if missing:
+                    raise ModelError(f"prior correlation names '{missing[0]}', which has no prior mean and sd")
                 i, j = names.index(a), names.index(b)
                 corr[i, j] = corr[j, i] = float(rho)
         elif given is not None:

@@ -284,6 +284,34 @@ class FitResult:
             rows[label] = {"estimate": float(value), "std_error": float(np.sqrt(max(variance, 0.0)))}
         return pd.DataFrame.from_dict(rows, orient="index", columns=["estimate", "std_error"])
 
+    def to_prior(self, names=None) -> dict:
+        """This fit's estimates as a Gaussian prior for the next experiment (section 7.4, 3.46).
+
+        ``{"mean", "sd", "corr"}`` over ``names`` (default: every free parameter with
+        a standard error), the correlations those of the estimates, so
+        ``model.fit(new_data, criterion="map", prior=fit.to_prior())`` carries this
+        experiment's knowledge, and its uncertainty, into the next.
+        """
+        free = list(self.cov.index)
+        if names is None:
+            names = [n for n in free if np.isfinite(self.cov.loc[n, n]) and self.cov.loc[n, n] > 0]
+        names = list(names)
+        for name in names:
+            if name not in free:
+                raise ModelError(f"'{name}' is not a free parameter of this fit (free: {free})")
+            if not (np.isfinite(self.cov.loc[name, name]) and self.cov.loc[name, name] > 0):
+                raise ModelError(f"'{name}' has no standard error (at a bound or not determined); "
+                                 "it cannot carry a Gaussian prior")
+        if not names:
+            raise ModelError("no free parameter of this fit has a standard error to make a prior of")
+        cov = self.cov.loc[names, names].to_numpy(dtype=np.float64)
+        sd = np.sqrt(np.diag(cov))
+        corr = cov / np.outer(sd, sd)
+        return {"mean": {n: float(self.params.loc[n, "estimate"]) for n in names},
+                "sd": {n: float(s) for n, s in zip(names, sd)},
+                "corr": {(a, b): float(corr[i, j]) for i, a in enumerate(names) for j, b in enumerate(names)
+                         if i < j and corr[i, j] != 0.0}}
+
     # -------------------------------------------------------------- filtering on the fitted model
     def with_data(self, data, data_file: str | None = None) -> "FitResult":
         """This fit with data attached (e.g. a loaded fit), so residuals and validation work."""
@@ -425,6 +453,14 @@ class FitResult:
                 return bool(v)
             return v
 
+        def setting(key, v):
+            if key == "prior" and isinstance(v, Mapping) and isinstance(v.get("corr"), Mapping):
+                # Pairs as "a,b", the form model files use (schema.prior_correlation reads it back).
+                v = dict(v, corr={",".join(k) if isinstance(k, tuple) else k: r for k, r in v["corr"].items()})
+            if isinstance(v, np.ndarray):
+                return v.tolist()
+            return list(v) if isinstance(v, tuple) else v
+
         return {
             "format": FIT_FORMAT,
             "model": self.model.to_dict(),
@@ -436,7 +472,7 @@ class FitResult:
             "converged": self.converged,
             "message": self.message,
             "iterations": self.iterations,
-            "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.settings.items()},
+            "settings": {k: setting(k, v) for k, v in self.settings.items()},
             "warnings": list(self.warnings),
             "ill_determined": self.ill_determined,
             "starts": self.starts,
