@@ -11,7 +11,8 @@ heater Th, interior medium Tm and sensor Ts states, with inputs Ta (ambient
 temperature, °C), Ps (solar irradiance, kW/m²) and Ph (heating power, kW) and
 output yTi; time in hours, C in kWh/K, R in K/kW.  The others are model files
 in ``library/models``: the test cell (7.43), the fuel film (8.1–8.3), logistic
-growth (2.30) and Lotka–Volterra (A.66).
+growth (2.30) and Lotka–Volterra (A.66).  ``wallN`` is a homogeneous wall of N
+nodes (:mod:`.walls`, section 7.1), with the exact and lumped frequency responses.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from typing import Iterable
 
 from ..errors import ModelError
 from ..model import Model
+from .walls import ladder_polynomials, lumped_wall, wall_frequency_response, wall_model
 
 #: Extra states of the RC family, in the order they appear in a model's name.
 RC_STATES = ("Te", "Th", "Tm", "Ts")
@@ -123,9 +125,13 @@ def _model_files() -> dict:
     return {f.name[: -len(".toml")]: f for f in folder.iterdir() if f.name.endswith(".toml")}
 
 
+#: Walls listed by :func:`names`; ``wallN`` loads the N-node wall for any N (:func:`wall_model`).
+WALL_MODELS = ("wall1", "wall2")
+
+
 def names() -> list[str]:
     """Every model in the library."""
-    return list(BUILDING_MODELS) + sorted(_model_files())
+    return list(BUILDING_MODELS) + list(WALL_MODELS) + sorted(_model_files())
 
 
 def load_model(name: str) -> Model:
@@ -133,6 +139,8 @@ def load_model(name: str) -> Model:
     states = _rc_states(name)
     if states is not None:
         return rc_network(states)
+    if name.startswith("wall") and name[4:].isdigit() and int(name[4:]) >= 1:
+        return wall_model(int(name[4:]))
     files = _model_files()
     if name not in files:
         raise ModelError(f"no model '{name}' in the library; available: {names()}")
@@ -144,4 +152,5 @@ def available() -> dict[str, str]:
     return {name: load_model(name).description for name in names()}
 
 
-__all__ = ["available", "load_model", "names", "rc_network", "BUILDING_MODELS", "RC_STATES"]
+__all__ = ["available", "load_model", "names", "rc_network", "BUILDING_MODELS", "RC_STATES", "WALL_MODELS",
+           "wall_model", "lumped_wall", "wall_frequency_response", "ladder_polynomials"]
