@@ -100,6 +100,7 @@ MODEL_SECTIONS = {
               "initial_covariance", "initial_covariance_scale", "observation_covariance"),
     "parameters": None,
     "derived": None,
+    "units": None,
     "data": DATA_KEYS + FILE_KEYS,
     "filter": FILTER_KEYS,
     "estimation": ESTIMATION_KEYS,

@@ -213,9 +213,10 @@ class FitResult:
             if not row["fixed"] and not row["reliable"]:
                 flag += " (unreliable)"
             ci = intervals.loc[name]
+            unit = f" [{row['unit']}]" if row.get("unit") else ""
             lines.append(f"{name:12.12s} {fmt(row['estimate'], 13, 6)} {fmt(row['std_error'], 11, 4)} "
                          f"{fmt(row['t_value'], 9, 4)} {fmt(row['p_value'], 9, 3)} {fmt(ci['lower'], 11, 5)} "
-                         f"{fmt(ci['upper'], 11, 5)}{flag}")
+                         f"{fmt(ci['upper'], 11, 5)}{unit}{flag}")
         bounded = self.params[self.params["lower_bound"].notna() | self.params["upper_bound"].notna()]
         if len(bounded):
             lines.append("-" * 78)
@@ -282,7 +283,14 @@ class FitResult:
             used = g != 0
             variance = g[used] @ cov[np.ix_(used, used)] @ g[used]
             rows[label] = {"estimate": float(value), "std_error": float(np.sqrt(max(variance, 0.0)))}
-        return pd.DataFrame.from_dict(rows, orient="index", columns=["estimate", "std_error"])
+        table = pd.DataFrame.from_dict(rows, orient="index", columns=["estimate", "std_error"])
+        units = getattr(self.model, "units", {})
+        if units:
+            from ..model.units import derived_unit
+
+            table["unit"] = [derived_unit(self.model, units, expressions[label], self.settings.get("time", "t"))
+                             for label in table.index]
+        return table
 
     def to_prior(self, names=None) -> dict:
         """This fit's estimates as a Gaussian prior for the next experiment (section 7.4, 3.46).
@@ -667,6 +675,9 @@ def build_result(model, frames, theta, problem, best, optima, settings, scores=N
     params.index.name = None
     for col in ("lower_bound", "upper_bound"):
         params[col] = params[col].astype(float)
+    units = getattr(model, "units", {})
+    if units:
+        params["unit"] = [units.get(name, "") for name in params.index]
 
     criterion_value = -best.value
     simple = settings["criterion"] == "ml" and not settings["robust"] and settings["horizon"] == 1

@@ -95,8 +95,25 @@ def rc_network(states: Iterable[str] = ()) -> Model:
                   if s in all_states]
     m.add_derived("C_total [kWh/K]", " + ".join(capacities))
     m.set_options(time="t", hold="zoh")
+    m.set_units(_rc_units(all_states, bounds))
     m.set_nested_start(lambda values: _nested_rc_start(extra, values))
     return m
+
+
+def _rc_units(states, parameters) -> dict[str, str]:
+    """Units of an RC model: hours, °C, kW, kW/m², kWh/K, K/kW, m²; noise intensities in K/√h."""
+    units = {"t": "h", "Ta": "degC", "Ps": "kW/m^2", "Ph": "kW", "yTi": "degC", "Aw": "m^2", "e11": "K^2"}
+    units.update({s: "degC" for s in states})
+    for name in parameters:
+        if name.endswith("0"):
+            units[name] = "degC"
+        elif name.startswith("C"):
+            units[name] = "kWh/K"
+        elif name.startswith("R"):
+            units[name] = "K/kW"
+        elif name.startswith("p"):
+            units[name] = "K/h^0.5"
+    return units
 
 
 def _nested_rc_start(extra: tuple[str, ...], values: dict) -> dict:

@@ -100,6 +100,7 @@ def model_to_dict(model) -> dict:
             "scale": model._initial_scale,
         },
         "derived": model.derived,
+        "units": model.units,
         "options": options,
     }
 
@@ -127,6 +128,8 @@ def model_from_dict(spec: Mapping, cls=None):
         m.set_initial_state(mean=init["mean"], covariance=init["covariance"], scale=init.get("scale", 1.0))
     for name, expr in spec.get("derived", {}).items():
         m.add_derived(name, expr)
+    if spec.get("units"):
+        m.set_units(spec["units"])
     m.set_options(**spec.get("options", {}))
     return m
 
@@ -156,6 +159,7 @@ def spec_from_toml(document: Mapping) -> dict:
             "scale": model.get("initial_covariance_scale", 1.0),
         },
         "derived": dict(document.get("derived", {})),
+        "units": dict(document.get("units", {})),
         "observation_covariance": model.get("observation_covariance"),
         "options": options,
     }
@@ -247,6 +251,8 @@ def model_to_toml(model) -> str:
             lines.append(f"{_key(name)} = {_value(entry)}")
     if spec["derived"]:
         lines += ["", "[derived]"] + [f"{_key(k)} = {_value(v)}" for k, v in spec["derived"].items()]
+    if spec.get("units"):
+        lines += ["", "[units]"] + [f"{_key(k)} = {_value(v)}" for k, v in spec["units"].items()]
     options = spec["options"]
     for section in ("data", "filter", "estimation"):
         keys = MODEL_SECTIONS[section]

@@ -18,6 +18,7 @@ from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
+import pandas as pd
 import sympy as sp
 
 from ..errors import ModelError
@@ -63,6 +64,7 @@ class Model:
         self._structure: Structure | None = None
         self._options: dict = {}
         self._derived: dict[str, str] = {}
+        self._units: dict[str, str] = {}
         self.nested_start = None  # rule for starting from a smaller model's fit (set_nested_start)
         self.source = None  # the model file this model was read from, if any
 
@@ -200,6 +202,46 @@ class Model:
         parse_expression(expression, f"derived quantity '{name}'")
         self._derived[name] = expression
         return self
+
+    def set_units(self, units: Mapping[str, str]) -> "Model":
+        """Units of the model's names, the time column's included, as Pint reads them.
+
+        ``{"t": "h", "Ti": "degC", "Ci": "kWh/K", "s1": "K/h^0.5"}``; names
+        without a unit count as dimensionless.  Every equation is then checked for
+        dimensional consistency before a fit (:meth:`check_units`).
+        """
+        from .units import parse_units
+
+        parse_units(units)  # an unknown unit is an error now, not at the fit
+        self._units.update(units)
+        return self
+
+    @property
+    def units(self) -> dict[str, str]:
+        """The units given with :meth:`set_units` (a copy)."""
+        return dict(self._units)
+
+    def unit_report(self, time: str | None = None) -> pd.DataFrame:
+        """Every term of every equation with its unit, the expected one and whether they agree."""
+        from .units import check_model_units
+
+        terms = check_model_units(self, self._units, time or self._options.get("time", "t"))
+        return pd.DataFrame([dict(equation=t.equation, term=t.term, unit=t.unit, expected=t.expected, ok=t.ok,
+                                  note=t.note.lstrip(" :")) for t in terms])
+
+    def check_units(self, time: str | None = None) -> list[str]:
+        """Check the equations' dimensions (see :mod:`greyid.model.units`); the report's lines.
+
+        Raises a ModelError naming every term whose unit is not the expected one.
+        """
+        from .units import check_model_units
+
+        terms = check_model_units(self, self._units, time or self._options.get("time", "t"))
+        bad = [t.line() for t in terms if not t.ok]
+        if bad:
+            raise ModelError(f"the equations of model '{self.name}' are not dimensionally consistent:\n  "
+                             + "\n  ".join(bad))
+        return [t.line() for t in terms]
 
     @property
     def derived(self) -> dict[str, str]:
@@ -583,6 +625,8 @@ class Model:
                      starts=starts, seed=seed, **options)
         data, settings = self._call_settings(data, given, DATA_KEYS + FILTER_KEYS + ESTIMATION_KEYS)
         settings.pop("prior_correlation", None)
+        if self._units:
+            self.check_units(time=settings.get("time"))
         if prior is None and settings.get("criterion") == "map":
             prior = self.prior()
         return fit(self, data, prior=prior, init=init, init_from=init_from, progress=progress, **settings)
