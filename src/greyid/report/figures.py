@@ -8,8 +8,10 @@ import io
 import pandas as pd
 from matplotlib.figure import Figure
 
+from ..validation.plots import labelled
 
-def data_figure(frame: pd.DataFrame, time_name: str, outputs, inputs) -> Figure:
+
+def data_figure(frame: pd.DataFrame, time_name: str, outputs, inputs, units=None) -> Figure:
     """Every output (dots) and input (lines) of one data set against time, one panel each."""
     columns = [(name, "output") for name in outputs] + [(name, "input") for name in inputs]
     fig = Figure(figsize=(11, 1.9 * len(columns) + 0.6), layout="constrained")
@@ -20,9 +22,9 @@ def data_figure(frame: pd.DataFrame, time_name: str, outputs, inputs) -> Figure:
             ax.plot(t, frame[name], ".", color="k", ms=2)
         else:
             ax.plot(t, frame[name], color="C0", lw=0.9)
-        ax.set_ylabel(f"{name}\n({role})", fontsize=8)
+        ax.set_ylabel(f"{labelled(name, units)}\n({role})", fontsize=8)
     axes[0].set_title("measured data")
-    axes[-1].set_xlabel(time_name)
+    axes[-1].set_xlabel(labelled(time_name, units))
     return fig
 
 

@@ -121,7 +121,7 @@ def _data_section(fit, frames) -> str:
         parts.append(title + _facts([("rows", len(frame)), ("time", f"{time_name} from {t.iloc[0]} to {t.iloc[-1]}"),
                                      ("observed values", ", ".join(f"{k}: {v}" for k, v in observed.items())),
                                      ("hold", fit.settings["hold"])]))
-        parts.append(embedded_png(data_figure(frame, time_name, s.output_names, s.input_names)))
+        parts.append(embedded_png(data_figure(frame, time_name, s.output_names, s.input_names, fit.model.units)))
     if fit.data_file:
         parts.insert(0, f"<p>Read from <code>{_esc(fit.data_file)}</code>.</p>")
     return _section("data", "Data", "\n".join(parts))
@@ -148,6 +148,7 @@ def _estimation_section(fit) -> str:
 
 def _parameters_section(fit, profile: bool = True) -> str:
     columns = ["estimate", "std_error", "t_value", "p_value", "lower_bound", "upper_bound"]
+    columns += ["unit"] if "unit" in fit.params else []
     table = fit.params[columns].copy()
     wald = fit.conf_int(0.95)
     table["wald_lower"], table["wald_upper"] = wald["lower"], wald["upper"]

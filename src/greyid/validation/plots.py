@@ -99,8 +99,14 @@ def coherency_figure(residuals: pd.Series, inputs: pd.DataFrame, m: int | None =
     return fig
 
 
+def labelled(name: str, units=None) -> str:
+    """``name [unit]`` where the model gives the name a unit."""
+    unit = (units or {}).get(name)
+    return f"{name} [{unit}]" if unit else name
+
+
 def band_figure(frame: pd.DataFrame, time_name: str, outputs, title: str, band_label: str,
-                centre_label: str = "simulated (deterministic)") -> Figure:
+                centre_label: str = "simulated (deterministic)", units=None) -> Figure:
     """Measured outputs against a central curve (``<y>_simulated``) and a band (``<y>_lower``, ``<y>_upper``)."""
     fig = Figure(figsize=(11, 3.2 * len(outputs)), layout="constrained")
     axes = fig.subplots(len(outputs), 1, squeeze=False)[:, 0]
@@ -110,14 +116,15 @@ def band_figure(frame: pd.DataFrame, time_name: str, outputs, title: str, band_l
                         label=band_label)
         ax.plot(t, frame[f"{name}_simulated"], color="C0", lw=1.0, label=centre_label)
         ax.plot(t, frame[name], ".", color="k", ms=2, label="measured")
-        ax.set_ylabel(name)
+        ax.set_ylabel(labelled(name, units))
         ax.legend(fontsize=7, loc="best")
     axes[0].set_title(title)
-    axes[-1].set_xlabel(time_name)
+    axes[-1].set_xlabel(labelled(time_name, units))
     return fig
 
 
-def prediction_figure(data: pd.DataFrame, predictions: pd.DataFrame, time_name: str, outputs, steps: int) -> Figure:
+def prediction_figure(data: pd.DataFrame, predictions: pd.DataFrame, time_name: str, outputs, steps: int,
+                      units=None) -> Figure:
     """Measured outputs against k-step predictions with ±2 standard deviations."""
     fig = Figure(figsize=(11, 3.2 * len(outputs)), layout="constrained")
     axes = fig.subplots(len(outputs), 1, squeeze=False)[:, 0]
@@ -127,8 +134,8 @@ def prediction_figure(data: pd.DataFrame, predictions: pd.DataFrame, time_name: 
         ax.fill_between(t, mean - 2 * sd, mean + 2 * sd, color="C2", alpha=0.25, lw=0, label="±2 sd")
         ax.plot(t, mean, color="C2", lw=1.0, label=f"{steps}-step prediction")
         ax.plot(t, data[name], ".", color="k", ms=2, label="measured")
-        ax.set_ylabel(name)
+        ax.set_ylabel(labelled(name, units))
         ax.legend(fontsize=7, loc="best")
     axes[0].set_title(f"measured and {steps}-step predicted outputs")
-    axes[-1].set_xlabel(time_name)
+    axes[-1].set_xlabel(labelled(time_name, units))
     return fig

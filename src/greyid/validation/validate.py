@@ -91,7 +91,8 @@ class Validation:
 
         check = simulation_check(self.fit, n_paths=n_paths, seed=seed, level=self.level)
         return band_figure(check.frame, check.time_name, check.output_names,
-                           "measured and simulated outputs", f"{1 - self.level:.0%} Monte Carlo band")
+                           "measured and simulated outputs", f"{1 - self.level:.0%} Monte Carlo band",
+                           units=self.fit.model.units)
 
     def plot_bootstrap(self, n_samples: int = 100, seed: int = 0):
         """Deterministic simulations at parameters drawn from N(θ̂, Σ̂)."""
@@ -99,14 +100,16 @@ class Validation:
 
         boot = parameter_bootstrap(self.fit, n_samples=n_samples, seed=seed, level=self.level)
         return band_figure(boot.frame, boot.time_name, boot.output_names,
-                           "simulated outputs under parameter uncertainty", f"{1 - self.level:.0%} bootstrap band")
+                           "simulated outputs under parameter uncertainty", f"{1 - self.level:.0%} bootstrap band",
+                           units=self.fit.model.units)
 
     def plot_prediction(self, steps: int = 1):
         """Measured against ``steps``-ahead predictions with ±2 standard deviations."""
         data = self.fit._data(None)
         data = data[0] if isinstance(data, list) else data
         pred = self.fit.predict(data, steps=steps)
-        return prediction_figure(data, pred, self.fit.settings["time"], self.fit.model.output_names, steps)
+        return prediction_figure(data, pred, self.fit.settings["time"], self.fit.model.output_names, steps,
+                                 units=self.fit.model.units)
 
 
 def validate(fit, level: float = 0.05, lags: int | None = None, m: int | None = None) -> Validation:
