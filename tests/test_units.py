@@ -1,8 +1,6 @@
 """Physical units: every equation checked for dimensions (Pint) before a fit, offending terms named, scale
 mismatches caught, units carried through model files, parameter tables, summaries and derived quantities."""
 
-import numpy as np
-import pandas as pd
 import pytest
 
 import greyid
@@ -101,3 +99,14 @@ def test_celsius_offsets_cancel_in_differences():
     m.add_observation("y = T + 273.15", variance="r").set_initial_state(mean={"T": "0"}, covariance=[[1.0]])
     m.set_units({"t": "min", "T": "degC", "Ta": "degC", "tau": "min", "s": "K/min^0.5", "y": "K", "r": "K^2"})
     assert all(line.endswith("✓") for line in m.check_units())
+
+
+def test_the_thesis_test_cell_carries_units_and_hand_conversions_get_none():
+    from greyid.datasets.thesis import test_cell_model
+
+    m = test_cell_model()
+    assert all(line.endswith("✓") for line in m.check_units())
+    from greyid.model.units import derived_unit
+
+    assert derived_unit(m, m.units, "Hi*Hm/(Hi+Hm)") == "W/K"
+    assert derived_unit(m, m.units, "(Ci + Hi*Cm/(Hm+Hi))*3600/1e6") == ""  # a conversion to MJ/K by hand

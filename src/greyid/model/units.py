@@ -15,7 +15,9 @@ as ``exp(p)`` (CTSM's log-parametrisation of a positive quantity) may be given
 the unit of exp(p): ``"p11": "K/h^0.5"`` makes ``exp(p11)*dw1`` a diffusion in
 K/√h.  Literal numbers
 take the unit their place needs (an offset such as 273.15 beside a
-temperature).  Units of derived quantities follow from their expressions.
+temperature).  Units of derived quantities follow from their expressions,
+except where a decimal factor converts units by hand (``Ci*3600/1e6``): those
+get none.
 """
 
 from __future__ import annotations
@@ -252,8 +254,11 @@ def derived_unit(model, units: Mapping[str, str], expression: str, time_name: st
     parsed = parse_units(units)
     algebra = UnitAlgebra({n: q for n, q in parsed.items() if n not in (time_name, "t")},
                           parsed.get(time_name, parsed.get("t")), model.parameter_names)
+    expr = model._substitute_algebraics(parse_expression(expression, "derived quantity"))
+    if any(isinstance(a, sp.Float) for a in sp.preorder_traversal(expr)):
+        return ""  # a decimal factor is a unit conversion written by hand: the unit is the user's to say
     try:
-        q = algebra.of(model._substitute_algebraics(parse_expression(expression, "derived quantity")))
+        q = algebra.of(expr)
     except UnitMismatch as error:
         raise ModelError(f"the derived quantity '{expression}' mixes units: {error}") from None
     return "" if q is ANY else _show(q)
