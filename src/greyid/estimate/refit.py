@@ -105,21 +105,38 @@ class Refit:
             f = -self.criterion(z0, held_values)
             return Optimum(z0, f, np.zeros(0), np.zeros((0, 0)), 0, 1, bool(np.isfinite(f)), "nothing to estimate")
         keep = self.other
-        with ExitStack() as stack:
-            full = single_programs(self.structure, self.problem, self.arguments, stack)
+        full = self.programs()
 
-            def restricted(kind):
-                def evaluate(z):
-                    out = full[kind](self.z_full(z, held_values))
-                    if kind == VALUE:
-                        return out
-                    f, g, H = out
-                    return f, np.asarray(g)[keep], np.asarray(H)[np.ix_(keep, keep)]
-                return evaluate
+        def restricted(kind):
+            def evaluate(z):
+                out = full[kind](self.z_full(z, held_values))
+                if kind == VALUE:
+                    return out
+                f, g, H = out
+                return f, np.asarray(g)[keep], np.asarray(H)[np.ix_(keep, keep)]
+            return evaluate
 
-            programs = {kind: restricted(kind) for kind in full}
-            # Warm starts lie near their optimum: Newton steps (scoring only on long series).
-            search = new_search(self.problem, z0, self.maxiter, lambda *a: None,
-                                self.scoring and self.problem.long_series)
-            search.step_limit = search.step_limit[keep] if np.ndim(search.step_limit) else search.step_limit
-            return run_alone(search, programs)
+        programs = {kind: restricted(kind) for kind in full}
+        # Warm starts lie near their optimum: Newton steps (scoring only on long series).
+        search = new_search(self.problem, z0, self.maxiter, lambda *a: None,
+                            self.scoring and self.problem.long_series)
+        search.step_limit = search.step_limit[keep] if np.ndim(search.step_limit) else search.step_limit
+        return run_alone(search, programs)
+
+    def programs(self) -> dict:
+        """The fit's programs with their threads, opened once for every refit (closed by :meth:`close`)."""
+        if getattr(self, "_programs", None) is None:
+            self._stack = ExitStack()
+            self._programs = single_programs(self.structure, self.problem, self.arguments, self._stack)
+        return self._programs
+
+    def close(self) -> None:
+        if getattr(self, "_programs", None) is not None:
+            self._stack.close()
+            self._programs = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

@@ -443,7 +443,8 @@ class FitResult:
         """The self-contained HTML report of this fit; written to ``path`` when given.
 
         Options: ``level`` (tests), ``steps`` (prediction horizon shown),
-        ``n_paths`` (Monte Carlo band), ``seed``, ``title``.
+        ``n_paths`` (Monte Carlo band), ``seed``, ``title``, ``profile`` (False
+        leaves the profile-likelihood intervals out of the parameter table).
         """
         from ..report import html_report
 

@@ -22,8 +22,7 @@ from ..estimate.refit import Refit
 from ..estimate.results import FitWarning
 from ..estimate.transforms import Transform
 
-#: Steps of one Wald standard error (in the optimiser's coordinate) taken outwards
-#: looking for the end of a profile interval before giving up.
+#: Secant steps outwards looking for the end of a profile interval before giving up.
 MAX_STEPS = 40
 
 
@@ -51,6 +50,12 @@ class _ParameterProfile:
         self.fit, self.name = fit, name
         self.refit = Refit(fit, held=[name])
         self.solved: dict[float, np.ndarray] = {float(fit.params.loc[name, "estimate"]): self.refit.z_hat}
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.refit.close()
 
     def at(self, value: float):
         nearest = min(self.solved, key=lambda v: abs(v - value))
@@ -112,13 +117,13 @@ def profile(fit, name: str, values=None, n: int = 21, span: float = 3.0, express
     row = fit.params.loc[name]
     estimate, se = float(row["estimate"]), float(row["std_error"])
     grid = _grid(fit, name, estimate, se, values, n, span, float(row["lower_bound"]), float(row["upper_bound"]))
-    points = _ParameterProfile(fit, name)
     rows = {}
-    # Outwards from the estimate on each side, so every warm start is a neighbour.
-    above, below = grid[grid >= estimate], grid[grid < estimate][::-1]
-    for side in (above, below):
-        for value in side:
-            rows[float(value)] = points.row(value, points.at(value))
+    with _ParameterProfile(fit, name) as points:
+        # Outwards from the estimate on each side, so every warm start is a neighbour.
+        above, below = grid[grid >= estimate], grid[grid < estimate][::-1]
+        for side in (above, below):
+            for value in side:
+                rows[float(value)] = points.row(value, points.at(value))
     return _table(fit, name, [rows[float(v)] for v in grid], estimate)
 
 
@@ -206,6 +211,7 @@ def _derived_profile(fit, label, expression, values, n, span) -> pd.DataFrame:
     for side in (above, below):
         for c in side:
             rows[float(c)] = points.row(c, points.at(c))
+    points.refit.close()
     return _table(fit, label, [rows[float(c)] for c in grid], estimate)
 
 
@@ -213,52 +219,78 @@ def _derived_profile(fit, label, expression, values, n, span) -> pd.DataFrame:
 def profile_interval(fit, name: str, level: float = 0.95) -> tuple[float, float]:
     """The ends of the profile-likelihood interval of one parameter (root finding on the profile).
 
-    Steps of one Wald standard error outwards in the optimiser's coordinate of
-    the parameter (log or logistic where it is bounded, so a skewed profile is
-    followed; growing by half after the fourth) until 2(ℓ̂ − ℓ_p) exceeds the χ²₁(level) quantile, then Brent's
-    method between the last two points.  An end that reaches the parameter's
-    bound is the bound, with a :class:`FitWarning` naming it; NaN where the
-    profile never crosses the threshold within MAX_STEPS steps.
+    On each side the root of √(2(ℓ̂ − ℓ_p)) = √χ²₁(level) along the optimiser's
+    coordinate of the parameter (log or logistic where it is bounded): that
+    signed root deviance is nearly linear there, so secant steps from the Wald
+    guess bracket the end in a few refits and regula falsi closes it.  An end
+    that reaches the parameter's bound is the bound, with a :class:`FitWarning`
+    naming it; NaN where the profile stays below the threshold for MAX_STEPS steps.
     """
     threshold = float(stats.chi2.ppf(level, 1))
-    points = _ParameterProfile(fit, name)
-    transform = _parameter_transform(fit, name)
-    estimate = float(fit.params.loc[name, "estimate"])
-    z_hat = float(transform.to_z([estimate])[0])
-    se = float(fit.params.loc[name, "std_error"])
-    slope = float(abs(transform.derivative([z_hat])[0]))
-    step = se / slope if np.isfinite(se) and se > 0 and slope > 0 else 0.5
+    with _ParameterProfile(fit, name) as points:
+        transform = _parameter_transform(fit, name)
+        estimate = float(fit.params.loc[name, "estimate"])
+        z_hat = float(transform.to_z([estimate])[0])
+        se = float(fit.params.loc[name, "std_error"])
+        slope = float(abs(transform.derivative([z_hat])[0]))
+        step = se / slope if np.isfinite(se) and se > 0 and slope > 0 else 0.5
+        return tuple(_interval_end(fit, name, points, transform, z_hat, direction * step, threshold, side, level)
+                     for direction, side in ((-1.0, "lower"), (1.0, "upper")))
 
-    def excess(z):
-        value = float(transform.to_theta(np.array([z]), np)[0])
-        optimum = points.at(value)
-        return 2.0 * (fit.criterion_value + float(optimum.value)) - threshold
 
-    ends = []
-    for direction, side in ((-1.0, "lower"), (1.0, "upper")):
-        inner, end, offset = z_hat, np.nan, 0.0
-        for k in range(1, MAX_STEPS + 1):
-            # Unit steps first, then growing ones, so a long flat side reaches its bound.
-            offset += step * (1.0 if k <= 4 else 0.5 * (offset / step))
-            z = z_hat + direction * offset
-            bound = transform.at_bound(np.array([z]), np.zeros(1), np.ones(1))[0] or abs(z) > 35
-            if bound:
-                end = float(fit.params.loc[name, f"{side}_bound"])
-                warnings.warn(f"{fit.model.name}: the {side} end of the profile interval of '{name}' runs into "
-                              f"its bound {end:.6g} (the likelihood stays within the threshold up to there)",
-                              FitWarning, stacklevel=3)
-                break
-            if excess(z) > 0:
-                root = optimize.brentq(excess, inner, z, xtol=1e-10 * max(1.0, abs(z)), rtol=1e-10)
-                end = float(transform.to_theta(np.array([root]), np)[0])
-                break
-            inner = z
+def _regula_falsi(fun, a, fa, b, fb, tolerance: float = 1e-7, iterations: int = 60) -> float:
+    """The root of ``fun`` in [a, b] (fa < 0 ≤ fb), Illinois' regula falsi: for a nearly linear
+    function (the signed root deviance) each step gains digits, unlike bisection's one bit."""
+    side = 0
+    for _ in range(iterations):
+        c = b - fb * (b - a) / (fb - fa)
+        fc = fun(c)
+        if abs(fc) < tolerance or abs(b - a) < tolerance:
+            return c
+        if fc < 0:
+            a, fa = c, fc
+            fb = fb / 2 if side == -1 else fb
+            side = -1
         else:
-            warnings.warn(f"{fit.model.name}: the profile of '{name}' does not reach the {level:.0%} threshold "
-                          f"on its {side} side within {MAX_STEPS} steps (the data do not bound it there)",
-                          FitWarning, stacklevel=3)
-        ends.append(end)
-    return ends[0], ends[1]
+            b, fb = c, fc
+            fa = fa / 2 if side == 1 else fa
+            side = 1
+    return c
+
+
+def _interval_end(fit, name, points, transform, z_hat, step, threshold, side, level) -> float:
+    """One end of :func:`profile_interval`, along z = ẑ + o·step for o ≥ 0."""
+    target = np.sqrt(threshold)
+
+    def theta(o):
+        return float(transform.to_theta(np.array([z_hat + o * step]), np)[0])
+
+    def gap(o):
+        deviance = 2.0 * (fit.criterion_value + float(points.at(theta(o)).value))
+        return np.sqrt(max(deviance, 0.0)) - target
+
+    known = [(0.0, -target)]
+    o = target  # the Wald guess
+    for _ in range(MAX_STEPS):
+        z = z_hat + o * step
+        if transform.at_bound(np.array([z]), np.zeros(1), np.ones(1))[0] or abs(z) > 35:
+            end = float(fit.params.loc[name, f"{side}_bound"])
+            warnings.warn(f"{fit.model.name}: the {side} end of the profile interval of '{name}' runs into "
+                          f"its bound {end:.6g} (the likelihood stays within the threshold up to there)",
+                          FitWarning, stacklevel=4)
+            return end
+        g = gap(o)
+        if g >= 0:
+            inner, g_inner = max(((p, v) for p, v in known if v < 0), key=lambda pv: pv[0])
+            return theta(_regula_falsi(gap, inner, g_inner, o, g))
+        known.append((o, g))
+        (o0, g0), (o1, g1) = known[-2], known[-1]
+        secant = o1 + (0.0 - g1) * (o1 - o0) / (g1 - g0) if g1 > g0 else np.inf
+        o = min(max(secant * 1.05, 1.1 * o1), 3.0 * o1)  # a little past the secant root, to bracket it
+    warnings.warn(f"{fit.model.name}: the profile of '{name}' does not reach the {level:.0%} threshold "
+                  f"on its {side} side within {MAX_STEPS} steps (the data do not bound it there)",
+                  FitWarning, stacklevel=4)
+    return np.nan
 
 
 def profile_intervals(fit, level: float = 0.95, names=None) -> pd.DataFrame:

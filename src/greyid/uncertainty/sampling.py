@@ -22,7 +22,6 @@ faster than reverse mode through the filter's scan (benchmarks/uncertainty.py).
 from __future__ import annotations
 
 import warnings
-from contextlib import ExitStack
 from dataclasses import dataclass, field
 
 from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
@@ -32,7 +31,6 @@ import numpy as np
 import pandas as pd
 
 from ..errors import ModelError
-from ..estimate.estimation import single_programs
 from ..estimate.objective import compiled, forward_value_and_grad
 from ..estimate.optimize import EXACT
 from ..estimate.refit import Refit
@@ -128,9 +126,8 @@ def laplace_z(refit: Refit) -> np.ndarray:
     combination) get a unit variance in z instead, so chains can start and the
     mass matrix can adapt.
     """
-    with ExitStack() as stack:
-        programs = single_programs(refit.structure, refit.problem, refit.arguments, stack)
-        _, _, H = programs[EXACT](refit.z_full_hat)
+    _, _, H = refit.programs()[EXACT](refit.z_full_hat)
+    refit.close()
     H = 0.5 * (np.asarray(H) + np.asarray(H).T)
     w, V = np.linalg.eigh(H)
     floor = 1e-10 * max(w.max(), 1e-300)
