@@ -86,3 +86,30 @@ def test_section_6_5_single_frequency_designs():
     assert found["minimax"][0] == pytest.approx(0.8128, abs=0.015)
     # The minimax design guards against the worst a, at a higher criterion than the local design's.
     assert found["minimax"][1] > found["local"][1]
+
+
+def test_passys_window_case_reduced():
+    """Case 1 (section 7.4), reduced: the simulated experiments have the thesis' inputs and outputs, the
+    models are dimensionally consistent, and the calibration fit hands a prior on the envelope to the
+    test experiment (the four fits run in studies/passys_window.py, docs/case-studies.md)."""
+    import sys
+    import warnings
+    from pathlib import Path
+
+    pytest.importorskip("pvlib")
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "studies"))
+    import passys_window
+
+    calibration, test = passys_window.experiments(days=4, seed=1)
+    assert len(calibration) == len(test) == 96
+    assert {"Gdif", "Gdir", "theta", "yTa", "yTs"} <= set(test.columns)
+    assert test["Gdir"].max() > 100 and (test["Gdir"] >= 0).all()
+    for model in (passys_window.calibration_model(), passys_window.component_model(True),
+                  passys_window.component_model(False)):
+        assert all(line.endswith("✓") for line in model.check_units())
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fit = passys_window.calibration_model().fit(calibration)
+    known = [n for n in passys_window.ENVELOPE if np.isfinite(fit.bse[n])]
+    prior = fit.to_prior(names=known)
+    assert list(prior["mean"]) == known and {"H_av", "C_v"} <= set(known)
