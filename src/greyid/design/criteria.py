@@ -18,6 +18,8 @@ a prior distribution of θ (J₃, 6.36–6.38) or its worst case over a box (6.3
 
 from __future__ import annotations
 
+from itertools import product
+
 import numpy as np
 import pandas as pd
 
@@ -164,13 +166,69 @@ def cramer_rao_bound(info, params=None, derived=None) -> pd.Series:
     return out
 
 
+def parameter_points(model, params, prior=None, minimax=None, draws: int = 20, seed: int = 0,
+                     levels: int = 2) -> tuple[list[dict], np.ndarray]:
+    """The parameter values θ_j a Bayesian or minimax design looks at, and their weights π_j.
+
+    ``prior``: a Gaussian ``{"mean", "sd", "corr"}`` on some parameters (``draws``
+    seeded draws, equal weights) or a DataFrame of points, one row each, with an
+    optional ``weight`` column (a quadrature rule).  ``minimax``: a box
+    ``{name: (low, high)}`` gridded with ``levels`` values per parameter (the
+    corners for 2).  Parameters not named take their values in ``params``.
+    """
+    names = list(model.structure.parameter_names)
+    base = dict(params)
+    if prior is not None and minimax is not None:
+        raise ModelError("give prior= (a Bayesian design) or minimax= (a worst-case design), not both")
+    given = prior if isinstance(prior, pd.DataFrame) else minimax if isinstance(minimax, pd.DataFrame) else None
+    if given is not None:
+        what = "prior's" if given is prior else "minimax"
+        columns = [c for c in given.columns if c != "weight"]
+        unknown = [c for c in columns if c not in names]
+        if unknown:
+            raise ModelError(f"the {what} points name '{unknown[0]}', which is not a parameter of model "
+                             f"'{model.name}'")
+        if len(given) == 0:
+            raise ModelError(f"the {what} points are empty")
+        weights = (given["weight"].to_numpy(dtype=np.float64) if "weight" in given and given is prior
+                   else np.full(len(given), 1.0 / len(given)))
+        if np.any(~(weights >= 0)) or not np.isclose(weights.sum(), 1.0):
+            raise ModelError("the prior's 'weight' column must be non-negative and sum to 1")
+        points = [dict(base, **{c: float(row[c]) for c in columns}) for _, row in given.iterrows()]
+        return points, weights
+    if prior is not None:
+        from ..estimate.criteria import GaussianPrior
+
+        spec = GaussianPrior.from_spec(prior, names)
+        if draws < 1:
+            raise ModelError(f"draws must be at least 1, got {draws!r}")
+        sample = np.random.default_rng(seed).multivariate_normal(spec.mean, spec.covariance, size=draws)
+        return [dict(base, **dict(zip(spec.names, row))) for row in sample], np.full(draws, 1.0 / draws)
+    if minimax is not None:
+        unknown = [n for n in minimax if n not in names]
+        if unknown:
+            raise ModelError(f"the box names '{unknown[0]}', which is not a parameter of model '{model.name}'")
+        if levels < 2:
+            raise ModelError(f"levels must be at least 2, got {levels!r}")
+        for name, bounds in minimax.items():
+            low, high = (float(b) for b in bounds)
+            if not low <= high:
+                raise ModelError(f"the box of '{name}' must be (low, high) with low ≤ high, got {bounds!r}")
+        grids = [np.linspace(float(lo), float(hi), levels) for lo, hi in minimax.values()]
+        points = [dict(base, **dict(zip(minimax, corner))) for corner in product(*grids)]
+        return points, np.full(len(points), 1.0 / len(points))
+    return [base], np.ones(1)
+
+
 def average_criterion(model, plan, name: str, prior, draws: int = 20, seed: int = 0, map_prior: bool = False,
                       params=None, **options) -> dict:
     """The criterion averaged over a Gaussian prior of θ (the Bayesian criterion J₃, 6.36–6.38).
 
     The information of ``plan`` is computed at ``draws`` seeded draws from the
     prior (``{"mean": ..., "sd": ..., "corr": ...}`` on some parameters; the others
-    at ``params``, by default their declared initial values) and the criterion averaged; with
+    at ``params``, by default their declared initial values), or at the rows of a
+    DataFrame of points (a quadrature rule, optional ``weight`` column), and the
+    criterion averaged; with
     ``map_prior=True`` each draw's information includes the prior's precision
     (J₄).  Returns ``{"value", "standard_error", "values"}``; ``options`` go to
     :func:`criterion` (``interest``, ``derived`` ...) and
@@ -179,20 +237,16 @@ def average_criterion(model, plan, name: str, prior, draws: int = 20, seed: int 
     from ..estimate.criteria import GaussianPrior
     from .information import fisher_information
 
-    names = list(model.structure.parameter_names)
-    spec = GaussianPrior.from_spec(prior, names)
     criterion_keys = ("interest", "V", "k", "derived")
     crit = {k: options.pop(k) for k in criterion_keys if k in options}
-    rng = np.random.default_rng(seed)
     base = dict(model.initial_values() if params is None else params)
-    values = []
-    for sample in rng.multivariate_normal(spec.mean, spec.covariance, size=draws):
-        point = dict(base, **dict(zip(spec.names, sample)))
-        info = fisher_information(model, point, plan, **options)
-        values.append(criterion(info, name, params=point, prior=spec if map_prior else None, **crit))
-    values = np.asarray(values)
-    return {"value": float(values.mean()), "standard_error": float(values.std(ddof=1) / np.sqrt(draws)),
-            "values": values}
+    spec = GaussianPrior.from_spec(prior, list(model.structure.parameter_names)) if map_prior else None
+    points, weights = parameter_points(model, base, prior=prior, draws=draws, seed=seed)
+    values = np.asarray([criterion(fisher_information(model, point, plan, **options), name, params=point,
+                                   prior=spec, **crit) for point in points])
+    drawn = not isinstance(prior, pd.DataFrame)  # seeded draws have a Monte Carlo error, quadrature none
+    error = float(values.std(ddof=1) / np.sqrt(len(values))) if drawn and len(values) > 1 else 0.0
+    return {"value": float(weights @ values), "standard_error": error, "values": values}
 
 
 def minimax_criterion(model, plan, name: str, box, levels: int = 2, params=None, **options) -> dict:
@@ -203,23 +257,13 @@ def minimax_criterion(model, plan, name: str, box, levels: int = 2, params=None,
     at ``params``, by default their declared initial values).  Returns ``{"value", "at"}`` with the
     worst point.
     """
-    from itertools import product
-
     from .information import fisher_information
 
-    names = list(model.structure.parameter_names)
-    unknown = [n for n in box if n not in names]
-    if unknown:
-        raise ModelError(f"the box names '{unknown[0]}', which is not a parameter of model '{model.name}'")
-    if levels < 2:
-        raise ModelError(f"levels must be at least 2, got {levels!r}")
     criterion_keys = ("interest", "V", "k", "derived", "prior")
     crit = {k: options.pop(k) for k in criterion_keys if k in options}
     base = dict(model.initial_values() if params is None else params)
-    grids = [np.linspace(float(lo), float(hi), levels) for lo, hi in box.values()]
     worst, at = -np.inf, None
-    for corner in product(*grids):
-        point = dict(base, **dict(zip(box, corner)))
+    for point in parameter_points(model, base, minimax=box, levels=levels)[0]:
         value = criterion(fisher_information(model, point, plan, **options), name, params=point, **crit)
         if value > worst:
             worst, at = value, point

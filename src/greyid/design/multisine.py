@@ -26,13 +26,13 @@ directional derivative than the design's support.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from itertools import product
 
 import numpy as np
 import pandas as pd
 from scipy import optimize
 
 from ..errors import ModelError
+from .criteria import parameter_points
 from .frequency import frequency_information_grid, frequency_information_points
 
 #: Multiplicative iterations per Bayesian sub-problem of the minimax design.
@@ -87,60 +87,6 @@ def _criterion_and_derivatives(M, Ms, kind):
         return -np.linalg.slogdet(M)[1], np.einsum("ij,lji->l", M_inv, Ms)
     M2 = M_inv @ M_inv
     return np.trace(M_inv) / M.shape[0], np.einsum("ij,lji->l", M2, Ms)
-
-
-def parameter_points(model, params, prior=None, minimax=None, draws: int = 20, seed: int = 0,
-                     levels: int = 2) -> tuple[list[dict], np.ndarray]:
-    """The parameter values θ_j a Bayesian or minimax design looks at, and their weights π_j.
-
-    ``prior``: a Gaussian ``{"mean", "sd", "corr"}`` on some parameters (``draws``
-    seeded draws, equal weights) or a DataFrame of points, one row each, with an
-    optional ``weight`` column (a quadrature rule).  ``minimax``: a box
-    ``{name: (low, high)}`` gridded with ``levels`` values per parameter (the
-    corners for 2).  Parameters not named take their values in ``params``.
-    """
-    names = list(model.structure.parameter_names)
-    base = dict(params)
-    if prior is not None and minimax is not None:
-        raise ModelError("give prior= (a Bayesian design) or minimax= (a worst-case design), not both")
-    given = prior if isinstance(prior, pd.DataFrame) else minimax if isinstance(minimax, pd.DataFrame) else None
-    if given is not None:
-        what = "prior's" if given is prior else "minimax"
-        columns = [c for c in given.columns if c != "weight"]
-        unknown = [c for c in columns if c not in names]
-        if unknown:
-            raise ModelError(f"the {what} points name '{unknown[0]}', which is not a parameter of model "
-                             f"'{model.name}'")
-        if len(given) == 0:
-            raise ModelError(f"the {what} points are empty")
-        weights = (given["weight"].to_numpy(dtype=np.float64) if "weight" in given and given is prior
-                   else np.full(len(given), 1.0 / len(given)))
-        if np.any(~(weights >= 0)) or not np.isclose(weights.sum(), 1.0):
-            raise ModelError("the prior's 'weight' column must be non-negative and sum to 1")
-        points = [dict(base, **{c: float(row[c]) for c in columns}) for _, row in given.iterrows()]
-        return points, weights
-    if prior is not None:
-        from ..estimate.criteria import GaussianPrior
-
-        spec = GaussianPrior.from_spec(prior, names)
-        if draws < 1:
-            raise ModelError(f"draws must be at least 1, got {draws!r}")
-        sample = np.random.default_rng(seed).multivariate_normal(spec.mean, spec.covariance, size=draws)
-        return [dict(base, **dict(zip(spec.names, row))) for row in sample], np.full(draws, 1.0 / draws)
-    if minimax is not None:
-        unknown = [n for n in minimax if n not in names]
-        if unknown:
-            raise ModelError(f"the box names '{unknown[0]}', which is not a parameter of model '{model.name}'")
-        if levels < 2:
-            raise ModelError(f"levels must be at least 2, got {levels!r}")
-        for name, bounds in minimax.items():
-            low, high = (float(b) for b in bounds)
-            if not low <= high:
-                raise ModelError(f"the box of '{name}' must be (low, high) with low ≤ high, got {bounds!r}")
-        grids = [np.linspace(float(lo), float(hi), levels) for lo, hi in minimax.values()]
-        points = [dict(base, **dict(zip(minimax, corner))) for corner in product(*grids)]
-        return points, np.full(len(points), 1.0 / len(points))
-    return [base], np.ones(1)
 
 
 class _Problem:

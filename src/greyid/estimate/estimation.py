@@ -346,7 +346,7 @@ def finish(model, frames, problem: Problem, best, optima, args, datasets, theta0
     ``call`` holds the fit's own settings (time, hold, criterion, robust, horizon,
     starts, optimizer, time_unit, prior, cov_type).
     """
-    from .results import build_result
+    from .optimum import build_result
 
     theta = problem.theta(best.z, theta0)
     options = problem.options

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import math
-import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Mapping
@@ -27,18 +26,11 @@ from ..errors import ModelError
 from ..schema import FIT_FORMAT, check_fit_document
 from ..model.equations import parse_expression
 from ..model.structure import lambdify_parameters
-from .covariance import FEW_STEPS, parameter_covariance
 
 
 class FitWarning(UserWarning):
     """A fit finished with something to look at: an active bound, an ill-determined
     direction, no convergence.  The message is also in ``fit.warnings``."""
-
-
-#: Eigenvalues of the scaled Hessian below this fraction of the largest are ill-determined.
-ILL_DETERMINED = 1e-8
-#: A standard error above this multiple of max(|estimate|, 1) marks a nearly flat likelihood.
-FLAT_SE = 100.0
 
 
 @dataclass
@@ -397,26 +389,27 @@ class FitResult:
                 frame[f"{name}_upper"] = frame[name] + q * frame[f"{name}_sd"]
         return out
 
-    def simulate(self, data=None, n_paths: int = 1, seed: int = 0, method: str = "euler",
+    def simulate(self, data=None, n_paths: int | None = None, seed: int = 0, method: str = "euler",
                  interval: float | None = None, parameter_uncertainty: bool = False, posterior=None, **options):
-        """Sample paths of the fitted model driven by the data's inputs.
+        """Sample paths of the fitted model driven by the data's inputs (``n_paths``, default 1).
 
         With ``interval`` (e.g. 0.95) or ``parameter_uncertainty=True``, a DataFrame
         of the paths' mean and central interval per output instead, each path with
         its own parameter draw when ``parameter_uncertainty`` (Laplace, or
-        ``posterior=``); see :func:`greyid.uncertainty.intervals.simulate`.
+        ``posterior=``), over ``n_paths`` (default 200) paths; see
+        :func:`greyid.uncertainty.intervals.simulate`.
         """
         if interval is not None or parameter_uncertainty:
             from ..uncertainty.intervals import simulate
 
-            return simulate(self, data, n_paths=n_paths if n_paths > 1 else 200,
+            return simulate(self, data, n_paths=200 if n_paths is None else n_paths,
                             interval=0.95 if interval is None else interval, seed=seed, posterior=posterior,
                             parameter_uncertainty=parameter_uncertainty, method=method, **options)
         d = self._data(data)
         if isinstance(d, list):
             d = d[0]
-        return self.model.simulate(self.values, d, n_paths=n_paths, seed=seed, method=method,
-                                   hold=self.settings["hold"], time=self.settings["time"], **options)
+        return self.model.simulate(self.values, d, n_paths=1 if n_paths is None else n_paths, seed=seed,
+                                   method=method, hold=self.settings["hold"], time=self.settings["time"], **options)
 
     @property
     def residuals(self):
@@ -553,147 +546,3 @@ def fit_from_dict(spec: dict, where: str = "the fit", model=None) -> FitResult:
                      warnings=spec.get("warnings", []), ill_determined=spec.get("ill_determined", []), data=None,
                      starts=spec.get("starts", []), start_values=[s["criterion"] for s in spec.get("starts", [])],
                      data_file=spec.get("data_file"))
-
-
-#: Largest change of the criterion from moving an interior parameter by one standard
-#: error along its gradient that a converged fit may leave.
-GRADIENT_ACROSS_SE = 1e-2
-
-
-def honest_convergence(best, ill, free_names, inner, g_theta, se) -> tuple[bool, str]:
-    """Converged only at a minimum: the optimiser says so, the Hessian of the parameters not at a
-    bound is positive definite, and no interior gradient is large on the scale of its standard error."""
-    if not best.converged:
-        return False, best.message
-    reasons = []
-    if ill:
-        flat = sorted({name for d in ill for name in d["direction"]})
-        reasons.append("the Hessian is not positive definite: flat or curved-down direction in "
-                       + ", ".join(flat))
-    steep = [f"{n} (|g|·SE = {abs(g) * e:.2g})" for n, i, g, e in zip(free_names, inner, g_theta, se)
-             if i and np.isfinite(g) and np.isfinite(e) and abs(g) * e > GRADIENT_ACROSS_SE]
-    if steep:
-        reasons.append("the gradient is not small for " + ", ".join(steep))
-    if reasons:
-        return False, "stopped where " + "; ".join(reasons)
-    return True, best.message
-
-
-def build_result(model, frames, theta, problem, best, optima, settings, scores=None) -> FitResult:
-    """Map the optimum back to natural parameters and compute the uncertainty.
-
-    ``scores`` is the :class:`~.covariance.ScoreCovariance` of the per-step scores in z,
-    needed for ``cov_type`` "opg" and "sandwich".
-    """
-    names = list(model.parameter_names)
-    free = list(problem.free)
-    free_names = [names[i] for i in free]
-    transform = problem.transform
-    d1 = transform.derivative(best.z)
-    theta_free = theta[free]
-    warn = []
-    at_bound = transform.at_bound(best.z, best.gradient, np.diag(best.hessian))
-    g_theta = np.where(at_bound, np.nan, best.gradient / np.where(at_bound, 1.0, d1))
-    # H_z = J H_θ J + diag(g_θ θ''); at the optimum g_θ = 0 for interior parameters, so
-    # H_θ = J⁻¹ H_z J⁻¹.  (Keeping the g_θ θ'' term would only add the optimiser's
-    # residual gradient, which can mask an exactly singular direction.)
-    inner = ~at_bound
-    Hz = 0.5 * (best.hessian + best.hessian.T)
-    Jinv = 1.0 / d1[inner]
-    H = Hz[np.ix_(inner, inner)] * np.outer(Jinv, Jinv)
-    for i in np.flatnonzero(at_bound):
-        warn.append(f"parameter '{free_names[i]}' is at a bound ({theta_free[i]:.6g}); "
-                    "its standard error is not given")
-
-    k = int(inner.sum())
-    cov_inner = np.full((k, k), np.nan)
-    reliable = np.ones(len(free), dtype=bool)
-    ill = []
-    if k:
-        scale = np.sqrt(np.abs(np.diag(H)))
-        scale = np.where(scale > 0, scale, 1.0)
-        Hs = H / np.outer(scale, scale)
-        w, V = np.linalg.eigh(0.5 * (Hs + Hs.T))
-        bad = w <= ILL_DETERMINED * max(w.max(), 1e-300)
-        inner_names = [n for n, b in zip(free_names, inner) if b]
-        for j in np.flatnonzero(bad):
-            # Loadings in standardized units (each parameter scaled by its curvature), so
-            # that a ridge such as a·b = const names both a and b wherever along it the fit ends.
-            vec = V[:, j] / np.max(np.abs(V[:, j]))
-            loading = {inner_names[i]: float(vec[i]) for i in np.argsort(-np.abs(vec)) if abs(vec[i]) > 0.05}
-            ill.append({"eigenvalue": float(w[j]), "direction": loading})
-            for name in loading:
-                reliable[free_names.index(name)] = False
-            desc = ", ".join(f"{v:+.3f}·{n}" for n, v in loading.items())
-            warn.append(f"the Hessian is {'singular' if w[j] > -1e-12 else 'not positive definite'} in the "
-                        f"direction {desc}: these parameters are not determined by the data, "
-                        "their standard errors are unreliable (greyid.design.identifiability(model) says "
-                        "whether any experiment could determine them, and which combination it can)")
-        J = None if scores is None else scores.matrix[np.ix_(inner, inner)] * np.outer(Jinv, Jinv)
-        if scores is not None:
-            for name, steps in zip(inner_names, scores.effective_steps[inner]):
-                if steps < FEW_STEPS:
-                    reliable[free_names.index(name)] = False
-                    warn.append(f"the {settings['cov_type']} standard error of '{name}' rests on about "
-                                f"{steps:.1f} observations' scores (an initial state?); it is unreliable")
-        cov_inner = parameter_covariance(H, J, settings.get("cov_type", "hessian"), bool(bad.any()))
-
-    cov = np.full((len(free), len(free)), np.nan)
-    idx = np.flatnonzero(inner)
-    cov[np.ix_(idx, idx)] = cov_inner
-    se = np.sqrt(np.where(np.diag(cov) >= 0, np.diag(cov), np.nan))
-    for j in np.flatnonzero(inner & reliable & (se > FLAT_SE * np.maximum(np.abs(theta_free), 1.0))):
-        # Not singular to working precision, yet the data barely constrain it (a noise
-        # intensity drifting towards −∞ with SE 7863): as unreliable as a singular direction.
-        reliable[j] = False
-        warn.append(f"the likelihood is nearly flat in '{free_names[j]}' (standard error {se[j]:.4g} against "
-                    f"an estimate of {theta_free[j]:.4g}): the data do not determine it")
-    n_obs = int(sum(int(np.sum(~np.isnan(df[list(model.output_names)].to_numpy(dtype=float)))) for df in frames))
-    dof = max(n_obs - len(free), 1)  # as FitResult.df_resid
-    tval = theta_free / se
-    pval = 2 * special.stdtr(dof, -np.abs(tval))  # two-sided Student-t p-value
-    converged, message = honest_convergence(best, ill, free_names, inner, g_theta, se)
-    if not converged:
-        warn.append(f"the fit did not converge: {message}")
-    if settings.get("substeps_accurate") is False:
-        warn.append(f"the filter is not accurate between samples: {settings['substep_note']}")
-
-    declared = model.parameters
-    rows = []
-    for i, name in enumerate(names):
-        p = declared.get(name)
-        lower = None if p is None else p.lower
-        upper = None if p is None else p.upper
-        if i in free:
-            j = free.index(i)
-            rows.append(dict(name=name, estimate=theta[i], std_error=se[j], t_value=tval[j], p_value=pval[j],
-                             lower_bound=lower, upper_bound=upper, fixed=False, at_bound=bool(at_bound[j]),
-                             reliable=bool(reliable[j] and not at_bound[j]), gradient=-g_theta[j]))
-        else:
-            rows.append(dict(name=name, estimate=theta[i], std_error=np.nan, t_value=np.nan, p_value=np.nan,
-                             lower_bound=lower, upper_bound=upper, fixed=True, at_bound=False, reliable=True, gradient=np.nan))
-    params = pd.DataFrame(rows).set_index("name")
-    params.index.name = None
-    for col in ("lower_bound", "upper_bound"):
-        params[col] = params[col].astype(float)
-    units = getattr(model, "units", {})
-    if units:
-        params["unit"] = [units.get(name, "") for name in params.index]
-
-    criterion_value = -best.value
-    simple = settings["criterion"] == "ml" and not settings["robust"] and settings["horizon"] == 1
-    if simple:
-        loglik = criterion_value
-    else:
-        loglik = model.loglik(dict(zip(names, theta)), frames if len(frames) > 1 else frames[0],
-                              **filter_settings(settings))
-    for text in warn:  # printed plainly once, and kept on the fit
-        warnings.warn(f"{model.name}: {text}", FitWarning, stacklevel=4)
-    return FitResult(model=model, params=params, cov=pd.DataFrame(cov, index=free_names, columns=free_names),
-                     loglik=float(loglik), criterion_value=float(criterion_value), n_obs=n_obs,
-                     converged=converged, message=message, iterations=best.iterations,
-                     settings=settings, warnings=warn, ill_determined=ill, data=frames,
-                     start_values=[float(-o.value) for o in optima],
-                     starts=[dict(start=label, criterion=float(-o.value), converged=bool(o.converged),
-                                  iterations=int(o.iterations), message=o.message)
-                             for label, o in zip(settings.get("start_labels", []), optima)])
