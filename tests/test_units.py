@@ -89,9 +89,10 @@ def test_a_fit_refuses_inconsistent_units_and_carries_consistent_ones(tmp_path):
         wrong.fit(data)
 
 
-def test_every_library_building_model_is_consistent():
-    for name in library.BUILDING_MODELS:
-        assert all(line.endswith("✓") for line in library.load_model(name).check_units())
+def test_every_library_model_with_units_is_consistent():
+    for name in (*library.BUILDING_MODELS, "test_cell", "fuel_film"):
+        model = library.load_model(name)
+        assert model.units and all(line.endswith("✓") for line in model.check_units()), name
 
 
 def test_celsius_offsets_cancel_in_differences():
