@@ -45,20 +45,20 @@ def test_rc_network_heat_balance():
     assert ua == "1/Ria"
 
 
-def test_fuel_film_recovers_time_constants():
+def test_fuel_film_recovers_time_constants_and_delay():
     """Simulate the fuel-film model (8.1)–(8.3) with a PRBS on the injected fuel and fit it back."""
     m = library.load_model("fuel_film")
-    truth = {"tau_s": 0.15, "tau_ff": 1.2, "X": 0.35, "s1f": 2e-4, "s1ff": 1e-4, "s2": 2e-4,
-             "mf0": 1.4, "mff0": 0.49}
+    truth = {"tau_s": 0.15, "tau_ff": 1.2, "X": 0.35, "delta_t": 0.07, "kb": 14.67 / 20.0, "s1f": 2e-4,
+             "s1ff": 1e-4, "s2": 2e-4, "mf0": 1.4, "mff0": 0.49}
     n = 800
     t = np.arange(n) * 0.0125 * 4  # the thesis' sampling, every 4th sample
     mfi = prbs(6, clock=10, levels=(1.2, 1.6), length=n)
-    data = pd.DataFrame({"t": t, "mfi": mfi, "ma": np.full(n, 20.0)})
+    data = pd.DataFrame({"t": t, "mfi": mfi})
     sim = m.simulate(truth, data, method="exact", seed=4)
     data["phi"] = sim.outputs[0, :, 0]
     fit = m.fit(data)
     assert fit.converged
-    for name in ("tau_s", "tau_ff", "X"):
+    for name in ("tau_s", "tau_ff", "X", "delta_t", "kb"):
         est, se = fit.params.loc[name, ["estimate", "std_error"]]
         assert abs(est - truth[name]) < 4 * se, name
     assert fit.loglik >= m.loglik(truth, data) - 1e-6

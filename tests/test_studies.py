@@ -113,3 +113,24 @@ def test_passys_window_case_reduced():
     known = [n for n in passys_window.ENVELOPE if np.isfinite(fit.bse[n])]
     prior = fit.to_prior(names=known)
     assert list(prior["mean"]) == known and "C_a" in known  # the air capacity is always determined
+
+
+def test_fuel_film_case_reduced():
+    """Case 2 (chapter 8), reduced: two of table 8.2's operating points on 1200 samples, fitted in one
+    batched call; the delay, time constants, X and k_b come back within 4 standard errors of the table
+    and the residuals pass the cumulative periodogram test (all eleven in studies/fuel_film.py)."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "studies"))
+    import fuel_film
+
+    points = fuel_film.TABLE_8_2.loc[["s40g4", "s60g4"]]
+    datasets = {name: fuel_film.experiment(point, seed=k, samples=1200) for k, (name, point)
+                in enumerate(points.iterrows())}
+    fleet = fuel_film.fit_points(datasets)
+    table = fuel_film.comparison(fleet, points)
+    assert table["converged"].all()
+    z = table[[f"{p}_z" for p in ("delta_t", "tau_s", "tau_ff", "X", "kb")]].abs()
+    assert (z < 4).all().all(), z
+    assert (fuel_film.whiteness(fleet, datasets)["p_value"] > 0.01).all()

@@ -54,21 +54,42 @@ def make_exact_information(structure, index: tuple[int, ...]):
         cov = jnp.zeros((size, size)).at[:n, :n].set(P0)
         zero_x, zero_y = jnp.zeros(n), jnp.zeros(m)
 
-        def step(carry, row):
+        # With delayed inputs the rows themselves depend on θ (the extended inputs and the
+        # pieces move with τ): their tangents go into each step beside θ's.
+        def moving(rows):
+            return rows.u_prev, rows.u_cur, rows.pieces
+
+        moving_dot = None
+        if structure.delays:
+            _, moving_dot = jax.vmap(lambda e: jax.jvp(lambda th: moving(build(th, data).rows), (theta,), (e,)),
+                                     out_axes=(None, 0))(directions)
+            moving_dot = jax.tree_util.tree_map(lambda a: jnp.moveaxis(a, 0, 1), moving_dot)
+
+        def step(carry, inputs):
+            row, row_dot = inputs
             mean, cov, P, dP, F = carry
 
-            def filter_step(th, x_hat, P_cov, y):
+            def filter_step(th, x_hat, P_cov, y, moved):
                 parts = build(th, data)
-                x_pred, P_pred, _ = parts.predict(x_hat, P_cov, row)
-                upd, _ = parts.update(x_pred, P_pred, row._replace(y=y))
+                at = row._replace(u_prev=moved[0], u_cur=moved[1], pieces=moved[2])
+                x_pred, P_pred, _ = parts.predict(x_hat, P_cov, at)
+                upd, _ = parts.update(x_pred, P_pred, at._replace(y=y))
                 return upd.mean, upd.covariance, upd.innovation, upd.innovation_covariance
 
             def with_tangents(x_hat, y):
                 """The filter step and its p tangents (with ∂x̂ = 0: that part is added below)."""
-                def along(e, dP_j):
-                    return jax.jvp(lambda th, P_cov: filter_step(th, x_hat, P_cov, y), (theta, P), (e, dP_j))
+                if row_dot is None:
+                    def along(e, dP_j):
+                        return jax.jvp(lambda th, P_cov: filter_step(th, x_hat, P_cov, y, moving(row)),
+                                       (theta, P), (e, dP_j))
 
-                return jax.vmap(along, out_axes=(None, 0))(directions, dP)
+                    return jax.vmap(along, out_axes=(None, 0))(directions, dP)
+
+                def along_moving(e, dP_j, dm_j):
+                    return jax.jvp(lambda th, P_cov, m: filter_step(th, x_hat, P_cov, y, m),
+                                   (theta, P, moving(row)), (e, dP_j, dm_j))
+
+                return jax.vmap(along_moving, out_axes=(None, 0))(directions, dP, row_dot)
 
             def random_part(x_hat, y):
                 (x_new, _, eps, _), (dx_new, _, d_eps, _) = with_tangents(x_hat, y)
@@ -113,7 +134,7 @@ def make_exact_information(structure, index: tuple[int, ...]):
             return (T @ mean + t0, T @ cov @ T.T + G @ Q @ G.T, P_new, dP_new, F), None
 
         carry = (mean, cov, P0, dP0, jnp.zeros((p, p)))
-        (_, _, _, _, F), _ = jax.lax.scan(step, carry, truth.rows)
+        (_, _, _, _, F), _ = jax.lax.scan(step, carry, (truth.rows, moving_dot))
         return 0.5 * (F + F.T)
 
     return jit(information)

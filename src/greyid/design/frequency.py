@@ -130,6 +130,10 @@ def _setup(model, params, input, free, several: bool = False):
     if not structure.is_linear or structure.kind != "lti":
         raise ModelError(f"the frequency-domain information needs a linear time-invariant model; model "
                          f"'{model.name}' is {structure.kind} (use fisher_information on a plan)")
+    if structure.delays:
+        raise ModelError(f"the frequency-domain information does not handle delayed inputs yet ("
+                         f"{', '.join(d.name for d in structure.delays)} in model '{model.name}'); "
+                         "fisher_information on a plan (time domain) does")
     if input not in structure.input_names:
         raise ModelError(f"'{input}' is not an input of model '{model.name}' (inputs: {list(structure.input_names)})")
     names = _free_names(model, free)

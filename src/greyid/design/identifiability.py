@@ -175,7 +175,7 @@ def identifiability(model, params=None, plan=None, seed: int = 0, free=None) -> 
     initial_only = [n for n in judged if n not in in_dynamics]
     names = [n for n in judged if n in in_dynamics]
     points = _points(model, params, all_names, seed)
-    if structure.kind != "lti":
+    if structure.kind != "lti" or structure.delays:  # a delay's e^{-sτ} is not rational in s
         return _by_information(model, judged, points, plan, seed)
     import sympy as sp
 
@@ -272,7 +272,8 @@ def _by_information(model, names, points, plan, seed):
     from .information import fisher_information, local_identifiability
 
     if plan is None:
-        raise ModelError(f"model '{model.name}' is {model.structure.kind}: its identifiability is judged on a "
+        why = "has delayed inputs" if model.structure.delays else f"is {model.structure.kind}"
+        raise ModelError(f"model '{model.name}' {why}: its identifiability is judged on a "
                          "planned experiment; give plan= (a DataFrame of times and inputs)")
     worst = None
     for k, point in enumerate(points):

@@ -22,6 +22,7 @@ from ..errors import DataError, ModelError
 from ..model.structure import Structure
 from .accuracy import choose_substeps, needs_substeps
 from .core import EKF, EKF2, KALMAN, FilterInputs, FilterOptions, initial_state, make_ahead, make_filter
+from .delays import check_delays, delay_slots, with_delayed_inputs
 from .result import FilterResult, SmootherResult
 from .smoother import rts_smooth
 
@@ -71,7 +72,8 @@ def filter_inputs(series: Series, hold: str, on_device: bool = True) -> FilterIn
     # jnp.asarray would compile a small program per shape, which a first fit waits for.
     arrays = dict(t=t, t_prev=t_prev, dt=dt, u_prev=u_prev, u_cur=u, y=np.where(mask, y, 0.0),
                   mask=mask.astype(np.float64), dt_index=index.reshape(-1).astype(np.int32), unique_dt=unique,
-                  first_interval=np.float64(first), foh=np.float64(HOLDS[hold]))
+                  first_interval=np.float64(first), foh=np.float64(HOLDS[hold]),
+                  delay_slots=np.zeros(delay_slots(series.times, regular=np.count_nonzero(unique) == 1)))
     put = jax.device_put if on_device else np.asarray
     return FilterInputs(**{name: put(np.asarray(a)) for name, a in arrays.items()})
 
@@ -113,10 +115,12 @@ def compiled_filter(structure: Structure, options: FilterOptions, keep_outputs: 
 
 
 def check_at_parameters(structure: Structure, theta: np.ndarray, series: Series, data: FilterInputs) -> None:
-    """Errors that depend on parameter values: negative variances, a bad P0."""
+    """Errors that depend on parameter values: negative variances, a bad P0, a delay out of range."""
+    check_delays(structure, theta, series.times)
     key = ("checks",)
     if key not in structure.cache:
         def checks(theta, data):
+            data = with_delayed_inputs(structure, theta, data)
             x0, P0 = initial_state(structure, theta, data)
             S = jax.vmap(lambda u, t: structure.observation_variance(x0, u, t, theta))(data.u_cur, data.t)
             full = structure.observation_covariance

@@ -22,6 +22,7 @@ from ..compiler import jit
 from ..errors import ModelError
 from ..model.structure import LTI, Structure
 from . import small
+from .delays import Pieces, delays_at, interval_pieces, regular_offsets, with_delayed_inputs
 from .discretize import discretize, discretize_each, stationary_covariance, time_varying_step
 from .predictors import (
     Interval,
@@ -80,6 +81,7 @@ class FilterInputs(NamedTuple):
     unique_dt: jnp.ndarray  # (M,)
     first_interval: jnp.ndarray  # t_1 − t_0
     foh: jnp.ndarray  # 0.0 (zoh) or 1.0 (foh)
+    delay_slots: jnp.ndarray  # (W,) zeros: W cuts per delay fit in one interval; (0,): regular sampling
 
 
 class StepOutput(NamedTuple):
@@ -123,6 +125,7 @@ class Row(NamedTuple):
     y: jnp.ndarray
     mask: jnp.ndarray
     dt_index: jnp.ndarray
+    pieces: Pieces | None = None  # with delayed inputs: the interval's pieces (see .delays)
 
 
 class FilterSteps(NamedTuple):
@@ -159,41 +162,96 @@ def filter_steps(structure: Structure, options: FilterOptions):
         g = G(zeros, u0, t0, theta)
         return discretize_each(jac_f(zeros, u0, t0, theta), g @ g.T, data.unique_dt)
 
-    def time_varying(theta, row: Row, foh):
+    def predict_interval(x, cov, interval: Interval, theta, linear_matrices):
+        """One interval (or piece of one) with its inputs held or ramped: mean, covariance and Φ."""
+        if method == KALMAN and structure.kind == LTI:
+            disc = discretize(*linear_matrices, interval.dt)
+            b_prev = f(zeros, interval.u_prev, interval.t_prev, theta)
+            b_cur = f(zeros, interval.u_cur, interval.t_prev + interval.dt, theta)
+            x_pred, cov_pred = linear_predict(x, cov, disc, b_prev, b_cur, interval.foh, form)
+            return x_pred, cov_pred, disc.transition
+        if method == KALMAN:
+            step = time_varying(theta, interval)
+            x_pred = small.mm(step.transition, x) + step.offset
+            return x_pred, propagate(cov, step.transition, step.noise_covariance, form), step.transition
+        if method == UKF:
+            return unscented_predict(x, cov, interval, theta, f, G, options.substeps, form, weights)
+        return extended_predict(x, cov, interval, theta, f, G, options.substeps, form,
+                                bias_correction=method in (EKF2, *SECOND_ORDER),
+                                noise_correction=method in SECOND_ORDER)
+
+    def time_varying(theta, interval: Interval):
         """The interval's Φ, offset and Λ of a time-varying linear model (sub-stepped)."""
         def matrices(u, t):
             g = G(zeros, u, t, theta)
             return jac_f(zeros, u, t, theta), small.mm(g, g.T)
 
-        return time_varying_step(matrices, lambda u, t: f(zeros, u, t, theta), row.t_prev, row.dt,
-                                 row.u_prev, row.u_cur, foh, options.substeps)
+        return time_varying_step(matrices, lambda u, t: f(zeros, u, t, theta), interval.t_prev, interval.dt,
+                                 interval.u_prev, interval.u_cur, interval.foh, options.substeps)
 
     def steps(theta, data: FilterInputs) -> FilterSteps:
         first_noise = None
-        rows = Row(data.t, data.t_prev, data.dt, data.u_prev, data.u_cur, data.y, data.mask, data.dt_index)
-        if method == KALMAN and structure.kind == LTI:
+        delays = delays_at(structure, theta, data) if structure.delays else None
+        data = with_delayed_inputs(structure, theta, data)
+        exact_linear = method == KALMAN and structure.kind == LTI
+        regular = data.delay_slots.shape[0] == 0
+        pieces = piece_gains = linear_matrices = None
+        if delays is not None:
+            step = jnp.max(data.unique_dt)
+            offsets = regular_offsets(delays.taus, step) if regular else None
+            pieces = interval_pieces(delays, data, structure.n_inputs, offsets)
+            if exact_linear and regular:  # the same D + 1 pieces in every interval: discretized once
+                g = G(zeros, data.u_cur[0], data.t[0], theta)
+                lengths = jnp.diff(jnp.concatenate([jnp.zeros(1), offsets, step[None]]))
+                piece_gains = discretize_each(jac_f(zeros, data.u_cur[0], data.t[0], theta), g @ g.T, lengths)
+            elif exact_linear:  # irregular sampling: each piece discretized as it comes
+                g = G(zeros, data.u_cur[0], data.t[0], theta)
+                linear_matrices = (jac_f(zeros, data.u_cur[0], data.t[0], theta), g @ g.T)
+        rows = Row(data.t, data.t_prev, data.dt, data.u_prev, data.u_cur, data.y, data.mask, data.dt_index, pieces)
+        if exact_linear and (delays is None or regular):
             cache = linear_discretization(theta, data)
             first_noise = cache.noise_covariance[data.dt_index[1]]  # the first interval's Λ
         x0, P0 = initial_state(structure, theta, data, first_noise)
 
         def predict(x, cov, row: Row):
-            if method == KALMAN:
-                if structure.kind == LTI:
-                    disc = jax.tree_util.tree_map(lambda a: a[row.dt_index], cache)
-                    # The affine terms b = f(0, u, t) at both ends, in the step: stored per row
-                    # they (and their derivatives) would grow with the series.
-                    b_prev, b_cur = f(zeros, row.u_prev, row.t_prev, theta), f(zeros, row.u_cur, row.t, theta)
-                    x_pred, cov_pred = linear_predict(x, cov, disc, b_prev, b_cur, data.foh, form)
-                    return x_pred, cov_pred, disc.transition
-                step = time_varying(theta, row, data.foh)
-                x_pred = small.mm(step.transition, x) + step.offset
-                return x_pred, propagate(cov, step.transition, step.noise_covariance, form), step.transition
-            interval = Interval(row.t_prev, row.dt, row.u_prev, row.u_cur, data.foh)
-            if method == UKF:
-                return unscented_predict(x, cov, interval, theta, f, G, options.substeps, form, weights)
-            return extended_predict(x, cov, interval, theta, f, G, options.substeps, form,
-                                    bias_correction=method in (EKF2, *SECOND_ORDER),
-                                    noise_correction=method in SECOND_ORDER)
+            if piece_gains is not None:
+                return predict_regular_pieces(x, cov, row)
+            if delays is not None:
+                return predict_pieces(x, cov, row)
+            if exact_linear:
+                disc = jax.tree_util.tree_map(lambda a: a[row.dt_index], cache)
+                # The affine terms b = f(0, u, t) at both ends, in the step: stored per row
+                # they (and their derivatives) would grow with the series.
+                b_prev, b_cur = f(zeros, row.u_prev, row.t_prev, theta), f(zeros, row.u_cur, row.t, theta)
+                x_pred, cov_pred = linear_predict(x, cov, disc, b_prev, b_cur, data.foh, form)
+                return x_pred, cov_pred, disc.transition
+            return predict_interval(x, cov, Interval(row.t_prev, row.dt, row.u_prev, row.u_cur, data.foh),
+                                    theta, linear_matrices)
+
+        def predict_pieces(x, cov, row: Row):
+            """The interval cut where a delayed input switches, each piece predicted in turn."""
+            def piece(carry, p):
+                x, cov, phi = carry
+                x, cov, transition = predict_interval(x, cov, Interval(p.start, p.length, p.u_start, p.u_end,
+                                                                       data.foh), theta, linear_matrices)
+                return (x, cov, small.mm(transition, phi)), None
+
+            (x, cov, phi), _ = jax.lax.scan(piece, (x, cov, jnp.eye(n)), row.pieces)
+            return x, cov, phi
+
+        def predict_regular_pieces(x, cov, row: Row):
+            """(4.34) piece by piece for the mean; Φ and Λ of the whole interval for the covariance."""
+            p = row.pieces
+            x_new = x
+            for i in range(p.length.shape[0]):  # D + 1 pieces, a static number
+                b_start = f(zeros, p.u_start[i], p.start[i], theta)
+                b_end = f(zeros, p.u_end[i], p.start[i] + p.length[i], theta)
+                x_new = (small.mm(piece_gains.transition[i], x_new) + small.mm(piece_gains.input_gain[i], b_start)
+                         + data.foh * small.mm(piece_gains.ramp_gain[i], b_end - b_start))
+            disc = jax.tree_util.tree_map(lambda a: a[row.dt_index], cache)
+            # Row 0 and padding rows have no interval: nothing moves.
+            x_new = jnp.where(row.dt > 0, x_new, x)
+            return x_new, propagate(cov, disc.transition, disc.noise_covariance, form), disc.transition
 
         def update(x_pred, cov_pred, row: Row, mask=None):
             u, t, y = row.u_cur, row.t, row.y

@@ -19,6 +19,7 @@ import sympy as sp
 from sympy.parsing.sympy_parser import convert_xor, parse_expr, standard_transformations
 
 from ..errors import ModelError
+from .delays import delay
 from .physics import glazing_transmittance_expression
 
 #: Functions allowed in equations, by the name a user writes.
@@ -52,6 +53,7 @@ FUNCTIONS: dict[str, object] = {
     "invlogit": lambda z: 1 / (1 + sp.exp(-z)),
     "logit": lambda z: sp.log(z / (1 - z)),
     "glazing_transmittance": glazing_transmittance_expression,
+    "delay": delay,
 }
 
 #: Names with a fixed meaning inside equations.

@@ -7,6 +7,7 @@ from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
 import sympy as sp
 
 from ..errors import ModelError
+from .build import initial_state_expressions
 from .structure import InitialCovariance, Structure, lambdify_parameters
 
 
@@ -17,7 +18,7 @@ def build_from_functions(model) -> Structure:
     spec = model._functions
     states, params = spec["states"], spec["parameters"]
     param_syms = [sp.Symbol(p, real=True) for p in params]
-    mean, rows = model._initial_state_expressions(list(states))
+    mean, rows = initial_state_expressions(model, list(states))
     used = {s.name for e in mean for s in e.free_symbols}
     if isinstance(rows, list):
         used |= {s.name for r in rows for e in r for s in e.free_symbols}

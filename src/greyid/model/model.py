@@ -23,7 +23,6 @@ import sympy as sp
 
 from ..errors import ModelError
 from .equations import (
-    TIME,
     is_wiener_name,
     parse_equation,
     parse_expression,
@@ -31,16 +30,7 @@ from .equations import (
 )
 from .options import DATA_KEYS, ESTIMATION_KEYS, FILTER_KEYS, check_options, rename_columns, resolve
 from .parameters import Parameter
-from .structure import (
-    LTI,
-    LTV,
-    NONLINEAR,
-    InitialCovariance,
-    Structure,
-    classify,
-    lambdify_model,
-    lambdify_parameters,
-)
+from .structure import LTI, LTV, NONLINEAR, Structure
 
 _COVARIANCE_KINDS = ("process", "stationary")
 
@@ -385,146 +375,12 @@ class Model:
 
     def _build(self) -> Structure:
         if self._functions is not None:
-            return self._build_from_functions()
-        if not self._system:
-            raise ModelError("the model has no system equations; add them with add_system()")
-        if not self._observations:
-            raise ModelError("the model has no observation equation; add one with add_observation()")
-        states = [e.state for e in self._system]
-        inputs = list(self._inputs)
-        outputs = [o[0].lhs for o in self._observations]
-        clash = set(states) & set(inputs)
-        if clash:
-            raise ModelError(f"'{sorted(clash)[0]}' is declared both as a state and as an input")
-        for a in self._algebraics:
-            if a.lhs in states or a.lhs in inputs:
-                raise ModelError(f"algebraic equation '{a.text}' redefines the state or input '{a.lhs}'")
-        for o in outputs:
-            if o in states or o in inputs:
-                raise ModelError(f"observation name '{o}' is already a state or an input; give the output another name")
+            from .functions import build_from_functions
 
-        sub = self._substitute_algebraics
-        drift = [sub(e.drift) for e in self._system]
-        noise_names = sorted({w for e in self._system for w in e.diffusion})
-        diffusion = [[sub(e.diffusion.get(w, sp.Integer(0))) for w in noise_names] for e in self._system]
-        observation = [sub(o[0].rhs) for o in self._observations]
-        variance = [sub(o[1]) for o in self._observations]
+            return build_from_functions(self)
+        from .build import build_structure
 
-        correlation = self._observation_covariance_expressions(outputs, variance, states)
-        mean_exprs, cov = self._initial_state_expressions(states)
-        mean_exprs = [sub(e) for e in mean_exprs]
-        if isinstance(cov, list):
-            cov = [[sub(e) for e in row] for row in cov]
-
-        known = {sp.Symbol(n, real=True) for n in states + inputs} | {TIME}
-        everything = [*drift, *[g for row in diffusion for g in row], *observation, *variance, *mean_exprs,
-                      *([] if correlation is None else [e for row in correlation for e in row])]
-        if isinstance(cov, list):
-            everything += [e for row in cov for e in row]
-        for e, where in [(x, "initial state") for x in mean_exprs] + [(v, "observation variance") for v in variance]:
-            bad = [s.name for s in e.free_symbols if s.name in states or s.name in inputs or s == TIME]
-            if where == "initial state" and bad:
-                raise ModelError(f"the initial state cannot depend on '{bad[0]}'")
-        for e in everything:
-            wieners = [s.name for s in e.free_symbols if is_wiener_name(s.name)]
-            if wieners:
-                raise ModelError(f"'{wieners[0]}' appears outside a system equation's noise term")
-        ordered: list[str] = []
-        for e in everything:
-            for s in sorted(e.free_symbols - known, key=lambda s: s.name):
-                if s.name not in ordered:
-                    ordered.append(s.name)
-        unknown_declared = sorted(set(self._parameters) - set(ordered))
-        if unknown_declared:
-            raise ModelError(f"parameter '{unknown_declared[0]}' is declared but does not appear in the model")
-        state_syms = [sp.Symbol(n, real=True) for n in states]
-        input_syms = [sp.Symbol(n, real=True) for n in inputs]
-        param_syms = [sp.Symbol(n, real=True) for n in ordered]
-
-        f_mat, g_mat = sp.Matrix(drift), sp.Matrix(diffusion) if noise_names else sp.zeros(len(states), 0)
-        h_mat, s_mat = sp.Matrix(observation), sp.Matrix(variance)
-        kind = classify(f_mat, g_mat, h_mat, s_mat, state_syms, input_syms)
-        n, m, s = len(states), len(noise_names), len(outputs)
-        args = (state_syms, input_syms, param_syms)
-        flat_g = [g for row in diffusion for g in row]
-        if isinstance(cov, list):
-            cov_fn = lambdify_parameters([e for row in cov for e in row], param_syms, (n, n))
-            initial_cov = InitialCovariance("matrix", matrix=cov_fn)
-        else:
-            initial_cov = InitialCovariance(cov, scale=self._initial_scale)
-        return Structure(
-            state_names=tuple(states),
-            input_names=tuple(inputs),
-            output_names=tuple(outputs),
-            parameter_names=tuple(ordered),
-            noise_names=tuple(noise_names),
-            kind=kind,
-            drift=lambdify_model(drift, *args, (n,)),
-            diffusion=lambdify_model(flat_g, *args, (n, m)) if m else _zero_diffusion(n),
-            observation=lambdify_model(observation, *args, (s,)),
-            observation_variance=lambdify_model(variance, *args, (s,)),
-            initial_mean=lambdify_parameters(mean_exprs, param_syms, (n,)),
-            initial_covariance=initial_cov,
-            equations=dict(drift=f_mat, diffusion=g_mat, observation=h_mat, variance=s_mat),
-            observation_covariance=None if correlation is None else lambdify_model(
-                [e for row in correlation for e in row], *args, (s, s)),
-        )
-
-    def _observation_covariance_expressions(self, outputs, variance, states):
-        """The checked full observation covariance (SymPy rows), or None for independent outputs."""
-        if self._observation_covariance is None:
-            return None
-        rows = self._observation_covariance
-        s = len(outputs)
-        if len(rows) != s or any(len(r) != s for r in rows):
-            raise ModelError(f"the observation covariance must be {s}x{s} (outputs {outputs})")
-        exprs = [[self._substitute_algebraics(self._expression(v, f"observation covariance of '{outputs[i]}' and "
-                                                                   f"'{outputs[j]}'")) for j, v in enumerate(r)]
-                 for i, r in enumerate(rows)]
-        for i in range(s):
-            if sp.simplify(exprs[i][i] - variance[i]) != 0:
-                raise ModelError(f"the observation covariance's diagonal entry for '{outputs[i]}' is {exprs[i][i]}, "
-                                 f"but its variance is {variance[i]}; they must agree")
-            for j in range(i + 1, s):
-                if sp.simplify(exprs[i][j] - exprs[j][i]) != 0:
-                    raise ModelError(f"the observation covariance is not symmetric for '{outputs[i]}' and "
-                                     f"'{outputs[j]}'")
-        used = {sym.name for row in exprs for e in row for sym in e.free_symbols}
-        if used & set(states):
-            raise ModelError(f"the observation covariance cannot depend on the state '{sorted(used & set(states))[0]}'")
-        return exprs
-
-    def _initial_state_expressions(self, states: list[str]):
-        if self._initial_mean is None:
-            raise ModelError("the model has no initial state; set it with set_initial_state(mean={...})")
-        unknown = [k for k in self._initial_mean if k not in states]
-        if unknown:
-            raise ModelError(f"initial state given for '{unknown[0]}', which is not a state (states: {states})")
-        missing = [x for x in states if x not in self._initial_mean]
-        if missing:
-            raise ModelError(f"initial state mean missing for state '{missing[0]}'")
-        mean = [self._expression(self._initial_mean[x], f"initial state of '{x}'") for x in states]
-        cov = self._initial_covariance
-        if isinstance(cov, str):
-            return mean, cov
-        n = len(states)
-        try:
-            arr = np.asarray(cov, dtype=object)
-        except Exception:  # ragged lists
-            raise ModelError(f"initial covariance must be an {n}x{n} matrix") from None
-        if arr.ndim == 1 and arr.shape == (n,):
-            arr = np.diag(arr).astype(object)
-            arr[arr == 0] = 0.0
-        if arr.shape != (n, n):
-            raise ModelError(f"initial covariance has shape {arr.shape}, but the model has {n} states: it must be {n}x{n}")
-        rows = [[self._expression(arr[i, j], f"initial covariance entry ({states[i]}, {states[j]})") for j in range(n)]
-                for i in range(n)]
-        return mean, rows
-
-    def _build_from_functions(self) -> Structure:
-        from .functions import build_from_functions
-
-        return build_from_functions(self)
+        return build_structure(self)
 
     # ------------------------------------------------------------------ parameters
     def parameter_vector(self, params: Mapping[str, float] | None = None) -> np.ndarray:
@@ -688,8 +544,3 @@ class Model:
         data_or_times, settings = self._call_settings(data_or_times, options, ("time", "hold", "time_unit", "columns"))
         return simulate(self, params, data_or_times, n_paths=n_paths, method=method, seed=seed, **settings)
 
-
-def _zero_diffusion(n: int):
-    import jax.numpy as jnp
-
-    return lambda x, u, t, theta: jnp.zeros((n, 0))

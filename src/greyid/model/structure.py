@@ -61,6 +61,9 @@ class Structure:
     equations: dict = field(default_factory=dict)
     #: (x, u, t, θ) → the outputs' full noise covariance, where they are correlated (else None).
     observation_covariance: ModelFunction | None = None
+    #: The model's ``delay(u, tau)`` terms (:class:`~greyid.model.delays.DelayedInput`), each an
+    #: extra input of the functions above, after the data's inputs.
+    delays: tuple = ()
     #: Compiled filters and simulators for this structure, keyed by their settings.
     cache: dict = field(default_factory=dict, compare=False, repr=False)
 

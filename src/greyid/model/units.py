@@ -29,6 +29,7 @@ from typing import Mapping
 import sympy as sp
 
 from ..errors import ModelError
+from .delays import delay
 from .equations import TIME
 
 
@@ -155,6 +156,13 @@ class UnitAlgebra:
             return self.of(sp.Add(*[value for value, _ in expr.args], evaluate=False))
         if isinstance(expr, sp.Heaviside) or isinstance(expr, sp.sign):
             return self.ureg.Quantity(1.0, "dimensionless")
+        if isinstance(expr, delay):  # the input, a delay later: its unit, with a delay in time units
+            signal, tau = expr.args
+            q = self.of(tau)
+            if q is not ANY and not self.same(q, self.time):
+                raise UnitMismatch(f"the delay '{tau}' in '{expr}' has unit {_show(q)}; it must be in the time "
+                                   f"unit {_show(self.time)}{self._note(tau)}")
+            return self.of(signal)
         argument = expr.args[0] if isinstance(expr, sp.exp) else None
         if isinstance(argument, sp.Symbol) and argument.name in self.units and argument.name in self.parameters:
             # The log-parametrisation of CTSM (exp(p11) for a noise intensity): p holds the

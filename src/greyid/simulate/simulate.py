@@ -19,11 +19,12 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
-from ..data.prepare import check_times, prepare_series
+from ..data.prepare import Series, check_times, prepare_series
 from ..compiler import jit
 from ..errors import DataError, ModelError
 from ..filters.api import HOLDS, filter_inputs
 from ..filters.core import initial_state
+from ..filters.delays import Delays, check_delays, values_at
 from ..filters.discretize import discretize, time_varying_step
 from ..model.structure import LTI
 from .schemes import make_integrator
@@ -71,10 +72,32 @@ def _series(structure, data_or_times, time, time_unit):
     if structure.n_inputs:
         raise DataError(f"the model has inputs {list(structure.input_names)}; pass a DataFrame holding them")
     check_times(times, time)
-    from ..data.prepare import Series
-
     return Series(times, np.zeros((len(times), 0)), np.full((len(times), structure.n_outputs), np.nan),
                   pd.RangeIndex(len(times)), time)
+
+
+def delayed_grid(structure, theta, series, hold: str):
+    """``(grid, rows)``: the series refined at every delayed switching instant t_j + τ, its
+    inputs extended with the delayed ones, and the positions of the sampling times in it."""
+    if not structure.delays:
+        return series, np.arange(series.n_rows)
+    check_delays(structure, theta, series.times)
+    t = series.times
+    taus = np.array([float(d.tau(theta)) for d in structure.delays])
+    cuts = (t[:, None] + taus[None, :]).reshape(-1)
+    times = np.unique(np.concatenate([t, cuts[(cuts > t[0]) & (cuts < t[-1])]]))
+    # A held input's value on [T_i, T_i+1) is read at the interval's middle: at T_i itself a
+    # switching instant t_j + τ may round to either side of t_j.
+    at = times if hold == "foh" else np.concatenate([0.5 * (times[:-1] + times[1:]), times[-1:]])
+    own = series.inputs[np.clip(np.searchsorted(t, at, side="right") - 1, 0, len(t) - 1)]
+    if hold == "foh":
+        own = np.stack([np.interp(times, t, column) for column in series.inputs.T], axis=1)
+    delays = Delays(jnp.asarray(taus), jnp.asarray(series.inputs[:, [d.input for d in structure.delays]]),
+                    jnp.asarray(t), jnp.float64(HOLDS[hold]))
+    inputs = np.concatenate([own, np.asarray(values_at(delays, at))], axis=1)
+    grid = Series(times, inputs, np.full((len(times), structure.n_outputs), np.nan), pd.RangeIndex(len(times)),
+                  series.time_name)
+    return grid, np.searchsorted(times, t)
 
 
 def _fine_grid(series, substeps: int, hold: str):
@@ -119,20 +142,24 @@ def simulate(model, params, data_or_times, n_paths: int = 1, method: str = "eule
         raise ModelError(f"exact simulation needs a linear model, but this model is {structure.kind}")
     theta = jnp.asarray(model.parameter_vector(params))
     series = _series(structure, data_or_times, time, time_unit)
-    inputs = filter_inputs(series, hold)
+    # With delayed inputs the paths run on a grid refined at the delayed switching instants,
+    # so that every input is held (or ramped) over each of its intervals; ``rows`` picks the
+    # sampling times out of it.
+    grid, rows = delayed_grid(structure, theta, series, hold)
+    inputs = filter_inputs(grid, hold)
     start = _compiled(structure, ("simulate", "initial"),
                       lambda: jit(lambda theta, inputs: initial_state(structure, theta, inputs)))
     x0, P0 = start(theta, inputs)
     key = jax.random.PRNGKey(seed)
     k_init, k_path, k_obs = jax.random.split(key, 3)
-    N, n, m = series.n_rows, structure.n_states, len(structure.noise_names)
+    n, m = structure.n_states, len(structure.noise_names)
     scale = 1.0 if noise else 0.0
     init = x0 + scale * jax.random.normal(k_init, (n_paths, n)) @ _psd_sqrt(P0).T
 
     if method == "exact":
-        states = _exact_paths(structure, theta, series, HOLDS[hold], init, k_path, scale, substeps)
+        states = _exact_paths(structure, theta, grid, HOLDS[hold], init, k_path, scale, substeps)
     else:
-        fine_t, fine_u = _fine_grid(series, substeps, hold)
+        fine_t, fine_u = _fine_grid(grid, substeps, hold)
         # Without noise the paths solve the ODE dx = f dt: the Itô–Stratonovich and
         # Milstein corrections belong to the noise and must go with it.
         diffusion = structure.diffusion if noise else _no_diffusion(m)
@@ -143,8 +170,9 @@ def simulate(model, params, data_or_times, n_paths: int = 1, method: str = "eule
         dW = scale * jax.random.normal(k_path, (n_paths, len(dt), m)) * jnp.sqrt(jnp.asarray(dt))[None, :, None]
         fine = integrate(theta, init, jnp.asarray(fine_t), jnp.asarray(fine_u), dW)
         states = np.asarray(fine)[:, ::substeps, :]
+    states = states[:, rows, :]
 
-    u, t = jnp.asarray(series.inputs), jnp.asarray(series.times)
+    u, t = jnp.asarray(grid.inputs[rows]), jnp.asarray(series.times)
     observe = _compiled(structure, ("simulate", "observe"), lambda: jit(_make_observe(structure)))
     y_mean, S = observe(theta, jnp.asarray(states), u, t)
     if np.any(np.asarray(S) < 0):

@@ -1,0 +1,181 @@
+"""From a :class:`~greyid.model.Model`'s equations to its compiled :class:`Structure`.
+
+The equations are checked against each other (names declared once, noise only
+in system equations, the initial state free of states and inputs), algebraic
+definitions are substituted, each ``delay(u, tau)`` becomes an extra input of
+the model functions, parameters are ordered as they first appear, the model
+class (4.1.4) is found, and every part is lambdified into JAX.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import sympy as sp
+
+from ..errors import ModelError
+from .delays import find_delays
+from .equations import TIME, is_wiener_name
+from .structure import InitialCovariance, Structure, classify, lambdify_model, lambdify_parameters
+
+
+def build_structure(model) -> Structure:
+    """The structure of a model written as equations (model (4.1)–(4.2))."""
+    if not model._system:
+        raise ModelError("the model has no system equations; add them with add_system()")
+    if not model._observations:
+        raise ModelError("the model has no observation equation; add one with add_observation()")
+    states = [e.state for e in model._system]
+    inputs = list(model._inputs)
+    outputs = [o[0].lhs for o in model._observations]
+    clash = set(states) & set(inputs)
+    if clash:
+        raise ModelError(f"'{sorted(clash)[0]}' is declared both as a state and as an input")
+    for a in model._algebraics:
+        if a.lhs in states or a.lhs in inputs:
+            raise ModelError(f"algebraic equation '{a.text}' redefines the state or input '{a.lhs}'")
+    for o in outputs:
+        if o in states or o in inputs:
+            raise ModelError(f"observation name '{o}' is already a state or an input; give the output another name")
+
+    sub = model._substitute_algebraics
+    drift = [sub(e.drift) for e in model._system]
+    noise_names = sorted({w for e in model._system for w in e.diffusion})
+    diffusion = [[sub(e.diffusion.get(w, sp.Integer(0))) for w in noise_names] for e in model._system]
+    observation = [sub(o[0].rhs) for o in model._observations]
+    variance = [sub(o[1]) for o in model._observations]
+
+    correlation = observation_covariance_expressions(model, outputs, variance, states)
+    mean_exprs, cov = initial_state_expressions(model, states)
+    mean_exprs = [sub(e) for e in mean_exprs]
+    if isinstance(cov, list):
+        cov = [[sub(e) for e in row] for row in cov]
+
+    known = {sp.Symbol(n, real=True) for n in states + inputs} | {TIME}
+    everything = [*drift, *[g for row in diffusion for g in row], *observation, *variance, *mean_exprs,
+                  *([] if correlation is None else [e for row in correlation for e in row])]
+    if isinstance(cov, list):
+        everything += [e for row in cov for e in row]
+    for e, where in [(x, "initial state") for x in mean_exprs] + [(v, "observation variance") for v in variance]:
+        bad = [s.name for s in e.free_symbols if s.name in states or s.name in inputs or s == TIME]
+        if where == "initial state" and bad:
+            raise ModelError(f"the initial state cannot depend on '{bad[0]}'")
+    for e in everything:
+        wieners = [s.name for s in e.free_symbols if is_wiener_name(s.name)]
+        if wieners:
+            raise ModelError(f"'{wieners[0]}' appears outside a system equation's noise term")
+
+    # delay(u, tau) → a stand-in input; tau's parameters are the model's parameters too.
+    delays = find_delays(everything, inputs, states)
+    initial = [*mean_exprs, *([e for row in cov for e in row] if isinstance(cov, list) else [])]
+    outside = find_delays(initial, inputs, states)
+    if outside:
+        raise ModelError(f"'{outside[0][1].name}' may appear in system and observation equations, "
+                         "not in the initial state")
+    replace = {call: stand_in for call, _, stand_in in delays}
+    drift, observation, variance = ([e.xreplace(replace) for e in part] for part in (drift, observation, variance))
+    diffusion = [[g.xreplace(replace) for g in row] for row in diffusion]
+
+    ordered: list[str] = []
+    stand_ins = set(replace.values())
+    for e in [*everything, *[d.expression for _, d, _ in delays]]:
+        for s in sorted(e.free_symbols - known - stand_ins, key=lambda s: s.name):
+            if s.name not in ordered:
+                ordered.append(s.name)
+    unknown_declared = sorted(set(model._parameters) - set(ordered))
+    if unknown_declared:
+        raise ModelError(f"parameter '{unknown_declared[0]}' is declared but does not appear in the model")
+    state_syms = [sp.Symbol(n, real=True) for n in states]
+    input_syms = [sp.Symbol(n, real=True) for n in inputs] + [stand_in for _, _, stand_in in delays]
+    param_syms = [sp.Symbol(n, real=True) for n in ordered]
+    delayed = tuple(type(d)(d.name, d.input, d.expression, lambdify_parameters([d.expression], param_syms, ()))
+                    for _, d, _ in delays)
+
+    f_mat, g_mat = sp.Matrix(drift), sp.Matrix(diffusion) if noise_names else sp.zeros(len(states), 0)
+    h_mat, s_mat = sp.Matrix(observation), sp.Matrix(variance)
+    kind = classify(f_mat, g_mat, h_mat, s_mat, state_syms, input_syms)
+    n, m, s = len(states), len(noise_names), len(outputs)
+    args = (state_syms, input_syms, param_syms)
+    flat_g = [g for row in diffusion for g in row]
+    if isinstance(cov, list):
+        cov_fn = lambdify_parameters([e for row in cov for e in row], param_syms, (n, n))
+        initial_cov = InitialCovariance("matrix", matrix=cov_fn)
+    else:
+        initial_cov = InitialCovariance(cov, scale=model._initial_scale)
+    return Structure(
+        state_names=tuple(states),
+        input_names=tuple(inputs),
+        output_names=tuple(outputs),
+        parameter_names=tuple(ordered),
+        noise_names=tuple(noise_names),
+        kind=kind,
+        drift=lambdify_model(drift, *args, (n,)),
+        diffusion=lambdify_model(flat_g, *args, (n, m)) if m else zero_diffusion(n),
+        observation=lambdify_model(observation, *args, (s,)),
+        observation_variance=lambdify_model(variance, *args, (s,)),
+        initial_mean=lambdify_parameters(mean_exprs, param_syms, (n,)),
+        initial_covariance=initial_cov,
+        equations=dict(drift=f_mat, diffusion=g_mat, observation=h_mat, variance=s_mat),
+        observation_covariance=None if correlation is None else lambdify_model(
+            [e.xreplace(replace) for row in correlation for e in row], *args, (s, s)),
+        delays=delayed,
+    )
+
+
+def zero_diffusion(n: int):
+    import jax.numpy as jnp
+
+    return lambda x, u, t, theta: jnp.zeros((n, 0))
+
+
+def observation_covariance_expressions(model, outputs, variance, states):
+    """The checked full observation covariance (SymPy rows), or None for independent outputs."""
+    if model._observation_covariance is None:
+        return None
+    rows = model._observation_covariance
+    s = len(outputs)
+    if len(rows) != s or any(len(r) != s for r in rows):
+        raise ModelError(f"the observation covariance must be {s}x{s} (outputs {outputs})")
+    exprs = [[model._substitute_algebraics(model._expression(v, f"observation covariance of '{outputs[i]}' and "
+                                                                f"'{outputs[j]}'")) for j, v in enumerate(r)]
+             for i, r in enumerate(rows)]
+    for i in range(s):
+        if sp.simplify(exprs[i][i] - variance[i]) != 0:
+            raise ModelError(f"the observation covariance's diagonal entry for '{outputs[i]}' is {exprs[i][i]}, "
+                             f"but its variance is {variance[i]}; they must agree")
+        for j in range(i + 1, s):
+            if sp.simplify(exprs[i][j] - exprs[j][i]) != 0:
+                raise ModelError(f"the observation covariance is not symmetric for '{outputs[i]}' and "
+                                 f"'{outputs[j]}'")
+    used = {sym.name for row in exprs for e in row for sym in e.free_symbols}
+    if used & set(states):
+        raise ModelError(f"the observation covariance cannot depend on the state '{sorted(used & set(states))[0]}'")
+    return exprs
+
+
+def initial_state_expressions(model, states: list[str]):
+    """The initial mean (SymPy, per state) and the covariance: SymPy rows or its kind's name."""
+    if model._initial_mean is None:
+        raise ModelError("the model has no initial state; set it with set_initial_state(mean={...})")
+    unknown = [k for k in model._initial_mean if k not in states]
+    if unknown:
+        raise ModelError(f"initial state given for '{unknown[0]}', which is not a state (states: {states})")
+    missing = [x for x in states if x not in model._initial_mean]
+    if missing:
+        raise ModelError(f"initial state mean missing for state '{missing[0]}'")
+    mean = [model._expression(model._initial_mean[x], f"initial state of '{x}'") for x in states]
+    cov = model._initial_covariance
+    if isinstance(cov, str):
+        return mean, cov
+    n = len(states)
+    try:
+        arr = np.asarray(cov, dtype=object)
+    except Exception:  # ragged lists
+        raise ModelError(f"initial covariance must be an {n}x{n} matrix") from None
+    if arr.ndim == 1 and arr.shape == (n,):
+        arr = np.diag(arr).astype(object)
+        arr[arr == 0] = 0.0
+    if arr.shape != (n, n):
+        raise ModelError(f"initial covariance has shape {arr.shape}, but the model has {n} states: it must be {n}x{n}")
+    rows = [[model._expression(arr[i, j], f"initial covariance entry ({states[i]}, {states[j]})") for j in range(n)]
+            for i in range(n)]
+    return mean, rows

@@ -1,0 +1,178 @@
+"""Delayed inputs, ``delay(u, tau)`` (chapter 8): exact against shifted columns and fine-step solutions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+import greyid
+from greyid.errors import DataError, ModelError
+
+
+def first_order(drift_input: str, name: str = "delayed") -> greyid.Model:
+    m = greyid.Model(name)
+    m.add_system(f"dx = (-x/T + {drift_input})*dt + exp(ls)*dw1")
+    m.add_inputs("u")
+    m.add_observation("y = x", variance="exp(le)")
+    m.set_initial_state(mean={"x": 0.0}, covariance=[[1e-12]])
+    return m
+
+
+@pytest.fixture(scope="module")
+def two_delays():
+    return first_order("k*delay(u, tau) + c*delay(u, tau2)", "two_delays")
+
+
+def exact_reference(t, u, T, gains, taus, hold):
+    """x' = −x/T + Σ g·u(t − τ), x(0) = 0, solved exactly on a grid holding every switching instant.
+
+    Between consecutive instants of the grid (the sampling times, the delayed
+    sampling times and 2000 points in between) the delayed inputs are constant
+    (zoh) or linear (foh), so each step has a closed form.
+    """
+    cuts = np.concatenate([t] + [t + tau for tau in taus])
+    grid = np.unique(np.concatenate([cuts[cuts <= t[-1]], np.linspace(t[0], t[-1], 2001)]))
+
+    def signal(s):
+        if hold == "zoh":
+            return u[np.clip(np.searchsorted(t, s, side="right") - 1, 0, len(t) - 1)]
+        return np.interp(s, t, u)
+
+    x = np.zeros(len(grid))
+    for i in range(len(grid) - 1):
+        h = grid[i + 1] - grid[i]
+        a = np.exp(-h / T)
+        if hold == "zoh":
+            mid = 0.5 * (grid[i] + grid[i + 1])
+            b = sum(g * signal(mid - tau) for g, tau in zip(gains, taus))
+            x[i + 1] = a * x[i] + (1 - a) * T * b
+        else:  # b linear over the step: exact integral of e^{-(h-s)/T}(b0 + (b1-b0)s/h)
+            b0 = sum(g * signal(grid[i] - tau) for g, tau in zip(gains, taus))
+            b1 = sum(g * signal(grid[i + 1] - tau) for g, tau in zip(gains, taus))
+            ramp = T * h - T * T * (1 - a)
+            x[i + 1] = a * x[i] + (1 - a) * T * b0 + (b1 - b0) / h * ramp
+    return x[np.searchsorted(grid, t)]
+
+
+def test_whole_sample_delay_equals_the_shifted_column():
+    rng = np.random.default_rng(0)
+    n = 120
+    t = np.arange(n) * 0.5
+    u = np.repeat(rng.normal(size=n // 4), 4)
+    y = np.sin(t / 3) + 0.1 * rng.normal(size=n)
+    delayed, plain = first_order("k*delay(u, tau)"), first_order("k*u", "plain")
+    p = dict(T=2.0, k=1.5, ls=-1.0, le=-2.0)
+    data = pd.DataFrame({"t": t, "u": u, "y": y})
+    shifted = data.assign(u=np.concatenate([np.full(3, u[0]), u[:-3]]))  # the first value before the start
+    for hold in ("zoh", "foh"):
+        for method in ("kalman", "ekf", "ukf"):
+            assert delayed.loglik({**p, "tau": 1.5}, data, hold=hold, method=method) == pytest.approx(
+                plain.loglik(p, shifted, hold=hold, method=method), abs=1e-8), (hold, method)
+
+
+@pytest.mark.parametrize("hold", ["zoh", "foh"])
+def test_fractional_delays_on_irregular_times_match_the_exact_solution(two_delays, hold):
+    rng = np.random.default_rng(1)
+    n = 50
+    t = np.cumsum(np.r_[0.0, rng.uniform(0.3, 1.7, n - 1)])  # irregular sampling: several cuts per interval
+    u = rng.normal(size=n)
+    p = dict(T=2.0, k=1.0, c=0.5, tau=2.37, tau2=0.81, ls=-20.0, le=0.0)
+    reference = exact_reference(t, u, 2.0, (1.0, 0.5), (2.37, 0.81), hold)
+    data = pd.DataFrame({"t": t, "u": u, "y": np.zeros(n)})
+    for method in ("kalman", "ekf"):
+        predicted = two_delays.predict(p, data, steps=1, hold=hold, method=method)["y"].to_numpy()
+        np.testing.assert_allclose(predicted, reference, atol=1e-9, err_msg=method)
+    simulated = two_delays.simulate(p, data, method="exact", noise=False, hold=hold)
+    np.testing.assert_allclose(simulated.states[0, :, 0], reference, atol=1e-9)
+    regular = pd.DataFrame({"t": np.arange(n) * 0.7, "u": u, "y": np.zeros(n)})
+    reference = exact_reference(regular["t"].to_numpy(), u, 2.0, (1.0, 0.5), (2.37, 0.81), hold)
+    predicted = two_delays.predict(p, regular, steps=1, hold=hold)["y"].to_numpy()
+    np.testing.assert_allclose(predicted, reference, atol=1e-9)
+
+
+def test_the_gradient_in_the_delay_matches_differences(two_delays):
+    import jax
+    import jax.numpy as jnp
+    from greyid.data import prepare_series
+    from greyid.filters.api import compiled_filter, filter_inputs, filter_options
+
+    rng = np.random.default_rng(2)
+    n = 80
+    s = two_delays.structure
+    p = dict(T=2.0, k=1.0, c=0.5, tau=2.37, tau2=0.81, ls=-1.0, le=-2.0)
+    theta = jnp.asarray(two_delays.parameter_vector(p))
+    for times in (np.arange(n) * 0.6, np.cumsum(np.r_[0.0, rng.uniform(0.3, 1.1, n - 1)])):
+        data = pd.DataFrame({"t": times, "u": np.repeat(rng.normal(size=n // 4), 4), "y": rng.normal(size=n)})
+        for hold in ("zoh", "foh"):
+            inputs = filter_inputs(prepare_series(data, s.input_names, s.output_names), hold)
+            for method in ("kalman", "ekf"):
+                run = compiled_filter(s, filter_options(s, method), keep_outputs=False)
+                f = lambda th: run(th, inputs)[0].loglik.sum()  # noqa: E731
+                g = np.asarray(jax.grad(f)(theta))
+                for name in ("tau", "tau2"):
+                    i = s.parameter_names.index(name)
+                    eps = 1e-6
+                    fd = (f(theta.at[i].add(eps)) - f(theta.at[i].add(-eps))) / (2 * eps)
+                    assert g[i] == pytest.approx(float(fd), rel=1e-5, abs=1e-6), (hold, method, name)
+
+
+def test_a_delay_is_estimated_with_its_standard_error():
+    rng = np.random.default_rng(3)
+    n = 400
+    m = first_order("k*delay(u, tau)")
+    m.set_initial_state(mean={"x": 0.0}, covariance=[[0.01]])
+    truth = dict(T=2.0, k=1.0, tau=2.37, ls=-2.0, le=-4.0)
+    data = pd.DataFrame({"t": np.arange(n) * 1.0, "u": np.repeat(rng.choice([-1.0, 1.0], n // 5), 5)})
+    data["y"] = m.simulate(truth, data, method="exact", seed=3).outputs[0, :, 0]
+    for name, (init, lower, upper) in dict(T=(1.0, 0.1, 10), k=(0.5, 0, 5), tau=(1.5, 0, 5), ls=(-1, -10, 2),
+                                           le=(-1, -10, 2)).items():
+        m.set_parameter(name, init=init, lower=lower, upper=upper)
+    fit = m.fit(data)
+    assert fit.converged
+    est, se = fit.params.loc["tau", ["estimate", "std_error"]]
+    assert abs(est - 2.37) < 3 * se and se < 0.1
+    assert fit.loglik >= m.loglik(truth, data) - 1e-6
+
+
+def test_delay_errors_name_the_problem():
+    with pytest.raises(ModelError, match="negative"):
+        first_order("k*delay(u, -1)").structure
+    with pytest.raises(ModelError, match="must be an input"):
+        first_order("k*delay(x, 1)").structure
+    with pytest.raises(ModelError, match="parameters only"):
+        first_order("k*delay(u, x)").structure
+    m = first_order("k*delay(u, tau)")
+    data = pd.DataFrame({"t": np.arange(10.0), "u": np.ones(10), "y": np.zeros(10)})
+    p = dict(T=1.0, k=1.0, ls=0.0, le=0.0)
+    with pytest.raises(DataError, match="longer than the series"):
+        m.loglik({**p, "tau": 20.0}, data)
+    with pytest.raises(ModelError, match="must be ≥ 0"):
+        m.loglik({**p, "tau": -0.5}, data)
+    with pytest.raises(DataError, match="longer than the series"):
+        m.simulate({**p, "tau": 20.0}, data)
+    bad = greyid.Model("initial")
+    bad.add_system("dx = (-x + delay(u, 1))*dt + dw1")
+    bad.add_inputs("u")
+    bad.add_observation("y = x", variance=1.0)
+    bad.set_initial_state(mean={"x": "delay(u, 1)"})
+    with pytest.raises(ModelError):
+        bad.structure
+
+
+def test_delays_in_model_files_and_units(tmp_path):
+    m = first_order("k*delay(u, tau)")
+    m.set_units({"t": "s", "x": "K", "u": "W", "T": "s", "k": "K/J", "tau": "s", "ls": "K/s^0.5",
+                 "le": "K^2", "y": "K"})
+    assert any("delay(u, tau)" in line and "✓" in line for line in m.check_units())
+    path = tmp_path / "delayed.toml"
+    m.to_toml(path)
+    again = greyid.Model.from_toml(path)
+    assert again.structure.delays[0].name == "delay(u, tau)"
+    p = dict(T=2.0, k=1.0, tau=0.7, ls=-1.0, le=-1.0)
+    data = pd.DataFrame({"t": np.arange(20.0), "u": np.sin(np.arange(20.0)), "y": np.cos(np.arange(20.0))})
+    assert again.loglik(p, data) == pytest.approx(m.loglik(p, data), abs=1e-10)
+    m.set_units({"t": "h", "x": "K", "u": "W", "T": "h", "k": "K/(W*h)", "tau": "s", "ls": "K/h^0.5",
+                 "le": "K^2", "y": "K"})
+    with pytest.raises(ModelError, match="time unit"):
+        m.check_units()
