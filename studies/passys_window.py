@@ -1,6 +1,7 @@
 """Case 1 of the thesis (section 7.4): a PASSYS test cell with a window component, calibration then test.
 
-    python studies/passys_window.py [--days 30] [--seed 0]
+    python studies/passys_window.py [--days 30] [--seed 0] [--figure cpgram.png]
+    python studies/passys_window.py --data DIR     # your calibration.csv and test.csv
 
 The original measurements are not public: both experiments are simulated
 here from a network model in the spirit of figure 7.13 (the thesis gives its
@@ -40,7 +41,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
 import greyid  # noqa: E402
 from greyid.data.solar import solar_inputs  # noqa: E402
-from greyid.model.physics import glazing_transmittance  # noqa: E402
+from greyid.validation.spectral import cumulative_periodogram, cumulative_periodogram_test  # noqa: E402
 
 #: The simulation's parameters (W/K, Wh/K, W/m²-scaled apertures in m², noise).
 TRUE = dict(H_av=18.0, H_ve=9.0, C_a=120.0, C_v=2200.0, H_ap=6.0, H_ps=4.0, C_p=300.0,
@@ -161,19 +162,36 @@ def experiments(days: int = 30, seed: int = 0):
     return calibration, test
 
 
-def characteristics(fit, nonlinear: bool) -> dict:
-    v = fit.values
-    series = lambda a, b: a * b / (a + b)  # noqa: E731
-    out = {"UA_tr,e [W/K]": series(v["H_av"], v["H_ve"]), "UA_tr,sr [W/K]": series(v["H_ap"], v["H_ps"]),
-           "UA_psc [W/K]": 1 / (1 / v["H_psc1"] + 1 / v["H_s"] + 1 / v["H_c"])}
-    if nonlinear:
-        # 25 % diffuse, the beam at 45° (the thesis' convention for gA)
-        out["gA_psc [m2]"] = 0.25 * v["A_dif"] + 0.75 * v["A_dir"] * float(glazing_transmittance(np.pi / 4, v["alpha"]))
-        out["alpha_eff"] = v["alpha"]
-    else:
-        out["gA_psc [m2]"] = v["A_tot"]
-        out["alpha_eff"] = np.nan
-    return out
+#: Table 7.6's physical characteristics as functions of the parameters (W/K, Wh/K, m²): steady-state
+#: transmissions of the series paths, and the heat stored in each path when T_a rises 1 K.
+SERIES = "1/(1/{a} + 1/{b})"
+CHARACTERISTICS = {
+    "UA_tr,e [W/K]": SERIES.format(a="H_av", b="H_ve"),
+    "CI_tr,e [Wh/K]": "C_a + C_v*H_av/(H_av + H_ve)",
+    "UA_tr,sr [W/K]": SERIES.format(a="H_ap", b="H_ps"),
+    "CI_tr,sr [Wh/K]": "C_p*H_ap/(H_ap + H_ps)",
+    "UA_psc [W/K]": "1/(1/H_psc1 + 1/H_s + 1/H_c)",
+    "CI_psc [Wh/K]": "(C_s*(1/H_s + 1/H_c) + C_c/H_c)/(1/H_psc1 + 1/H_s + 1/H_c)",
+}
+#: gA for 25 % diffuse radiation and the beam at 45° (the thesis' convention).
+SOLAR = {"non-linear": {"gA_psc [m2]": "0.25*A_dif + 0.75*A_dir*glazing_transmittance(pi/4, alpha)",
+                        "alpha_eff": "alpha"},
+         "linear": {"gA_psc [m2]": "A_tot"}}
+
+
+def characteristics(fit, label: str) -> pd.DataFrame:
+    """Table 7.6's characteristics with delta-method standard errors (``fit.derived``)."""
+    return fit.derived({**CHARACTERISTICS, **SOLAR[label]})[["estimate", "std_error"]]
+
+
+def true_characteristics() -> dict:
+    import sympy as sp
+
+    from greyid.model.equations import parse_expression
+
+    values = {sp.Symbol(name, real=True): value for name, value in TRUE.items()}
+    return {name: float(parse_expression(text).subs(values).evalf())
+            for name, text in {**CHARACTERISTICS, **SOLAR["non-linear"]}.items()}
 
 
 def situations(calibration, test):
@@ -198,36 +216,72 @@ def situations(calibration, test):
     return cal_fit, fits
 
 
-class _Values:
-    def __init__(self, values):
-        self.values = values
-
-
-def table(fits) -> pd.DataFrame:
-    """Table 7.6's rows for the four situations, beside the simulation's truth."""
+def table(fits, cal_fit) -> pd.DataFrame:
+    """Table 7.6 for the four situations, value (standard error), beside the simulation's truth; the
+    mean and variance of the one-step prediction errors of T_s, log L, and the cumulative periodogram
+    test of both outputs' residuals (figure 7.16).  Where fixed/ML fixes the envelope its
+    characteristics and their standard errors are the calibration's."""
+    envelope = cal_fit.derived({k: v for k, v in CHARACTERISTICS.items() if "_tr," in k})[["estimate", "std_error"]]
     rows = {}
     for (label, how), fit in fits.items():
-        residuals = fit.residuals["yTs"].to_numpy()
-        rows[f"{label} {how}"] = dict(characteristics(fit, label == "non-linear"),
-                                      **{"mean std. residual (Ts)": float(np.nanmean(residuals)),
-                                         "log L": fit.loglik, "converged": fit.converged})
-    rows["truth"] = characteristics(_Values(dict(TRUE)), True)
-    return pd.DataFrame(rows)
+        values = characteristics(fit, label)
+        if how == "fixed/ML":
+            values.loc[envelope.index] = envelope
+        column = {name: f"{v:.4g} ({se:.2g})" for name, (v, se) in values.iterrows()}
+        errors = fit.filter().innovations["yTs"]
+        column.update({"mean p.e. (Ts)": f"{errors.mean():.4f}", "var p.e. (Ts)": f"{errors.var():.4f}",
+                       "log L": f"{fit.loglik:.1f}", "converged": str(fit.converged)})
+        for output in ("yTa", "yTs"):
+            test = cumulative_periodogram_test(fit.residuals[output])
+            column[f"cum. periodogram p ({output[1:]})"] = f"{test.p_value:.2g}"
+        rows[f"{label} {how}"] = column
+    rows["truth"] = {name: f"{value:.4g}" for name, value in true_characteristics().items()}
+    frame = pd.DataFrame(rows).fillna("")
+    first = [*CHARACTERISTICS, *SOLAR["non-linear"]]
+    return frame.loc[first + [name for name in frame.index if name not in first]]
+
+
+def plot_periodograms(fit, path: str) -> None:
+    """Figure 7.16: the cumulative periodograms of both outputs' residuals with 95 % and 99 % bands."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 4))
+    for output in ("yTa", "yTs"):
+        cp = cumulative_periodogram(fit.residuals[output], dt=1.0)
+        ax.plot(cp.index, cp["cumulative"], label=output[1:])
+    for band, style in (("band_95%", "--"), ("band_99%", ":")):
+        for sign in (-1, 1):
+            ax.plot(cp.index, cp["white"] + sign * cp[band], "k" + style, lw=0.8)
+    ax.set(xlabel="frequency [1/h]", ylabel="cumulative periodogram", title="residuals, non-linear MAP/ML")
+    ax.legend(loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
 
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--days", type=int, default=30)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--data", type=Path, default=None,
+                        help="a directory with your calibration.csv and test.csv (the models' columns, t in hours)")
+    parser.add_argument("--figure", default=None, help="write figure 7.16 (non-linear MAP/ML) to this file")
     args = parser.parse_args(argv)
     started = time.perf_counter()
-    calibration, test = experiments(args.days, args.seed)
+    if args.data is None:
+        calibration, test = experiments(args.days, args.seed)
+    else:
+        calibration, test = (pd.read_csv(args.data / f"{name}.csv") for name in ("calibration", "test"))
     cal_fit, fits = situations(calibration, test)
     print(f"calibration fit: log L {cal_fit.loglik:.2f}; partition H_ap = {cal_fit.values['H_ap']:.3g} "
           f"± {cal_fit.bse['H_ap']:.2g}, H_ps = {cal_fit.values['H_ps']:.3g} ± {cal_fit.bse['H_ps']:.2g} "
           f"(truth {TRUE['H_ap']}, {TRUE['H_ps']}; '± nan': at a bound, no prior for it)")
     pd.set_option("display.width", 160)
-    print(table(fits).to_string(float_format=lambda v: f"{v:.4g}"))
+    print(table(fits, cal_fit).to_string())
+    if args.figure:
+        plot_periodograms(fits[("non-linear", "MAP/ML")], args.figure)
     print(f"({time.perf_counter() - started:.0f} s)")
 
 

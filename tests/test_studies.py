@@ -113,6 +113,11 @@ def test_passys_window_case_reduced():
     known = [n for n in passys_window.ENVELOPE if np.isfinite(fit.bse[n])]
     prior = fit.to_prior(names=known)
     assert list(prior["mean"]) == known and "C_a" in known  # the air capacity is always determined
+    truth = passys_window.true_characteristics()
+    assert truth["UA_tr,e [W/K]"] == pytest.approx(18 * 9 / 27) and truth["alpha_eff"] == 2.0
+    ua = fit.derived({"UA": passys_window.CHARACTERISTICS["UA_tr,e [W/K]"]}).loc["UA"]
+    assert ua["estimate"] == pytest.approx(1 / (1 / fit.values["H_av"] + 1 / fit.values["H_ve"]))
+    assert np.isfinite(ua["std_error"]) and ua["std_error"] > 0
 
 
 def test_fuel_film_case_reduced():
