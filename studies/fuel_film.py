@@ -142,7 +142,7 @@ def plot_periodogram(fleet, name: str, path: str) -> None:
     ax.plot(cp.index, cp["cumulative"], label="residuals")
     ax.plot(cp.index, cp["white"], "k-", lw=0.8, label="white noise")
     for sign in (-1, 1):
-        ax.plot(cp.index, cp["white"] + sign * cp["band_95%"], "k--", lw=0.8)
+        ax.plot(cp.index, cp["white"] + sign * cp["band_95%"], "k--", lw=0.8, label="95 % band" if sign > 0 else None)
     ax.set(xlabel="frequency [Hz]", ylabel="cumulative periodogram", title=f"{name}: residuals of φ")
     ax.legend(loc="lower right")
     fig.tight_layout()

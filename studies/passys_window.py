@@ -108,7 +108,10 @@ def _parameters(m, physical, noise, states):
         value = TRUE.get(name, 0.6)
         m.set_parameter(name, init=value * 1.2, lower=value / 20, upper=value * 20)
     for name in noise:
-        m.set_parameter(name, init=np.log(0.05), lower=-20.0, upper=5.0)
+        # Below e^-10 a process noise intensity (K/√h) or a measurement variance (K²) is nil on
+        # this problem's scale: the likelihood is flat beyond, and a fit drifting there would end
+        # in that flat stretch rather than at the bound that says "no noise here".
+        m.set_parameter(name, init=np.log(0.05), lower=-10.0, upper=5.0)
     for name in states:
         m.set_parameter(name, init=20.0, lower=-20.0, upper=60.0)
 
@@ -254,7 +257,8 @@ def plot_periodograms(fit, path: str) -> None:
         ax.plot(cp.index, cp["cumulative"], label=output[1:])
     for band, style in (("band_95%", "--"), ("band_99%", ":")):
         for sign in (-1, 1):
-            ax.plot(cp.index, cp["white"] + sign * cp[band], "k" + style, lw=0.8)
+            ax.plot(cp.index, cp["white"] + sign * cp[band], "k" + style, lw=0.8,
+                    label=f"{band[5:]} band" if sign > 0 else None)
     ax.set(xlabel="frequency [1/h]", ylabel="cumulative periodogram", title="residuals, non-linear MAP/ML")
     ax.legend(loc="lower right")
     fig.tight_layout()

@@ -164,6 +164,10 @@ class Model:
             matrix = matrix.tolist()
         if not (isinstance(matrix, (list, tuple)) and matrix and all(isinstance(r, (list, tuple)) for r in matrix)):
             raise ModelError("the observation covariance must be a square matrix (a list of rows)")
+        outputs = [o[0].lhs for o in self._observations]
+        if outputs and (len(matrix) != len(outputs) or any(len(r) != len(outputs) for r in matrix)):
+            raise ModelError(f"the observation covariance must be {len(outputs)}x{len(outputs)} "
+                             f"(outputs {outputs}), got {len(matrix)} rows of lengths {[len(r) for r in matrix]}")
         self._observation_covariance = [list(r) for r in matrix]
         self._changed()
         return self
@@ -270,11 +274,27 @@ class Model:
             )
         if not isinstance(scale, (int, float)) or not scale > 0:
             raise ModelError(f"initial covariance scale must be a positive number, got {scale!r}")
+        states = self._declared_states()
+        if states:  # the states are known: a wrong name or shape is an error here, not at the first fit
+            unknown = [k for k in mean if k not in states]
+            if unknown:
+                raise ModelError(f"initial state given for '{unknown[0]}', which is not a state (states: {states})")
+            if not isinstance(covariance, str):
+                shape = np.shape(np.asarray(covariance, dtype=object)) if _rectangular(covariance) else None
+                n = len(states)
+                if shape not in ((n,), (n, n)):
+                    raise ModelError(f"initial covariance has shape {shape if shape else 'ragged'}, but the model "
+                                     f"has {n} states {states}: it must be {n}x{n} (or a vector of {n} variances)")
         self._initial_mean = dict(mean)
         self._initial_covariance = covariance
         self._initial_scale = float(scale)
         self._changed()
         return self
+
+    def _declared_states(self) -> list[str]:
+        if self._functions is not None:
+            return list(self._functions["states"])
+        return [e.state for e in self._system]
 
     @classmethod
     def from_functions(
@@ -544,3 +564,12 @@ class Model:
         data_or_times, settings = self._call_settings(data_or_times, options, ("time", "hold", "time_unit", "columns"))
         return simulate(self, params, data_or_times, n_paths=n_paths, method=method, seed=seed, **settings)
 
+
+def _rectangular(value) -> bool:
+    """A vector, or a list of rows of equal length (NumPy would make a ragged one an array of lists)."""
+    if isinstance(value, np.ndarray):
+        return True
+    if not isinstance(value, (list, tuple)):
+        return False
+    rows = [r for r in value if isinstance(r, (list, tuple, np.ndarray))]
+    return not rows or (len(rows) == len(value) and len({len(r) for r in rows}) == 1)
