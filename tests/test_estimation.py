@@ -352,6 +352,18 @@ def test_bound_transforms_agree_in_numpy_and_jax():
         np.testing.assert_allclose(t.to_theta(z, np), np.asarray(t.to_theta(jnp.asarray(z))), rtol=1e-15)
 
 
+def test_a_doubly_bounded_parameter_run_off_to_its_bound_is_at_the_bound():
+    """An estimate 1e-23 of its span above the lower bound (fuel film s50g3's delay, truth 0) is at the
+    bound, whatever rounding noise says of g and h there; 1e-9 of the span is still judged by them."""
+    from greyid.estimate.transforms import Transform
+
+    t = Transform.from_bounds([0.0, 0.0, 0.0], [1.0, 1.0, 1.0])
+    z = t.to_z(np.array([0.5, 0.5, 1e-9]))
+    z[1] = np.log(4.5e-23)  # beyond to_z's own clip at 1e-12 of the span
+    g, h = np.array([0.0, 1e-25, 0.0]), np.array([1.0, 1e-24, 1.0])  # the noise is interior-looking
+    assert list(t.at_bound(z, g, h)) == [False, True, False]
+
+
 def test_model_functions_with_unused_parameters_and_inputs():
     """Model functions take out only the elements they use; values and derivatives still match."""
     m = greyid.Model("sparse")

@@ -14,6 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 
 NONE, LOWER, UPPER, BOTH = 0, 1, 2, 3
+#: |z| of a doubly bounded parameter within 1e-12 of its span from a bound (to_z's clip).
+EDGE_Z = float(np.log((1 - 1e-12) / 1e-12))
 
 
 @dataclass(frozen=True)
@@ -72,7 +74,8 @@ class Transform:
         zero at an interior optimum however close to the bound it lies or however
         wide the bounds are.  A parameter is at a bound when that step points to the
         nearer bound and is longer than ``step``, or when θ equals the bound to 12
-        digits (there g and h are rounding noise) or e^z has underflowed.
+        digits (there g and h are rounding noise), within 1e-12 of the span of a
+        bound between two (where ``to_z`` clips), or e^z has underflowed.
         (A test on |θ − bound| relative to the bounds' scale flagged every estimate
         inside CTSM-style bounds such as [1e-6, 1e6], and a variance of 4e-6 above 0.)
         """
@@ -89,4 +92,7 @@ class Transform:
         nearest = np.where(((self.kind == BOTH) & (z > 0)) | (self.kind == UPPER), self.upper, self.lower)
         equal = np.abs(theta - nearest) <= 1e-12 * np.maximum(np.abs(theta), np.abs(nearest)) + 1e-300
         underflow = ~(np.abs(self.derivative(z)) > 0)
-        return bounded & (pushed | equal | underflow)
+        # Between two bounds, within 1e-12 of the span of one is as near as to_z places a value: the
+        # optimiser's z has run off towards the bound, and its g and h there are rounding noise.
+        edge = (self.kind == BOTH) & (np.abs(z) >= EDGE_Z)
+        return bounded & (pushed | equal | underflow | edge)
