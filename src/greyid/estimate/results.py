@@ -15,9 +15,6 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Mapping
 
-from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
-import jax
-import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 from scipy import special
@@ -25,7 +22,6 @@ from scipy import special
 from ..errors import ModelError
 from ..schema import FIT_FORMAT, check_fit_document
 from ..model.equations import parse_expression
-from ..model.structure import lambdify_parameters
 
 
 class FitWarning(UserWarning):
@@ -259,22 +255,29 @@ class FitResult:
         """
         if expressions is None:
             expressions = self.model.derived
+        import sympy as sp
+
         names = list(self.params.index)
-        syms = [parse_expression(n, "parameter") for n in names]
         free = ~self.params["fixed"].to_numpy()
-        theta = jnp.asarray(self.params["estimate"].to_numpy(dtype=np.float64))
+        theta = self.params["estimate"].to_numpy(dtype=np.float64)
         cov = self.cov.to_numpy()
         rows = {}
         for label, text in expressions.items():
             expr = parameter_expression(text, names, f"derived quantity '{label}'")
-            fn = lambdify_parameters([expr], syms, (1,))
-            value, grad = jax.value_and_grad(lambda th: fn(th)[0])(theta)
-            g = np.asarray(grad)[free]
+            # The value and exact gradient from SymPy, evaluated by NumPy: JAX would compile each
+            # operation on its first use (0.4 s for a model's few quantities).
+            symbols = [parse_expression(n, "parameter") for n in names]
+            used = [i for i, sym in enumerate(symbols) if sym in expr.free_symbols]
+            fn = sp.lambdify([symbols[i] for i in used], [expr] + [sp.diff(expr, symbols[i]) for i in used], "numpy")
+            out = [float(v) for v in fn(*theta[used])]
+            grad = np.zeros(len(names))
+            grad[used] = out[1:]
+            g = grad[free]
             # Parameters the quantity does not depend on do not enter its variance, even
             # when their own variance is unknown (NaN, e.g. at a bound).
-            used = g != 0
-            variance = g[used] @ cov[np.ix_(used, used)] @ g[used]
-            rows[label] = {"estimate": float(value), "std_error": float(np.sqrt(max(variance, 0.0)))}
+            nonzero = g != 0
+            variance = g[nonzero] @ cov[np.ix_(nonzero, nonzero)] @ g[nonzero]
+            rows[label] = {"estimate": out[0], "std_error": float(np.sqrt(max(variance, 0.0)))}
         table = pd.DataFrame.from_dict(rows, orient="index", columns=["estimate", "std_error"])
         units = getattr(self.model, "units", {})
         if units:

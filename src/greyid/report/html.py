@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import html
-import warnings
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -146,22 +146,29 @@ def _estimation_section(fit) -> str:
     return _section("estimation", "Estimation", "\n".join(body))
 
 
-def _parameters_section(fit, profile: bool = True) -> str:
+def _profile_intervals(fit):
+    """``(intervals or None, notes)``; run in a thread beside the rest of the report."""
+    from ..uncertainty.profile import profile_intervals
+
+    notes: list[str] = []
+    try:
+        return profile_intervals(fit, 0.95, notes=notes), notes
+    except ModelError as error:  # e.g. a fit that cannot be re-optimised: said, not hidden
+        return None, [f"profile intervals not available: {error}"]
+
+
+def _parameters_section(fit, profile=None) -> str:
+    """The parameter table; ``profile`` is the result of :func:`_profile_intervals` (or None)."""
     columns = ["estimate", "std_error", "t_value", "p_value", "lower_bound", "upper_bound"]
     columns += ["unit"] if "unit" in fit.params else []
     table = fit.params[columns].copy()
     wald = fit.conf_int(0.95)
     table["wald_lower"], table["wald_upper"] = wald["lower"], wald["upper"]
     notes = []
-    if profile:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            try:
-                likelihood_ratio = fit.conf_int(0.95, method="profile")
-                table["profile_lower"], table["profile_upper"] = likelihood_ratio["lower"], likelihood_ratio["upper"]
-            except ModelError as error:  # e.g. a fit that cannot be re-optimised: said, not hidden
-                notes.append(f"profile intervals not available: {error}")
-        notes += [str(w.message) for w in caught if "profile" in str(w.message)]
+    if profile is not None:
+        likelihood_ratio, notes = profile
+        if likelihood_ratio is not None:
+            table["profile_lower"], table["profile_upper"] = likelihood_ratio["lower"], likelihood_ratio["upper"]
     table["note"] = ["fixed" if r["fixed"] else ("at bound" if r["at_bound"] else
                                                  ("unreliable" if not r["reliable"] else ""))
                      for _, r in fit.params.iterrows()]
@@ -240,14 +247,18 @@ def html_report(fit, level: float = 0.05, steps: int = 4, n_paths: int = 100, se
         raise ModelError("this fit carries no data (it was loaded from a file); attach it with fit.with_data(data)")
     from .. import __version__
 
-    validation = fit.validate(level=level)
-    title = title or f"greyid report: {fit.model.name}"
-    stamp = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
-    sections = [_model_section(fit), _data_section(fit, fit.data), _estimation_section(fit),
-                _parameters_section(fit, profile), _section("correlation", "Correlation of the estimates",
-                                                   _correlation_table(fit.corr)),
-                _derived_section(fit), _identifiability_section(fit),
-                *_validation_sections(fit, validation, steps, n_paths, seed)]
+    # The profile intervals are refits, mostly compiled code that leaves the interpreter free:
+    # they run in a thread of their own while the figures are drawn.
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        intervals = pool.submit(_profile_intervals, fit) if profile else None
+        validation = fit.validate(level=level)
+        title = title or f"greyid report: {fit.model.name}"
+        stamp = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
+        later = [_section("correlation", "Correlation of the estimates", _correlation_table(fit.corr)),
+                 _derived_section(fit), _identifiability_section(fit),
+                 *_validation_sections(fit, validation, steps, n_paths, seed)]
+        sections = [_model_section(fit), _data_section(fit, fit.data), _estimation_section(fit),
+                    _parameters_section(fit, None if intervals is None else intervals.result()), *later]
     nav = "".join(f'<a href="#{sid}">{sid}</a>' for sid in SECTIONS)
     return (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
             f'<meta name="viewport" content="width=device-width, initial-scale=1">'
