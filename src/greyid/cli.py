@@ -362,7 +362,7 @@ def demo(out_dir: Path = typer.Option(Path("greyid-demo"), "--out", help="folder
         data, data_file = load_data(model, None)
         out.print(model)
         out.print(f"model file: {model.source}")
-        out.print(f"data: {len(data)} rows, t from {data['t'].iloc[0]} to {data['t'].iloc[-1]} h")
+        out.print(f"data: {len(data)} rows, t from {data['t'].iloc[0]:.6g} to {data['t'].iloc[-1]:.6g} h")
         started = time.perf_counter()
         result = model.fit(data, progress=not quiet)
         result.data_file = data_file

@@ -110,6 +110,11 @@ def _model_section(fit) -> str:
     return _section("model", f"Model '{model.name}'", "\n".join(parts))
 
 
+def _instant(value) -> str:
+    """A time as a reader wants it: 167.8 h, not 167.83333333333334 (timestamps as they are)."""
+    return f"{value:.6g}" if isinstance(value, (int, float, np.integer, np.floating)) else str(value)
+
+
 def _data_section(fit, frames) -> str:
     time_name = fit.settings["time"]
     s = fit.model.structure
@@ -118,7 +123,9 @@ def _data_section(fit, frames) -> str:
         t = frame[time_name]
         observed = {name: int(frame[name].notna().sum()) for name in s.output_names}
         title = f"<h3>Data set {i + 1}</h3>" if len(frames) > 1 else ""
-        parts.append(title + _facts([("rows", len(frame)), ("time", f"{time_name} from {t.iloc[0]} to {t.iloc[-1]}"),
+        unit = f" {fit.model.units[time_name]}" if time_name in fit.model.units else ""
+        span = f"{time_name} from {_instant(t.iloc[0])} to {_instant(t.iloc[-1])}{unit}"
+        parts.append(title + _facts([("rows", len(frame)), ("time", span),
                                      ("observed values", ", ".join(f"{k}: {v}" for k, v in observed.items())),
                                      ("hold", fit.settings["hold"])]))
         parts.append(embedded_png(data_figure(frame, time_name, s.output_names, s.input_names, fit.model.units)))
