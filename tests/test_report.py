@@ -51,10 +51,10 @@ def test_content_matches_the_fit(report):
     assert "ljung_box" in text and "cumulative_periodogram" in text
     # Profile-likelihood intervals beside the Wald ones, each around its estimate.
     parameters = text[text.find('<section id="parameters">'):text.find('<section id="correlation">')]
-    assert "wald_lower" in parameters and "profile_lower" in parameters and "profile_upper" in parameters
+    assert "95 % Wald interval" in parameters and "95 % profile interval" in parameters
     name = fit.params.index[~fit.params["fixed"]][0]
     profile = fit.with_data(load_building_data()).conf_int(method="profile").loc[name]
-    assert f"<td>{profile['lower']:.5g}</td><td>{profile['upper']:.5g}</td>" in parameters
+    assert f"<td>[{profile['lower']:.5g}, {profile['upper']:.5g}]</td>" in parameters
 
 
 def test_loaded_fit_reads_its_data(report):

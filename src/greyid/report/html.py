@@ -164,25 +164,42 @@ def _profile_intervals(fit):
         return None, [f"profile intervals not available: {error}"]
 
 
+def _interval(lower, upper) -> str:
+    return "–" if not (np.isfinite(lower) or np.isfinite(upper)) else f"[{_number(lower, 5)}, {_number(upper, 5)}]"
+
+
+def _p_value(p) -> str:
+    return "–" if not np.isfinite(p) else ("< 1e-16" if p < 1e-16 else f"{p:.2g}")
+
+
 def _parameters_section(fit, profile=None) -> str:
-    """The parameter table; ``profile`` is the result of :func:`_profile_intervals` (or None)."""
-    columns = ["estimate", "std_error", "t_value", "p_value", "lower_bound", "upper_bound"]
-    columns += ["unit"] if "unit" in fit.params else []
-    table = fit.params[columns].copy()
+    """The parameter table; ``profile`` is the result of :func:`_profile_intervals` (or None).
+
+    One column per interval ("[lower, upper]") so that the table fits a page.
+    """
+    params = fit.params
+    table = params[["estimate", "std_error"]].copy()
+    if "unit" in params:
+        table["unit"] = params["unit"]
     wald = fit.conf_int(0.95)
-    table["wald_lower"], table["wald_upper"] = wald["lower"], wald["upper"]
+    table["95 % Wald interval"] = [_interval(lo, hi) for lo, hi in zip(wald["lower"], wald["upper"])]
     notes = []
     if profile is not None:
         likelihood_ratio, notes = profile
         if likelihood_ratio is not None:
-            table["profile_lower"], table["profile_upper"] = likelihood_ratio["lower"], likelihood_ratio["upper"]
+            table["95 % profile interval"] = [_interval(lo, hi) for lo, hi in
+                                              zip(likelihood_ratio["lower"], likelihood_ratio["upper"])]
+    table["t"] = params["t_value"]
+    table["p"] = [_p_value(p) for p in params["p_value"]]
+    table["bounds"] = [_interval(lo, hi) if not fixed else "–" for lo, hi, fixed in
+                       zip(params["lower_bound"].astype(float), params["upper_bound"].astype(float), params["fixed"])]
     table["note"] = ["fixed" if r["fixed"] else ("at bound" if r["at_bound"] else
                                                  ("unreliable" if not r["reliable"] else ""))
-                     for _, r in fit.params.iterrows()]
+                     for _, r in params.iterrows()]
     text = ("<p>Standard errors from the exact Hessian of the negative log-likelihood, mapped to the natural "
             "parameters; 95 % intervals by Wald (estimate ± t quantile × SE) and, where computed, by the "
             "profile likelihood (where 2(ℓ̂ − ℓ_p) reaches the χ²₁ quantile; it follows a skewed "
-            "likelihood).</p>")
+            "likelihood); t and p test the parameter against 0.</p>")
     text += "".join(f"<p>{_esc(n)}</p>" for n in notes)
     return _section("parameters", "Parameters",
                     _table(table, 5, row_class=lambda r: "reject" if r["note"] in ("at bound", "unreliable") else "")

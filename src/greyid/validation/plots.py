@@ -26,7 +26,8 @@ def _stem(ax, frame: pd.DataFrame, column: str, title: str) -> None:
 
 
 def residual_dashboard(residuals: pd.Series, inputs: pd.DataFrame | None = None, times=None,
-                       lags: int | None = None, level: float = 0.05, title: str | None = None) -> Figure:
+                       lags: int | None = None, level: float = 0.05, title: str | None = None,
+                       time_label: str = "time") -> Figure:
     """Residuals over time, ACF, PACF, cumulative periodogram, histogram, QQ and input cross-correlations."""
     values = residual_series(residuals, 8)
     fig = Figure(figsize=(12, 9), layout="constrained")
@@ -38,7 +39,7 @@ def residual_dashboard(residuals: pd.Series, inputs: pd.DataFrame | None = None,
     for s in (-z, z):
         ax.axhline(s, color="C1", ls="--", lw=0.8)
     ax.set_title(title or f"standardised residuals {residuals.name or ''}".strip())
-    ax.set_xlabel("time" if times is not None else "row")
+    ax.set_xlabel(time_label if times is not None else "row")
 
     _stem(fig.add_subplot(grid[1, 0]), acf(values, lags, level), "acf", "autocorrelation")
     _stem(fig.add_subplot(grid[1, 1]), pacf(values, lags, level), "pacf", "partial autocorrelation")
@@ -82,7 +83,7 @@ def residual_dashboard(residuals: pd.Series, inputs: pd.DataFrame | None = None,
 
 
 def coherency_figure(residuals: pd.Series, inputs: pd.DataFrame, m: int | None = None, dt: float = 1.0,
-                     level: float = 0.05) -> Figure:
+                     level: float = 0.05, time_unit: str | None = None) -> Figure:
     """Squared coherency with each input and the multiple coherency, with the (7.42) critical levels."""
     coh = coherency(residuals, inputs, m=m, dt=dt, level=level)
     fig = Figure(figsize=(9, 4), layout="constrained")
@@ -92,7 +93,7 @@ def coherency_figure(residuals: pd.Series, inputs: pd.DataFrame, m: int | None =
         ax.plot(coh.values.index, coh.values[col], lw=1.2 if col == "multiple" else 0.8, color=color, label=col)
         ax.axhline(coh.critical[col], color=color, ls=":", lw=0.8)
     ax.set_ylim(0, 1)
-    ax.set_xlabel("frequency [cycles per time unit]")
+    ax.set_xlabel(f"frequency [1/{time_unit}]" if time_unit else "frequency [cycles per time unit]")
     ax.set_ylabel("squared coherency")
     ax.set_title(f"coherency of residuals and inputs (Daniell m = {coh.m}; dotted: {1 - level:.0%} critical level)")
     ax.legend(fontsize=8)

@@ -16,7 +16,7 @@ import pandas as pd
 
 from ..errors import DataError, ModelError
 from . import bispectral, independence, spectral
-from .plots import band_figure, coherency_figure, prediction_figure, residual_dashboard
+from .plots import band_figure, coherency_figure, labelled, prediction_figure, residual_dashboard
 
 RESIDUAL_TESTS = {
     "ljung_box": lambda x, o: independence.ljung_box(x, o["lags"]),
@@ -73,8 +73,10 @@ class Validation:
     def plot(self, output: str | None = None):
         """The residual dashboard of one output (the first by default)."""
         label = self._label(output)
+        time_name = self.fit.settings.get("time", "t")
         return residual_dashboard(self.residuals[label], self.inputs[label], self.times[label], self.lags,
-                                  self.level, title=f"standardised residuals of {label}")
+                                  self.level, title=f"standardised residuals of {label}",
+                                  time_label=labelled(time_name, self.fit.model.units))
 
     def plot_coherency(self, output: str | None = None):
         """Coherency of one output's residuals with each input, and the multiple coherency."""
@@ -83,7 +85,8 @@ class Validation:
             raise ModelError("the model has no inputs; there is no coherency to draw")
         t = self.times[label].to_numpy(dtype=float)
         dt = float(np.median(np.diff(t))) if len(t) > 1 and np.issubdtype(t.dtype, np.number) else 1.0
-        return coherency_figure(self.residuals[label], self.inputs[label], self.m, dt, self.level)
+        return coherency_figure(self.residuals[label], self.inputs[label], self.m, dt, self.level,
+                                self.fit.model.units.get(self.fit.settings.get("time", "t")))
 
     def plot_simulation(self, n_paths: int = 200, seed: int = 0):
         """Measured against the deterministic simulation and a Monte Carlo band of the SDE."""
