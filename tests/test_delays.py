@@ -151,6 +151,9 @@ def test_delay_errors_name_the_problem():
         m.loglik({**p, "tau": -0.5}, data)
     with pytest.raises(DataError, match="longer than the series"):
         m.simulate({**p, "tau": 20.0}, data)
+    m.set_parameter("tau", init=1.0, lower=-1.0, upper=5.0)
+    with pytest.raises(ModelError, match="'tau' is the delay of delay\\(u, tau\\); give it a lower bound of 0"):
+        m.fit(data.assign(y=np.sin(np.arange(10.0))), init=p)
     bad = greyid.Model("initial")
     bad.add_system("dx = (-x + delay(u, 1))*dt + dw1")
     bad.add_inputs("u")

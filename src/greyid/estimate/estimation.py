@@ -126,6 +126,8 @@ def free_parameters(model, init=None) -> FreeParameters:
     if unknown:
         raise ModelError(f"init given for '{unknown[0]}', which is not a parameter of the model")
     theta0 = np.zeros(len(names))
+    # A delay that is a parameter itself must stay ≥ 0 wherever the optimiser goes.
+    delays = {d.expression.name: d.name for d in model.structure.delays if d.expression.is_Symbol}
     free, lower, upper = [], [], []
     for i, name in enumerate(names):
         p = declared.get(name)
@@ -140,6 +142,9 @@ def free_parameters(model, init=None) -> FreeParameters:
                 f"(add_inputs('{name}'), or `inputs = [...]` in a model file's [model]) or give it a value "
                 f"(set_parameter('{name}', init=...), or `{name} = {{ init = ... }}` under [parameters])")
         lo, hi = (None, None) if p is None else (p.lower, p.upper)
+        if name in delays and (lo is None or lo < 0):
+            raise ModelError(f"'{name}' is the delay of {delays[name]}; give it a lower bound of 0 or more "
+                             f"(set_parameter('{name}', lower=0, ...)): a negative delay would look ahead in time")
         if (lo is not None and value <= lo) or (hi is not None and value >= hi):
             raise ModelError(f"the initial value {value} of '{name}' must lie strictly inside its bounds [{lo}, {hi}]")
         theta0[i] = value

@@ -191,7 +191,7 @@ def filter_steps(structure: Structure, options: FilterOptions):
 
     def steps(theta, data: FilterInputs) -> FilterSteps:
         first_noise = None
-        delays = delays_at(structure, theta, data) if structure.delays else None
+        delays = delays_at(structure, theta, data.t, data.u_cur, data.foh) if structure.delays else None
         data = with_delayed_inputs(structure, theta, data)
         exact_linear = method == KALMAN and structure.kind == LTI
         regular = data.delay_slots.shape[0] == 0

@@ -67,11 +67,11 @@ class Delays(NamedTuple):
     foh: jnp.ndarray
 
 
-def delays_at(structure, theta, data) -> Delays:
-    """τ of each ``delay(u, tau)`` at θ and the columns they delay."""
+def delays_at(structure, theta, times, inputs, foh) -> Delays:
+    """τ of each ``delay(u, tau)`` at θ and the columns of ``inputs`` (over ``times``) they delay."""
     taus = jnp.stack([jnp.asarray(d.tau(theta), dtype=jnp.float64) for d in structure.delays])
-    columns = data.u_cur[:, [d.input for d in structure.delays]]
-    return Delays(taus, columns, data.t, data.foh)
+    columns = jnp.asarray(inputs)[:, [d.input for d in structure.delays]]
+    return Delays(taus, columns, jnp.asarray(times), foh)
 
 
 def values_at(delays: Delays, at) -> jnp.ndarray:
@@ -89,7 +89,7 @@ def with_delayed_inputs(structure, theta, data):
     """
     if not structure.delays:
         return data
-    delays = delays_at(structure, theta, data)
+    delays = delays_at(structure, theta, data.t, data.u_cur, data.foh)
     return data._replace(u_prev=jnp.concatenate([data.u_prev, values_at(delays, data.t_prev)], axis=1),
                          u_cur=jnp.concatenate([data.u_cur, values_at(delays, data.t)], axis=1))
 

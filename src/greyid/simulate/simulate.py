@@ -24,7 +24,7 @@ from ..compiler import jit
 from ..errors import DataError, ModelError
 from ..filters.api import HOLDS, filter_inputs
 from ..filters.core import initial_state
-from ..filters.delays import Delays, check_delays, values_at
+from ..filters.delays import check_delays, delays_at, values_at
 from ..filters.discretize import discretize, time_varying_step
 from ..model.structure import LTI
 from .schemes import make_integrator
@@ -83,8 +83,8 @@ def delayed_grid(structure, theta, series, hold: str):
         return series, np.arange(series.n_rows)
     check_delays(structure, theta, series.times)
     t = series.times
-    taus = np.array([float(d.tau(theta)) for d in structure.delays])
-    cuts = (t[:, None] + taus[None, :]).reshape(-1)
+    delays = delays_at(structure, theta, t, series.inputs, jnp.float64(HOLDS[hold]))
+    cuts = (t[:, None] + np.asarray(delays.taus)[None, :]).reshape(-1)
     times = np.unique(np.concatenate([t, cuts[(cuts > t[0]) & (cuts < t[-1])]]))
     # A held input's value on [T_i, T_i+1) is read at the interval's middle: at T_i itself a
     # switching instant t_j + τ may round to either side of t_j.
@@ -92,8 +92,6 @@ def delayed_grid(structure, theta, series, hold: str):
     own = series.inputs[np.clip(np.searchsorted(t, at, side="right") - 1, 0, len(t) - 1)]
     if hold == "foh":
         own = np.stack([np.interp(times, t, column) for column in series.inputs.T], axis=1)
-    delays = Delays(jnp.asarray(taus), jnp.asarray(series.inputs[:, [d.input for d in structure.delays]]),
-                    jnp.asarray(t), jnp.float64(HOLDS[hold]))
     inputs = np.concatenate([own, np.asarray(values_at(delays, at))], axis=1)
     grid = Series(times, inputs, np.full((len(times), structure.n_outputs), np.nan), pd.RangeIndex(len(times)),
                   series.time_name)
