@@ -179,3 +179,26 @@ def test_delays_in_model_files_and_units(tmp_path):
                  "le": "K^2", "y": "K"})
     with pytest.raises(ModelError, match="time unit"):
         m.check_units()
+
+
+def test_a_held_inputs_delay_is_searched_in_the_neighbouring_sampling_intervals():
+    """The likelihood in τ has a kink at every whole number of sampling intervals (here 2.4) and a local
+    optimum on each side; from a start in the wrong interval the fit (and a fleet's member) still ends
+    at the better one, found from the middle of the next interval."""
+    rng = np.random.default_rng(5)
+    m = first_order("k*delay(u, tau)")
+    m.set_initial_state(mean={"x": 0.0}, covariance=[[0.01]])
+    truth = dict(T=2.0, k=1.0, tau=2.37, ls=-2.0, le=-4.0)
+    data = pd.DataFrame({"t": np.arange(250) * 0.8, "u": np.repeat(rng.choice([-1.0, 1.0], 50), 5)})
+    data["y"] = m.simulate(truth, data, method="exact", seed=2).outputs[0, :, 0]
+    for name, (init, lower, upper) in dict(T=(1.0, 0.1, 10), k=(0.5, 0, 5), tau=(3.0, 0, 5), ls=(-1, -10, 2),
+                                           le=(-1, -10, 2)).items():
+        m.set_parameter(name, init=init, lower=lower, upper=upper)
+    good = m.fit(data, init={"tau": 2.0})
+    fit = m.fit(data)
+    starts = {s["start"]: s["criterion"] for s in fit.starts}
+    assert starts["initial values"] < good.loglik - 1.0  # the start's own interval holds the worse optimum
+    assert fit.loglik == pytest.approx(good.loglik, abs=1e-6) and fit.values["tau"] == pytest.approx(2.365, abs=1e-3)
+    assert starts["tau in the next sampling interval, shorter"] == pytest.approx(good.loglik, abs=1e-6)
+    fleet = greyid.fit_many(m, {"a": data, "b": data.iloc[:200]})
+    assert fleet.table.loc["a", "loglik"] == pytest.approx(good.loglik, abs=1e-6)

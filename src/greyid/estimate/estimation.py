@@ -256,6 +256,51 @@ def start_points(parameters: FreeParameters, starts: int, seed: int, scoring_aut
     return points + extra, labels, newton_only
 
 
+def neighbouring_delays(structure, parameters: FreeParameters, z_best, prepared):
+    """Starts with each estimated delay in the middle of the sampling intervals next to its estimate's.
+
+    A held input switches at the sampling instants, so the likelihood in τ has a
+    kink wherever τ is a whole number of sampling intervals and may hold a local
+    optimum in each interval between two: the neighbouring intervals are where a
+    better one lies (starting just one interval away from the estimate can climb
+    back across the kink).  ``[(z, label)]``; the other parameters stay at ``z_best``.
+    """
+    delays = {d.expression.name for d in structure.delays if d.expression.is_Symbol}
+    positions = [j for j, i in enumerate(parameters.free) if parameters.names[i] in delays]
+    if not positions:
+        return []
+    steps = np.concatenate([np.diff(series.times) for series, _ in prepared])
+    step = float(np.median(steps[steps > 0])) if np.any(steps > 0) else 0.0
+    if step <= 0:
+        return []
+    transform = parameters.transform
+    theta = transform.to_theta(np.asarray(z_best), np)
+    out = []
+    for j in positions:
+        lo = parameters.lower[j] if parameters.lower[j] is not None else -np.inf
+        hi = parameters.upper[j] if parameters.upper[j] is not None else np.inf
+        cell = np.floor(theta[j] / step)
+        for side, middle in (("shorter", (cell - 0.5) * step), ("longer", (cell + 1.5) * step)):
+            if lo < middle < hi:
+                moved = theta.copy()
+                moved[j] = middle
+                name = parameters.names[parameters.free[j]]
+                out.append((transform.to_z(moved), f"{name} in the next sampling interval, {side}"))
+    return out
+
+
+def search_delays(structure, parameters: FreeParameters, prepared, best: Optimum, optima: list, labels: list,
+                  run) -> Optimum:
+    """The best of ``best`` and refits (``run(z) -> Optimum``) from :func:`neighbouring_delays`;
+    the refits are appended to ``optima`` and ``labels`` (the fit's table of starts)."""
+    for z_start, label in neighbouring_delays(structure, parameters, best.z, prepared):
+        labels.append(label)
+        optima.append(run(z_start))
+        if optima[-1].value < best.value - 1e-9:
+            best = optima[-1]
+    return best
+
+
 def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=None, robust=None,
         horizon=1, starts=1, seed=0, init=None, time_unit=None, maxiter=500, progress=False, cov_type=None,
         init_from=None, optimizer="auto", **filter_settings):
@@ -335,6 +380,9 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
                 raise not_finite(problem, points[0], 0)
             optima = [failed_start(points[i], r) if isinstance(r, ModelError) else r for i, r in enumerate(results)]
         best = min(optima, key=lambda o: o.value if np.isfinite(o.value) else np.inf)
+        if hold == "zoh":
+            best = search_delays(structure, parameters, prepared, best, optima, labels,
+                                 lambda z: optimize(problem, z, len(optima)))
         substep_choice = None
         if filter_settings.get("substeps") is None and needs_substeps(structure):
             problem, best, substep_choice = _accurate_substeps(structure, problem, best, args, datasets,
