@@ -200,13 +200,12 @@ def filter_steps(structure: Structure, options: FilterOptions):
             step = jnp.max(data.unique_dt)
             offsets = regular_offsets(delays.taus, step) if regular else None
             pieces = interval_pieces(delays, data, structure.n_inputs, offsets)
-            if exact_linear and regular:  # the same D + 1 pieces in every interval: discretized once
-                g = G(zeros, data.u_cur[0], data.t[0], theta)
-                lengths = jnp.diff(jnp.concatenate([jnp.zeros(1), offsets, step[None]]))
-                piece_gains = discretize_each(jac_f(zeros, data.u_cur[0], data.t[0], theta), g @ g.T, lengths)
-            elif exact_linear:  # irregular sampling: each piece discretized as it comes
+            if exact_linear:  # A and G Gᵀ; irregular sampling discretizes each piece as it comes
                 g = G(zeros, data.u_cur[0], data.t[0], theta)
                 linear_matrices = (jac_f(zeros, data.u_cur[0], data.t[0], theta), g @ g.T)
+                if regular:  # the same D + 1 pieces in every interval: discretized once
+                    lengths = jnp.diff(jnp.concatenate([jnp.zeros(1), offsets, step[None]]))
+                    piece_gains = discretize_each(*linear_matrices, lengths)
         rows = Row(data.t, data.t_prev, data.dt, data.u_prev, data.u_cur, data.y, data.mask, data.dt_index, pieces)
         if exact_linear and (delays is None or regular):
             cache = linear_discretization(theta, data)
