@@ -82,8 +82,9 @@ def test_a_fit_refuses_inconsistent_units_and_carries_consistent_ones(tmp_path):
     assert figure.axes[0].get_ylabel() == "yTi [degC]" and figure.axes[-1].get_xlabel() == "t [h]"
     from greyid.report.html import _parameters_section
 
-    assert "<th>unit</th>" in _parameters_section(fit) and "<td>kWh/K</td>" in \
-        _parameters_section(fit)
+    section = _parameters_section(fit)
+    assert "<th>unit</th>" in section and "<td>kWh/K</td>" in section
+    assert "<td>m²</td>" in section and "<td>°C</td>" in section  # as a reader writes them
     wrong = building_model().set_units({"Aw": "m"})
     with pytest.raises(greyid.ModelError, match="not dimensionally consistent"):
         wrong.fit(data)

@@ -42,6 +42,16 @@ def registry():
     return pint.UnitRegistry()
 
 
+def pretty(text: str) -> str:
+    """A unit string as a reader writes it (``m^2`` → m², ``degC`` → °C); unchanged if Pint cannot read it."""
+    if not text:
+        return text
+    try:
+        return format(registry().Unit(text), "~P") or text
+    except Exception:  # Pint raises several kinds; the text as given is still right
+        return text
+
+
 def parse_units(units: Mapping[str, str]) -> dict:
     """``{name: pint.Unit}``; an unknown unit string is a named error."""
     ureg = registry()

@@ -180,7 +180,9 @@ def _parameters_section(fit, profile=None) -> str:
     params = fit.params
     table = params[["estimate", "std_error"]].copy()
     if "unit" in params:
-        table["unit"] = params["unit"]
+        from ..model.units import pretty
+
+        table["unit"] = [pretty(u) for u in params["unit"]]
     wald = fit.conf_int(0.95)
     table["95 % Wald interval"] = [_interval(lo, hi) for lo, hi in zip(wald["lower"], wald["upper"])]
     notes = []
