@@ -202,3 +202,19 @@ def test_a_held_inputs_delay_is_searched_in_the_neighbouring_sampling_intervals(
     assert starts["tau in the next sampling interval, shorter"] == pytest.approx(good.loglik, abs=1e-6)
     fleet = greyid.fit_many(m, {"a": data, "b": data.iloc[:200]})
     assert fleet.table.loc["a", "loglik"] == pytest.approx(good.loglik, abs=1e-6)
+
+
+def test_a_delayed_model_gets_its_report_and_uncertainty_bands(tmp_path):
+    rng = np.random.default_rng(7)
+    m = first_order("k*delay(u, tau)")
+    m.set_initial_state(mean={"x": 0.0}, covariance=[[0.01]])
+    truth = dict(T=2.0, k=1.0, tau=1.3, ls=-2.0, le=-4.0)
+    data = pd.DataFrame({"t": np.arange(120) * 0.5, "u": np.repeat(rng.choice([-1.0, 1.0], 30), 4)})
+    data["y"] = m.simulate(truth, data, method="exact", seed=7).outputs[0, :, 0]
+    m.set_parameter("tau", init=1.0, lower=0.0, upper=5.0)
+    fit = m.fit(data, init=truth)
+    bands = fit.predict(steps=3, parameter_uncertainty=True, draws=20)
+    assert np.all(bands["y_upper"] > bands["y_lower"])
+    text = fit.report(tmp_path / "report.html", profile=False)
+    section = text[text.find('<section id="identifiability">'):text.find('<section id="validation">')]
+    assert "delayed inputs" in section and "plan=" in section

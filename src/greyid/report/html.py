@@ -222,9 +222,11 @@ def _identifiability_section(fit) -> str:
     from ..design import identifiability
 
     model = fit.model
-    if model.structure.kind != "lti":
-        body = (f"<p>Structural identifiability is decided before any data for linear time-invariant models; "
-                f"this model is {_esc(model.structure.kind)}: judge it on a planned experiment with "
+    if model.structure.kind != "lti" or model.structure.delays:
+        what = ("has delayed inputs (a delay's e^{-sτ} is not rational in s)" if model.structure.delays
+                else f"is {model.structure.kind}")
+        body = (f"<p>Structural identifiability is decided before any data for linear time-invariant models "
+                f"without delays; this model {_esc(what)}: judge it on a planned experiment with "
                 "<code>greyid.design.identifiability(model, plan=...)</code>.</p>")
         return _section("identifiability", "Structural identifiability", body)
     result = identifiability(model, fit.values)
