@@ -19,6 +19,18 @@ def first_order(drift_input: str, name: str = "delayed") -> greyid.Model:
     return m
 
 
+def simulated_delay(tau, step, n, clock, input_seed, noise_seed):
+    """The one-delay first-order model, its true parameters, and a series simulated from them
+    (a random ±1 input held for ``clock`` samples)."""
+    rng = np.random.default_rng(input_seed)
+    m = first_order("k*delay(u, tau)")
+    m.set_initial_state(mean={"x": 0.0}, covariance=[[0.01]])
+    truth = dict(T=2.0, k=1.0, tau=tau, ls=-2.0, le=-4.0)
+    data = pd.DataFrame({"t": np.arange(n) * step, "u": np.repeat(rng.choice([-1.0, 1.0], n // clock), clock)})
+    data["y"] = m.simulate(truth, data, method="exact", seed=noise_seed).outputs[0, :, 0]
+    return m, truth, data
+
+
 @pytest.fixture(scope="module")
 def two_delays():
     return first_order("k*delay(u, tau) + c*delay(u, tau2)", "two_delays")
@@ -118,13 +130,7 @@ def test_the_gradient_in_the_delay_matches_differences(two_delays):
 
 
 def test_a_delay_is_estimated_with_its_standard_error():
-    rng = np.random.default_rng(3)
-    n = 400
-    m = first_order("k*delay(u, tau)")
-    m.set_initial_state(mean={"x": 0.0}, covariance=[[0.01]])
-    truth = dict(T=2.0, k=1.0, tau=2.37, ls=-2.0, le=-4.0)
-    data = pd.DataFrame({"t": np.arange(n) * 1.0, "u": np.repeat(rng.choice([-1.0, 1.0], n // 5), 5)})
-    data["y"] = m.simulate(truth, data, method="exact", seed=3).outputs[0, :, 0]
+    m, truth, data = simulated_delay(2.37, 1.0, 400, 5, 3, 3)
     for name, (init, lower, upper) in dict(T=(1.0, 0.1, 10), k=(0.5, 0, 5), tau=(1.5, 0, 5), ls=(-1, -10, 2),
                                            le=(-1, -10, 2)).items():
         m.set_parameter(name, init=init, lower=lower, upper=upper)
@@ -185,12 +191,7 @@ def test_a_held_inputs_delay_is_searched_in_the_neighbouring_sampling_intervals(
     """The likelihood in τ has a kink at every whole number of sampling intervals (here 2.4) and a local
     optimum on each side; from a start in the wrong interval the fit (and a fleet's member) still ends
     at the better one, found from the middle of the next interval."""
-    rng = np.random.default_rng(5)
-    m = first_order("k*delay(u, tau)")
-    m.set_initial_state(mean={"x": 0.0}, covariance=[[0.01]])
-    truth = dict(T=2.0, k=1.0, tau=2.37, ls=-2.0, le=-4.0)
-    data = pd.DataFrame({"t": np.arange(250) * 0.8, "u": np.repeat(rng.choice([-1.0, 1.0], 50), 5)})
-    data["y"] = m.simulate(truth, data, method="exact", seed=2).outputs[0, :, 0]
+    m, truth, data = simulated_delay(2.37, 0.8, 250, 5, 5, 2)
     for name, (init, lower, upper) in dict(T=(1.0, 0.1, 10), k=(0.5, 0, 5), tau=(3.0, 0, 5), ls=(-1, -10, 2),
                                            le=(-1, -10, 2)).items():
         m.set_parameter(name, init=init, lower=lower, upper=upper)
@@ -205,12 +206,7 @@ def test_a_held_inputs_delay_is_searched_in_the_neighbouring_sampling_intervals(
 
 
 def test_a_delayed_model_gets_its_report_and_uncertainty_bands(tmp_path):
-    rng = np.random.default_rng(7)
-    m = first_order("k*delay(u, tau)")
-    m.set_initial_state(mean={"x": 0.0}, covariance=[[0.01]])
-    truth = dict(T=2.0, k=1.0, tau=1.3, ls=-2.0, le=-4.0)
-    data = pd.DataFrame({"t": np.arange(120) * 0.5, "u": np.repeat(rng.choice([-1.0, 1.0], 30), 4)})
-    data["y"] = m.simulate(truth, data, method="exact", seed=7).outputs[0, :, 0]
+    m, truth, data = simulated_delay(1.3, 0.5, 120, 4, 7, 7)
     m.set_parameter("tau", init=1.0, lower=0.0, upper=5.0)
     fit = m.fit(data, init=truth)
     bands = fit.predict(steps=3, parameter_uncertainty=True, draws=20)
