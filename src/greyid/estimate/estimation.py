@@ -20,6 +20,7 @@ from ..data.prepare import as_frames
 from ..errors import DataError, ModelError
 from ..filters.accuracy import LOGLIK_TOLERANCE, MAX_SUBSTEPS, SubstepChoice, needs_substeps
 from ..filters.api import check_at_parameters, filter_options, prepare_datasets
+from ..model.delays import delay_parameters
 from ..progress import FitProgress
 from .criteria import GaussianPrior, check_robust
 from .covariance import check_cov_type, default_cov_type, score_covariance
@@ -127,7 +128,7 @@ def free_parameters(model, init=None) -> FreeParameters:
         raise ModelError(f"init given for '{unknown[0]}', which is not a parameter of the model")
     theta0 = np.zeros(len(names))
     # A delay that is a parameter itself must stay ≥ 0 wherever the optimiser goes.
-    delays = {d.expression.name: d.name for d in model.structure.delays if d.expression.is_Symbol}
+    delays = delay_parameters(model.structure)
     free, lower, upper = [], [], []
     for i, name in enumerate(names):
         p = declared.get(name)
@@ -265,7 +266,7 @@ def neighbouring_delays(structure, parameters: FreeParameters, z_best, prepared)
     better one lies (starting just one interval away from the estimate can climb
     back across the kink).  ``[(z, label)]``; the other parameters stay at ``z_best``.
     """
-    delays = {d.expression.name for d in structure.delays if d.expression.is_Symbol}
+    delays = delay_parameters(structure)
     positions = [j for j, i in enumerate(parameters.free) if parameters.names[i] in delays]
     if not positions:
         return []

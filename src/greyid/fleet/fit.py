@@ -249,20 +249,17 @@ def _result(model, structure, problem, args, member, best, optima, labels, s, ro
         return best
     datasets = [inputs for _, inputs in member["prepared"]]
     substep_choice = None
-    if s["hold"] == "zoh" and structure.delays:  # as model.fit: the delay's neighbouring sampling intervals
-        optima, labels = list(optima), list(labels)
-        with ExitStack() as stack:
-            alone = estimation.SearchesAlone(structure, (*args, datasets), stack)
-            best = estimation.search_delays(
-                structure, member["parameters"], member["prepared"], best, optima, labels,
-                lambda z: alone.run(problem, estimation.new_search(problem, z, s["maxiter"], _quiet, False)))
-    if filter_settings.get("substeps") is None and needs_substeps(structure):
-        with ExitStack() as stack:
-            alone = estimation.SearchesAlone(structure, (*args, datasets), stack)
+    with ExitStack() as stack:
+        alone = estimation.SearchesAlone(structure, (*args, datasets), stack)  # opens programs only when run
 
-            def optimize(p, z):
-                return alone.run(p, estimation.new_search(p, z, s["maxiter"], _quiet, False))
+        def optimize(p, z):
+            return alone.run(p, estimation.new_search(p, z, s["maxiter"], _quiet, False))
 
+        if s["hold"] == "zoh" and structure.delays:  # as model.fit: the delay's neighbouring sampling intervals
+            optima, labels = list(optima), list(labels)
+            best = estimation.search_delays(structure, member["parameters"], member["prepared"], best, optima,
+                                            labels, lambda z: optimize(problem, z))
+        if filter_settings.get("substeps") is None and needs_substeps(structure):
             problem, best, substep_choice = estimation._accurate_substeps(structure, problem, best, args, datasets,
                                                                           optimize)
     call = dict(time=s["time"], hold=s["hold"], criterion=s["criterion"], robust=robust, horizon=int(s["horizon"]),

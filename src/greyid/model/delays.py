@@ -62,3 +62,8 @@ def find_delays(exprs, inputs: list[str], states: list[str]) -> list[tuple[sp.Ex
         stand_in = sp.Symbol(f"{signal.name}@delay{len(found)}", real=True)
         found.append((call, DelayedInput(str(call), inputs.index(signal.name), tau), stand_in))
     return found
+
+
+def delay_parameters(structure) -> dict[str, str]:
+    """``{parameter: "delay(u, tau)"}`` for each delay that is a parameter itself (estimable as it stands)."""
+    return {d.expression.name: d.name for d in structure.delays if d.expression.is_Symbol}

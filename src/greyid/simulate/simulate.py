@@ -89,9 +89,10 @@ def delayed_grid(structure, theta, series, hold: str):
     # A held input's value on [T_i, T_i+1) is read at the interval's middle: at T_i itself a
     # switching instant t_j + τ may round to either side of t_j.
     at = times if hold == "foh" else np.concatenate([0.5 * (times[:-1] + times[1:]), times[-1:]])
-    own = series.inputs[np.clip(np.searchsorted(t, at, side="right") - 1, 0, len(t) - 1)]
     if hold == "foh":
         own = np.stack([np.interp(times, t, column) for column in series.inputs.T], axis=1)
+    else:
+        own = series.inputs[np.clip(np.searchsorted(t, at, side="right") - 1, 0, len(t) - 1)]
     inputs = np.concatenate([own, np.asarray(values_at(delays, at))], axis=1)
     grid = Series(times, inputs, np.full((len(times), structure.n_outputs), np.nan), pd.RangeIndex(len(times)),
                   series.time_name)
