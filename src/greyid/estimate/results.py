@@ -261,12 +261,12 @@ class FitResult:
         free = ~self.params["fixed"].to_numpy()
         theta = self.params["estimate"].to_numpy(dtype=np.float64)
         cov = self.cov.to_numpy()
+        symbols = [parse_expression(n, "parameter") for n in names]
         rows = {}
         for label, text in expressions.items():
             expr = parameter_expression(text, names, f"derived quantity '{label}'")
             # The value and exact gradient from SymPy, evaluated by NumPy: JAX would compile each
             # operation on its first use (0.4 s for a model's few quantities).
-            symbols = [parse_expression(n, "parameter") for n in names]
             used = [i for i, sym in enumerate(symbols) if sym in expr.free_symbols]
             fn = sp.lambdify([symbols[i] for i in used], [expr] + [sp.diff(expr, symbols[i]) for i in used], "numpy")
             out = [float(v) for v in fn(*theta[used])]
