@@ -140,6 +140,13 @@ def test_bad_system_equations(equation, match):
         greyid.Model().add_system(equation)
 
 
+def test_zero_drift_as_the_error_message_suggests():
+    """'0*dt' is what the missing-dt error tells the user to write: it must parse (to drift 0)."""
+    m = greyid.Model().add_system("dx = 0*dt + s*dw1")
+    m.add_observation("y = x", variance="r").set_initial_state(mean={"x": 0.0}, covariance=[[1.0]])
+    assert m.structure.equations["drift"][0] == 0
+
+
 def test_structural_errors():
     m = greyid.Model()
     m.add_system("dx = -a*x*dt + s*dw1")

@@ -13,6 +13,7 @@ import functools
 
 from . import _jax  # noqa: F401  (64-bit JAX before any JAX work)
 import jax
+import numpy as np
 
 
 @functools.cache
@@ -34,11 +35,24 @@ class Jitted:
         functools.update_wrapper(self, fun)
         self.top = jax.jit(fun, compiler_options=compiler_options(), **kwargs)
         self.nested = jax.jit(fun, **kwargs)
-        self.compiled_for: set = set()  # signatures callers have compiled (see Derivatives)
+        self.executables: dict = {}  # see executable()
 
     def __call__(self, *args, **kwargs):
         traced = any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves((args, kwargs)))
         return (self.nested if traced else self.top)(*args, **kwargs)
+
+    def executable(self, *args):
+        """The program compiled ahead of time for these arguments' shapes and types, kept.
+
+        Callers that run one program from several threads at once compile it
+        first: through ``__call__`` each thread's first call would wait for (or
+        repeat) the compilation.
+        """
+        leaves, tree = jax.tree_util.tree_flatten(args)
+        key = (tree, tuple((np.shape(a), a.dtype if hasattr(a, "dtype") else np.result_type(a)) for a in leaves))
+        if key not in self.executables:
+            self.executables[key] = self.top.lower(*args).compile()
+        return self.executables[key]
 
 
 def jit(fun, **kwargs) -> Jitted:

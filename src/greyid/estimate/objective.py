@@ -32,6 +32,8 @@ FORWARD_HESSIAN_MAX = 10
 #: 10⁵-sample logistic EKF fit against 0.6 GB forward (and 59 s against 26 s),
 #: benchmarks/length.py.
 LONG_SERIES = 20_000
+import os
+STEADY_HESSIAN = os.environ.get("SH") == "1"
 
 
 @dataclass(frozen=True)
@@ -134,19 +136,29 @@ def build(structure, problem: Problem) -> Programs:
     def criterion(theta, data):
         return log_criterion(terms(theta, data), problem.robust)
 
+    exact_criterion = criterion
     if problem.horizon == 1 and problem.long_series:
         # Summed in the scan: nothing kept per step, so memory independent of the length.
-        criterion = make_summed_filter(structure, problem.options,
-                                       lambda step_terms: step_criterion(step_terms, problem.robust, kappa))
+        def summed(steady):
+            return make_summed_filter(structure, problem.options,
+                                      lambda step_terms: step_criterion(step_terms, problem.robust, kappa), steady)
+
+        # The Hessian step by step: in the steady state's vectorised blocks its second-order
+        # tangents cost more than the steps save (test cell, 10⁵ rows: 1.4 s against 0.9 s).
+        criterion, exact_criterion = summed(True), summed(STEADY_HESSIAN)
 
     kinds = problem.transform.kind
 
-    def negative(z, base, lower, upper, prior_mean, prior_chol, datasets):
-        theta = problem.theta(z, base, Transform(kinds, lower, upper), jnp)
-        total = sum(criterion(theta, d) for d in datasets)
-        if problem.prior is not None:
-            total = total + _log_prior(theta, problem.prior_index, prior_mean, prior_chol)
-        return -total
+    def negative_of(criterion):
+        def negative(z, base, lower, upper, prior_mean, prior_chol, datasets):
+            theta = problem.theta(z, base, Transform(kinds, lower, upper), jnp)
+            total = sum(criterion(theta, d) for d in datasets)
+            if problem.prior is not None:
+                total = total + _log_prior(theta, problem.prior_index, prior_mean, prior_chol)
+            return -total
+        return negative
+
+    negative = negative_of(criterion)
 
     def contributions(z, base, lower, upper, data):
         theta = problem.theta(z, base, Transform(kinds, lower, upper), jnp)
@@ -157,7 +169,8 @@ def build(structure, problem: Problem) -> Programs:
     if problem.horizon == 1 and problem.robust is None:
         scoring = jit(expected_information(structure, problem, kinds))
     # Per-step scores (rows: steps, columns: ∂/∂z), forward mode: nothing stored per step.
-    return Programs(jit(hessian_rows(negative, forward)), jit(negative), jit(jax.jacfwd(contributions)),
+    return Programs(jit(hessian_rows(negative_of(exact_criterion), forward)), jit(negative),
+                    jit(jax.jacfwd(contributions)),
                     jit(forward_value_and_grad(negative)), scoring)
 
 
@@ -300,13 +313,11 @@ class Derivatives:
     def __init__(self, program, n: int, arguments: tuple, workers: int | None = None,
                  combine: Callable = combine_hessian):
         self.blocks = direction_blocks(n, workers)
-        size = self.blocks[0].shape[0]
         self.n, self.program, self.arguments, self.combine = n, program, arguments, combine
         self.pool = ThreadPoolExecutor(len(self.blocks)) if len(self.blocks) > 1 else None
-        self.signature = (size, tuple(np.shape(a) for a in jax.tree_util.tree_leaves(arguments)))
 
-    def _block(self, z, rows):
-        return jax.block_until_ready(self.program(z, rows, *self.arguments))
+    def _block(self, program, z, rows):
+        return jax.block_until_ready(program(z, rows, *self.arguments))
 
     def compile_ahead(self, z) -> None:
         """Compile (by a first evaluation at z) in a background thread, while the search runs on.
@@ -324,11 +335,11 @@ class Derivatives:
             pending.result()
             self.ahead.shutdown()
         z = np.asarray(z, dtype=np.float64)  # transferred by the call, without a compiled conversion
-        if self.pool is None or self.signature not in self.program.compiled_for:
-            parts = [self._block(z, rows) for rows in self.blocks]  # compiles once
-            self.program.compiled_for.add(self.signature)
-        else:
-            parts = list(self.pool.map(lambda rows: self._block(z, rows), self.blocks))
+        if self.pool is None:
+            parts = [self._block(self.program, z, rows) for rows in self.blocks]
+        else:  # compiled once before the threads start
+            run = self.program.executable(z, self.blocks[0], *self.arguments)
+            parts = list(self.pool.map(lambda rows: self._block(run, z, rows), self.blocks))
         return self.combine(parts, self.n)
 
     def close(self):

@@ -24,6 +24,7 @@ from ..model.structure import LTI, Structure
 from . import small
 from .delays import Pieces, delays_at, interval_pieces, regular_offsets, with_delayed_inputs
 from .discretize import discretize, discretize_each, stationary_covariance, time_varying_step
+from . import steady as steady_form
 from .predictors import (
     Interval,
     extended_predict,
@@ -135,13 +136,16 @@ class FilterSteps(NamedTuple):
     rows: Row  # per-row inputs, leading axis N
     predict: Callable  # (x, cov, row) -> (x_{k|k-1}, cov_{k|k-1}, Φ_k)
     update: Callable  # (x_pred, cov_pred, row, mask=None) -> (Update, ŷ_{k|k-1})
+    steady: steady_form.SteadyModel | None = None  # long regular series of a linear model, see .steady
 
 
-def filter_steps(structure: Structure, options: FilterOptions):
+def filter_steps(structure: Structure, options: FilterOptions, steady: bool = True):
     """``steps(theta, data) -> FilterSteps``: one implementation of each filter.
 
     The scan of :func:`make_filter` and the k-step predictions of
     :func:`make_ahead` are both built from these predict and update closures.
+    With ``steady`` a long regular series of a linear model takes the
+    steady-state form where the filter reaches it (:mod:`.steady`).
     """
     f, G, h, S = structure.drift, structure.diffusion, structure.observation, structure.observation_variance
     S_full = structure.observation_covariance  # None unless the outputs' noise is correlated
@@ -211,6 +215,10 @@ def filter_steps(structure: Structure, options: FilterOptions):
             cache = linear_discretization(theta, data)
             first_noise = cache.noise_covariance[data.dt_index[1]]  # the first interval's Λ
         x0, P0 = initial_state(structure, theta, data, first_noise)
+        steady_pieces = None
+        if (steady and exact_linear and delays is None and structure.constant_observation
+                and data.t.shape[0] >= steady_form.MIN_ROWS):
+            steady_pieces = steady_model(theta, data, cache)
 
         def predict(x, cov, row: Row):
             if piece_gains is not None:
@@ -284,7 +292,17 @@ def filter_steps(structure: Structure, options: FilterOptions):
                 return linear_update(x_pred, cov_pred, y, mask, y_pred, C, S(at, u, t, theta), form)
             return correlated_update(x_pred, cov_pred, y, mask, y_pred, C, S_full(at, u, t, theta), form)
 
-        return FilterSteps((x0, from_matrix(P0, form)), rows, predict, update)
+        return FilterSteps((x0, from_matrix(P0, form)), rows, predict, update, steady_pieces)
+
+    def steady_model(theta, data, cache):
+        """The model's time-invariant pieces at its most frequent sampling interval."""
+        u0, t0 = data.u_cur[0], data.t[0]
+        regular = jnp.argmax(jnp.bincount(data.dt_index, length=data.unique_dt.shape[0]))
+        C = jax.jacfwd(h, argnums=0)(zeros, u0, t0, theta)
+        noise = jnp.diag(S(zeros, u0, t0, theta)) if S_full is None else S_full(zeros, u0, t0, theta)
+        return steady_form.SteadyModel(jax.tree_util.tree_map(lambda a: a[regular], cache), regular, C, noise,
+                                       lambda u, t: f(zeros, u, t, theta), lambda u, t: h(zeros, u, t, theta),
+                                       data.foh, form)
 
     return steps
 
@@ -319,7 +337,9 @@ def scan_rows(parts: FilterSteps, n_rows: int, collect: Callable | None, accumul
     """Predict and update over all rows; ``collect`` picks what each step returns.
 
     With ``accumulate`` the scan instead sums ``accumulate(StepTerms_k)`` in its
-    carry and returns the sum: nothing is kept per step.
+    carry and returns the sum: nothing is kept per step.  Long regular series
+    of a linear model switch to the steady-state form where the filter reaches
+    it (:mod:`.steady`).
     """
 
     def step(carry, row):
@@ -330,18 +350,58 @@ def scan_rows(parts: FilterSteps, n_rows: int, collect: Callable | None, accumul
             return ((upd.mean, upd.covariance), total + accumulate(upd.terms)), None
         return ((upd.mean, upd.covariance), total), collect(x_pred, cov_pred, transition, upd, y_pred)
 
-    (_, total), collected = jax.lax.scan(step, (parts.initial, jnp.zeros((), dtype=jnp.float64)), parts.rows,
-                                         length=n_rows)
-    return collected if accumulate is None else total
+    def step_by_step(state, rows, length):
+        (state, total), collected = jax.lax.scan(step, (state, jnp.zeros((), dtype=jnp.float64)), rows,
+                                                 length=length)
+        return state, total, collected
+
+    if parts.steady is None or n_rows < steady_form.MIN_ROWS:
+        _, total, collected = step_by_step(parts.initial, parts.rows, n_rows)
+        return collected if accumulate is None else total
+    return scan_chunks(parts, n_rows, step_by_step, collect, accumulate)
 
 
-def make_summed_filter(structure: Structure, options: FilterOptions, per_step: Callable):
+def scan_chunks(parts: FilterSteps, n_rows: int, step_by_step: Callable, collect, accumulate):
+    """:func:`scan_rows` a chunk of rows at a time, each step by step or in the steady state."""
+    model, size = parts.steady, steady_form.CHUNK
+    steady = steady_form.steady_state(model)
+
+    def chunk(carry, rows):
+        state, total, settled = carry
+        regular = settled & jnp.all(rows.dt_index == model.regular_index) & jnp.all(rows.mask > 0)
+
+        def in_steady_state(_):
+            outputs, end = steady_form.steady_rows(model, steady, state[0], rows)
+            if accumulate is not None:
+                return (end, total + jnp.sum(jax.vmap(accumulate)(outputs[3].terms)), jnp.asarray(True)), None
+            return (end, total, jnp.asarray(True)), jax.vmap(collect)(*outputs)
+
+        def ordinary(_):
+            end, chunk_total, collected = step_by_step(state, rows, size)
+            return (end, total + chunk_total, steady_form.at_steady_state(end[1], model.form, steady)), collected
+
+        return jax.lax.cond(regular, in_steady_state, ordinary, None)
+
+    count = n_rows // size
+    head = jax.tree_util.tree_map(lambda a: a[:count * size].reshape(count, size, *a.shape[1:]), parts.rows)
+    tail = jax.tree_util.tree_map(lambda a: a[count * size:], parts.rows)
+    start = (parts.initial, jnp.zeros((), dtype=jnp.float64), jnp.asarray(False))
+    (state, total, _), collected = jax.lax.scan(chunk, start, head)
+    _, tail_total, tail_collected = step_by_step(state, tail, n_rows - count * size)
+    if accumulate is not None:
+        return total + tail_total
+    return jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a.reshape(-1, *a.shape[2:]), b]),
+                                  collected, tail_collected)
+
+
+def make_summed_filter(structure: Structure, options: FilterOptions, per_step: Callable, steady: bool = True):
     """``run(theta, data) -> Σ_k per_step(StepTerms_k)``, summed in the scan's carry.
 
     Nothing is stored per step, so the memory of the value and of its forward
-    derivatives does not grow with the length of the series.
+    derivatives does not grow with the length of the series.  ``steady`` as in
+    :func:`filter_steps`.
     """
-    build = filter_steps(structure, options)
+    build = filter_steps(structure, options, steady)
 
     def run(theta, data: FilterInputs):
         return scan_rows(build(theta, data), data.t.shape[0], None, accumulate=per_step)

@@ -15,7 +15,8 @@ import sympy as sp
 from ..errors import ModelError
 from .delays import find_delays
 from .equations import TIME, is_wiener_name
-from .structure import InitialCovariance, Structure, classify, lambdify_model, lambdify_parameters
+from .structure import (InitialCovariance, Structure, classify, lambdify_model, lambdify_parameters,
+                        observation_is_constant)
 
 
 def build_structure(model) -> Structure:
@@ -118,6 +119,9 @@ def build_structure(model) -> Structure:
         observation_covariance=None if correlation is None else lambdify_model(
             [e.xreplace(replace) for row in correlation for e in row], *args, (s, s)),
         delays=delayed,
+        constant_observation=observation_is_constant(
+            h_mat, [*variance, *([] if correlation is None else [e for row in correlation for e in row])],
+            state_syms, input_syms),
     )
 
 

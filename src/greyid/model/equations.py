@@ -167,7 +167,8 @@ def parse_system_equation(text: str) -> SystemEquation:
     rhs = parse_expression(rhs_text, f"system equation '{text}'")
     wieners = sorted((s for s in rhs.free_symbols if is_wiener_name(s.name)), key=lambda s: s.name)
     differentials = [DT, *wieners]
-    if DT not in rhs.free_symbols:
+    # '0*dt' (a state without drift) is 0 to SymPy: the text still says dt.
+    if DT not in rhs.free_symbols and DT.name not in _names_in(rhs_text, where)[0]:
         raise ModelError(f"system equation '{text}' has no '*dt' term (write '0*dt' for a state without drift)")
     rest = rhs.subs({d: 0 for d in differentials})
     if sp.simplify(rest) != 0:

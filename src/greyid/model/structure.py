@@ -64,6 +64,9 @@ class Structure:
     #: The model's ``delay(u, tau)`` terms (:class:`~greyid.model.delays.DelayedInput`), each an
     #: extra input of the functions above, after the data's inputs.
     delays: tuple = ()
+    #: Whether ∂h/∂x and the outputs' noise depend on neither inputs nor time (a linear
+    #: model's filter then has a steady state at a constant sampling interval).
+    constant_observation: bool = False
     #: Compiled filters and simulators for this structure, keyed by their settings.
     cache: dict = field(default_factory=dict, compare=False, repr=False)
 
@@ -138,6 +141,13 @@ def classify(drift: sp.Matrix, diffusion: sp.Matrix, observation: sp.Matrix, var
     if any(e.free_symbols & varying for e in constant):
         return LTV
     return LTI
+
+
+def observation_is_constant(observation: sp.Matrix, variances: list, states, inputs) -> bool:
+    """Whether ∂h/∂x and the noise variances (or covariances) are free of states, inputs and time."""
+    varying = set(states) | set(inputs) | {TIME}
+    c = observation.jacobian(sp.Matrix(states))
+    return not any(sp.sympify(e).free_symbols & varying for e in [*c, *variances])
 
 
 def lambdify_model(exprs, states, inputs, parameters, shape) -> ModelFunction:

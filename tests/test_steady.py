@@ -1,0 +1,179 @@
+"""The steady-state form of the exact Kalman filter on long regular series (filters/steady.py).
+
+References: the Riccati recursion iterated to convergence, the mean recursion
+step by step, and the ordinary filter (steady form switched off) on the same
+series — with missing values, an irregular interval, both holds, both covariance
+forms and correlated output noise.  The series are made long relative to
+chunks made short for the tests.
+"""
+
+import collections
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+import pytest
+
+from conftest import random_linear_model_spec, random_linear_parameters
+from greyid.estimate.criteria import step_criterion
+from greyid.filters import steady
+from greyid.filters.api import filter_options, prepare_datasets, sampling_intervals
+from greyid.filters.core import make_summed_filter
+from test_correlated_noise import TRUE as CORRELATED_TRUE, correlated_model
+
+N_ROWS = 1400
+
+
+@pytest.fixture
+def short_chunks(monkeypatch):
+    """Chunks of 64 rows from 512 rows on; counts the chunks run in the steady state."""
+    monkeypatch.setattr(steady, "MIN_ROWS", 512)
+    monkeypatch.setattr(steady, "CHUNK", 64)
+    counts = collections.Counter()
+    rows = steady.steady_rows
+
+    def counted(*args):
+        jax.debug.callback(lambda: counts.update(["steady"]))
+        return rows(*args)
+
+    monkeypatch.setattr(steady, "steady_rows", counted)
+    return counts
+
+
+def step_by_step(monkeypatch):
+    monkeypatch.setattr(steady, "MIN_ROWS", 10**12)
+
+
+def test_riccati_solution_is_the_recursion_s_limit():
+    rng = np.random.default_rng(0)
+    n, m = 3, 2
+    Phi = rng.normal(size=(n, n))
+    Phi *= 0.97 / np.max(np.abs(np.linalg.eigvals(Phi)))
+    G = rng.normal(size=(n, n))
+    Q, C = G @ G.T * 0.1, rng.normal(size=(m, n))
+    W = rng.normal(size=(m, m))
+    S = W @ W.T * 0.05 + 0.01 * np.eye(m)
+    P = Q.copy()
+    for _ in range(20000):
+        P = Phi @ P @ Phi.T - Phi @ P @ C.T @ np.linalg.solve(C @ P @ C.T + S, C @ P @ Phi.T) + Q
+    solution = np.asarray(steady.riccati_solution(*map(jnp.asarray, (Phi, Q, C, S))))
+    np.testing.assert_allclose(solution, P, rtol=1e-11, atol=1e-14)
+
+
+def test_linear_recursion_is_the_loop():
+    rng = np.random.default_rng(1)
+    n, rows = 3, 5 * steady.BLOCK
+    F = rng.normal(size=(n, n)) * 0.4
+    v, start = rng.normal(size=(rows, n)), rng.normal(size=n)
+    x, expected = start, []
+    for r in range(rows):
+        x = F @ x + v[r]
+        expected.append(x)
+    np.testing.assert_allclose(np.asarray(steady.linear_recursion(jnp.asarray(F), jnp.asarray(v),
+                                                                  jnp.asarray(start))),
+                               np.array(expected), rtol=1e-12, atol=1e-12)
+
+
+def linear_series(seed=2, missing=True, gap=True):
+    """A regular series of the random linear model, with a stretch of missing outputs and a gap."""
+    rng = np.random.default_rng(seed)
+    model = random_linear_model_spec()
+    params, _ = random_linear_parameters(rng)
+    t = np.arange(N_ROWS) * 0.5
+    if gap:
+        t[900:] += 0.25  # one interval of 0.75
+    frame = pd.DataFrame({"t": t, "u1": rng.normal(size=N_ROWS), "u2": np.sin(t / 7)})
+    simulated = model.simulate(params, frame, method="exact", seed=seed).outputs[0]
+    frame["y1"], frame["y2"] = simulated[:, 0], simulated[:, 1]
+    if missing:
+        frame.loc[700:705, "y1"] = np.nan
+        frame.loc[650, "y2"] = np.nan
+    return params, frame
+
+
+@pytest.mark.parametrize("hold, form", [("zoh", "sqrt"), ("foh", "plain")])
+def test_steady_state_filter_equals_the_ordinary_filter(monkeypatch, short_chunks, hold, form):
+    params, frame = linear_series()
+    fast = random_linear_model_spec().filter(params, frame, hold=hold, form=form)
+    assert short_chunks["steady"] >= 10  # most chunks ran in the steady state
+    step_by_step(monkeypatch)
+    exact = random_linear_model_spec().filter(params, frame, hold=hold, form=form)
+    assert np.isclose(fast.loglik_terms.sum(), exact.loglik_terms.sum(), rtol=0, atol=1e-8)
+    np.testing.assert_allclose(fast.loglik_terms, exact.loglik_terms, atol=1e-10)
+    np.testing.assert_allclose(fast.filtered, exact.filtered, atol=1e-9)
+    np.testing.assert_allclose(fast.predicted, exact.predicted, atol=1e-9)
+    np.testing.assert_allclose(fast.filtered_cov, exact.filtered_cov, atol=1e-12)
+    np.testing.assert_allclose(fast.innovation_cov, exact.innovation_cov, atol=1e-12)
+    np.testing.assert_allclose(fast.innovations.fillna(0), exact.innovations.fillna(0), atol=1e-9)
+
+
+def summed_criterion(model, params, frame, robust=None):
+    structure = model.structure
+    theta = model.parameter_vector(params)
+    (_, inputs), = prepare_datasets(structure, theta, frame, "t", "zoh", None)
+    run = make_summed_filter(structure, filter_options(structure, None),
+                             lambda terms: step_criterion(terms, robust))
+    return jnp.asarray(theta), lambda th: run(th, inputs)
+
+
+def test_steady_state_derivatives_equal_the_ordinary_filter_s(monkeypatch, short_chunks):
+    params, frame = linear_series(seed=4)
+    theta, fast = summed_criterion(random_linear_model_spec(), params, frame)
+    fast_value, fast_gradient = jax.value_and_grad(fast)(theta)
+    fast_forward = jax.jacfwd(fast)(theta)
+    assert short_chunks["steady"] >= 10
+    step_by_step(monkeypatch)
+    _, exact = summed_criterion(random_linear_model_spec(), params, frame)
+    value, gradient = jax.value_and_grad(exact)(theta)
+    assert abs(float(fast_value - value)) < 1e-8
+    scale = np.max(np.abs(gradient))
+    np.testing.assert_allclose(fast_gradient, gradient, atol=1e-8 * scale)
+    np.testing.assert_allclose(fast_forward, gradient, atol=1e-8 * scale)
+
+
+def test_correlated_noise_and_robust_criterion(monkeypatch, short_chunks):
+    rng = np.random.default_rng(5)
+    t = np.arange(N_ROWS) * 0.4
+    frame = pd.DataFrame({"t": t, "u": rng.normal(size=N_ROWS)})
+    simulated = correlated_model().simulate(CORRELATED_TRUE, frame, method="exact", seed=5).outputs[0]
+    frame["y1"], frame["y2"] = simulated[:, 0], simulated[:, 1]
+    results = []
+    for robust in (None, ("huber", 1.5)):
+        theta, fast = summed_criterion(correlated_model(), CORRELATED_TRUE, frame, robust)
+        results.append(float(fast(theta)))
+    assert short_chunks["steady"] >= 20
+    step_by_step(monkeypatch)
+    for robust, value in zip((None, ("huber", 1.5)), results):
+        theta, exact = summed_criterion(correlated_model(), CORRELATED_TRUE, frame, robust)
+        assert abs(value - float(exact(theta))) < 1e-8
+
+
+def test_no_steady_state_without_one(monkeypatch, short_chunks):
+    """A random walk nobody observes has no steady state: every chunk runs step by step."""
+    import greyid
+
+    model = greyid.Model("unobserved_walk")
+    model.add_system("dx1 = -a*x1*dt + s*dw1", "dx2 = 0*dt + s*dw2")
+    model.add_observation("y = x1", variance="r")
+    model.set_initial_state(mean={"x1": 0.0, "x2": 0.0}, covariance=[[1.0, 0.0], [0.0, 1.0]])
+    params = dict(a=0.5, s=0.3, r=0.1)
+    frame = pd.DataFrame({"t": np.arange(N_ROWS) * 0.5,
+                          "y": np.random.default_rng(6).normal(size=N_ROWS)})
+    value = model.loglik(params, frame)
+    assert short_chunks["steady"] == 0
+    step_by_step(monkeypatch)
+    other = greyid.Model.from_dict(model.to_dict())
+    assert other.loglik(params, frame) == pytest.approx(value, abs=1e-9)
+
+
+def test_sampling_intervals_merge_rounding_only():
+    t = np.arange(300_000) / 3.0
+    dt = np.concatenate([[0.0], np.diff(t)])
+    assert len(np.unique(np.diff(t))) > 1  # the stored times differ in their last digits
+    merged = sampling_intervals(dt, t)
+    assert set(np.unique(merged)) == {0.0, np.unique(merged)[1]}
+    assert abs(np.unique(merged)[1] - 1 / 3) < 1e-10
+    steadily = np.cumsum(np.linspace(1.0, 1.0 + 1e-6, 1000))  # intervals that really vary
+    dt2 = np.concatenate([[0.0], np.diff(steadily)])
+    assert len(np.unique(sampling_intervals(dt2, steadily))) > 500
