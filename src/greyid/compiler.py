@@ -51,7 +51,7 @@ class Jitted:
         leaves, tree = jax.tree_util.tree_flatten(args)
         key = (tree, tuple((np.shape(a), a.dtype if hasattr(a, "dtype") else np.result_type(a)) for a in leaves))
         if key not in self.executables:
-            self.executables[key] = self.top.lower(*args).compile()
+            self.executables[key] = self.top.lower(*args).compile(compiler_options())
         return self.executables[key]
 
 
