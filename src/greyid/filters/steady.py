@@ -70,7 +70,9 @@ def riccati_solution(transition, noise, C, S):
     The control-form iteration of Chu, Fan and Lin (2005) on the dual problem
     (A = Φᵀ, G = CᵀS⁻¹C, H = Λ): Hₖ is the covariance after 2ᵏ steps of the
     recursion from P = Λ, so it converges quadratically once the filter's
-    closed loop is stable.  NaN where it does not converge (no steady state).
+    closed loop is stable.  Where there is no steady state (a mode that is
+    neither stable nor observed) the result is meaningless or NaN: the carried
+    covariance never equals it, so no chunk switches (:func:`at_steady_state`).
     """
     n = transition.shape[0]
     eye = jnp.eye(n)
@@ -87,6 +89,7 @@ def riccati_solution(transition, noise, C, S):
 
 
 def steady_state(model: SteadyModel) -> SteadyState:
+    """P∞ and the constant gain, innovation covariance (4.28–4.29) and filtered covariance of the steady state."""
     P = riccati_solution(model.disc.transition, model.disc.noise_covariance, model.C, model.noise)
     PCt = P @ model.C.T
     R = symmetrize(model.C @ PCt + model.noise)
