@@ -94,6 +94,8 @@ def build_structure(model) -> Structure:
     f_mat, g_mat = sp.Matrix(drift), sp.Matrix(diffusion) if noise_names else sp.zeros(len(states), 0)
     h_mat, s_mat = sp.Matrix(observation), sp.Matrix(variance)
     kind = classify(f_mat, g_mat, h_mat, s_mat, state_syms, input_syms)
+    # The outputs' noise covariances where they are correlated, delays replaced as above.
+    covariances = [] if correlation is None else [e.xreplace(replace) for row in correlation for e in row]
     n, m, s = len(states), len(noise_names), len(outputs)
     args = (state_syms, input_syms, param_syms)
     flat_g = [g for row in diffusion for g in row]
@@ -116,12 +118,9 @@ def build_structure(model) -> Structure:
         initial_mean=lambdify_parameters(mean_exprs, param_syms, (n,)),
         initial_covariance=initial_cov,
         equations=dict(drift=f_mat, diffusion=g_mat, observation=h_mat, variance=s_mat),
-        observation_covariance=None if correlation is None else lambdify_model(
-            [e.xreplace(replace) for row in correlation for e in row], *args, (s, s)),
+        observation_covariance=None if correlation is None else lambdify_model(covariances, *args, (s, s)),
         delays=delayed,
-        constant_observation=observation_is_constant(
-            h_mat, [*variance, *([] if correlation is None else [e for row in correlation for e in row])],
-            state_syms, input_syms),
+        constant_observation=observation_is_constant(h_mat, [*variance, *covariances], state_syms, input_syms),
     )
 
 
