@@ -2,12 +2,18 @@
 
 from __future__ import annotations
 
-import numpy as np
-import pytest
-import scipy.linalg as sl
-from scipy.stats import multivariate_normal
+import os
 
-import greyid
+# Tests replace greyid's functions and constants at run time, which the keys of programs kept
+# on disk do not see (greyid.programs): keep none, except where test_programs.py switches it on.
+os.environ["GREYID_PROGRAMS"] = "off"
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+import scipy.linalg as sl  # noqa: E402
+from scipy.stats import multivariate_normal  # noqa: E402
+
+import greyid  # noqa: E402
 
 
 def random_linear_model_spec(n=3, nu=2, ny=2, nw=2):

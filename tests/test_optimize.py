@@ -102,3 +102,29 @@ def test_coordinate_without_curvature_at_the_start_still_moves():
     opt = newton_trust_region(derivatives(f), z0, maxiter=500)
     assert opt.converged, opt.message
     np.testing.assert_allclose(opt.z, [1.0, 0.0], atol=1e-8)
+
+
+def test_quasi_newton_from_a_nearby_hessian_reaches_the_exact_minimum_on_gradients_alone():
+    """Warm start near the optimum with the Hessian of another point (as a profile's refits have):
+    BFGS steps ask only for values and gradients and reach Newton's minimum (1e-9)."""
+    from greyid.estimate.optimize import EXACT, GRADIENT, Search, run_alone
+
+    def f(z):  # smooth, non-quadratic, minimum near (1, -0.5, 2)
+        return (jnp.sum(jnp.exp(0.3 * (z - jnp.array([1.0, -0.5, 2.0]))) - 0.3 * z)
+                + 0.5 * (z[0] - z[1]) ** 2 + 0.1 * (z[1] * z[2]) ** 2)
+
+    exact = derivatives(f)
+    reference = newton_trust_region(exact, np.zeros(3))
+    asked = []
+
+    def gradient(z):
+        asked.append(GRADIENT)
+        return f(z), jax.grad(f)(z)
+
+    start = reference.z + np.array([0.3, -0.2, 0.25])
+    search = Search(start, maxiter=50, hessian=np.asarray(exact(reference.z + 0.5)[2]))
+    quasi = run_alone(search, {GRADIENT: gradient, EXACT: lambda z: pytest.fail("an exact Hessian was asked")})
+    assert reference.converged and quasi.converged
+    np.testing.assert_allclose(quasi.z, reference.z, atol=1e-5)  # decrement 1e-12: z to ~1e-5 here
+    assert quasi.value == pytest.approx(reference.value, abs=1e-9)
+    assert len(asked) <= 15

@@ -5,15 +5,21 @@ settings live in one place.  On CPUs, XLA's newer fusion emitters take about
 twice as long to compile a filter's scan as the classic ones and run it no
 faster (measured on the test-cell and Armadillo models, ``benchmarks/fit.py``),
 and compile time is most of a first fit.
+
+A function given a ``key`` — a description of everything its program depends
+on besides its arguments' shapes — also keeps its traced program on disk
+(:mod:`greyid.programs`), so that a later process skips tracing it.
 """
 
 from __future__ import annotations
 
 import functools
+from typing import Callable
 
 from . import _jax  # noqa: F401  (64-bit JAX before any JAX work)
 import jax
-import numpy as np
+
+from . import programs
 
 
 @functools.cache
@@ -28,18 +34,25 @@ class Jitted:
 
     JAX accepts compiler options only on an outermost ``jit``; called inside
     another traced function (its arguments are tracers), the plain jitted
-    function is used and the outer one's options apply.
+    function is used and the outer one's options apply.  With a ``key``, a
+    top-level call runs the program of :meth:`executable`, loaded from disk
+    where an earlier process kept it.
     """
 
-    def __init__(self, fun, **kwargs):
+    def __init__(self, fun, key=None, **kwargs):
         functools.update_wrapper(self, fun)
         self.top = jax.jit(fun, compiler_options=compiler_options(), **kwargs)
         self.nested = jax.jit(fun, **kwargs)
+        self.key = key if not kwargs else None  # static arguments would need their values in the key
         self.executables: dict = {}  # see executable()
 
     def __call__(self, *args, **kwargs):
-        traced = any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves((args, kwargs)))
-        return (self.nested if traced else self.top)(*args, **kwargs)
+        leaves = jax.tree_util.tree_leaves((args, kwargs))
+        if any(isinstance(a, jax.core.Tracer) for a in leaves):
+            return self.nested(*args, **kwargs)
+        if self.key is not None and not kwargs and programs.enabled():
+            return self.executable(*args)(*args)
+        return self.top(*args, **kwargs)
 
     def executable(self, *args):
         """The program compiled ahead of time for these arguments' shapes and types, kept.
@@ -49,12 +62,28 @@ class Jitted:
         repeat) the compilation.
         """
         leaves, tree = jax.tree_util.tree_flatten(args)
-        key = (tree, tuple((np.shape(a), a.dtype if hasattr(a, "dtype") else np.result_type(a)) for a in leaves))
-        if key not in self.executables:
-            self.executables[key] = self.top.lower(*args).compile(compiler_options())
-        return self.executables[key]
+        signature = (tree, tuple(jax.typeof(a) for a in leaves))
+        if signature not in self.executables:
+            kept = programs.load_or_export(self, args) if self.key is not None and programs.enabled() else None
+            self.executables[signature] = kept or self.top.lower(*args).compile(compiler_options())
+        return self.executables[signature]
 
 
-def jit(fun, **kwargs) -> Jitted:
-    """``jax.jit`` with greyid's compiler options."""
-    return Jitted(fun, **kwargs)
+def jit(fun, key=None, **kwargs) -> Jitted:
+    """``jax.jit`` with greyid's compiler options; ``key`` keeps the traced program on disk."""
+    return Jitted(fun, key=key, **kwargs)
+
+
+def structure_program(structure, key: tuple, make: Callable, **kwargs) -> Jitted:
+    """The jitted ``make()`` for one model structure and settings ``key``, built once per structure.
+
+    ``key`` must name every setting ``make`` closes over besides the structure:
+    with the structure's fingerprint (models written as equations) it is also
+    the program's key on disk.
+    """
+    if key not in structure.cache:
+        fun = make()
+        fun = getattr(fun, "__wrapped__", fun) if isinstance(fun, Jitted) else fun
+        disk = None if getattr(structure, "fingerprint", None) is None else ("structure", structure.fingerprint, key)
+        structure.cache[key] = jit(fun, key=disk, **kwargs)
+    return structure.cache[key]

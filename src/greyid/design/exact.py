@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..compiler import jit
+from ..compiler import structure_program
 from ..filters.core import KALMAN, FilterInputs, FilterOptions, filter_steps
 from ..filters.predictors import linearized_observation
 
@@ -38,7 +38,7 @@ def _observation_noise(structure, x, u, t, theta):
 
 
 def make_exact_information(structure, index: tuple[int, ...]):
-    """A jitted ``information(theta, data) -> F`` (p × p, natural parameters θ[index])."""
+    """The function ``information(theta, data) -> F`` (p × p, natural parameters θ[index])."""
     build = filter_steps(structure, FilterOptions(KALMAN, form="plain"))
     n, m, p = structure.n_states, len(structure.output_names), len(index)
     h = structure.observation
@@ -137,12 +137,11 @@ def make_exact_information(structure, index: tuple[int, ...]):
         (_, _, _, _, F), _ = jax.lax.scan(step, carry, (truth.rows, moving_dot))
         return 0.5 * (F + F.T)
 
-    return jit(information)
+    return information
 
 
 def exact_information(structure, theta: np.ndarray, data: FilterInputs, index: tuple[int, ...]) -> np.ndarray:
     """F for the parameters θ[index] of a linear model on one prepared plan (see the module doc)."""
-    key = ("exact_information", tuple(index))
-    if key not in structure.cache:
-        structure.cache[key] = make_exact_information(structure, tuple(index))
-    return np.asarray(structure.cache[key](jnp.asarray(theta, dtype=jnp.float64), data))
+    program = structure_program(structure, ("exact_information", tuple(index)),
+                                lambda: make_exact_information(structure, tuple(index)))
+    return np.asarray(program(jnp.asarray(theta, dtype=jnp.float64), data))

@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..compiler import jit
+from ..compiler import structure_program
 from ..errors import ModelError
 from ..filters.api import compiled_filter, filter_options, prepare_datasets
 from .criteria import log_criterion
@@ -69,9 +69,11 @@ def _compiled(structure, options, index: tuple[int, ...]):
 
         hessian = hessian_rows(total, forward_hessian(options.method, len(index)))
         eye = jnp.eye(len(index))
-        structure.cache[key] = (jit(forward_value_and_grad(total)),
-                                jit(lambda sub, base, data: hessian(sub, eye, base, data)[2]),
-                                jit(jax.jacfwd(step_logliks)), jit(fisher))
+        structure.cache[key] = tuple(
+            structure_program(structure, (*key, name), lambda: fun) for name, fun in (
+                ("value_and_grad", forward_value_and_grad(total)),
+                ("hessian", lambda sub, base, data: hessian(sub, eye, base, data)[2]),
+                ("step_scores", jax.jacfwd(step_logliks)), ("fisher", fisher)))
     return structure.cache[key]
 
 

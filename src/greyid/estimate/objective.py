@@ -163,13 +163,21 @@ def build(structure, problem: Problem) -> Programs:
         return step_criterion(terms(theta, data), problem.robust, kappa)
 
     forward = forward_hessian(problem.options.method, len(problem.free)) or problem.long_series
+
+    def kept(name):
+        """The key under which a program is kept on disk (greyid.programs): None for Python-function models."""
+        if structure.fingerprint is None:
+            return None
+        return ("objective", name, structure.fingerprint, problem.key(), problem.prior_index, forward)
+
     scoring = None
     if problem.horizon == 1 and problem.robust is None:
-        scoring = jit(expected_information(structure, problem, kinds))
+        scoring = jit(expected_information(structure, problem, kinds), key=kept("scoring"))
     # Per-step scores (rows: steps, columns: ∂/∂z), forward mode: nothing stored per step.
-    return Programs(jit(hessian_rows(negative_of(exact_criterion), forward)), jit(negative),
-                    jit(jax.jacfwd(contributions)),
-                    jit(forward_value_and_grad(negative)), scoring)
+    return Programs(jit(hessian_rows(negative_of(exact_criterion), forward), key=kept("derivatives")),
+                    jit(negative, key=kept("value")),
+                    jit(jax.jacfwd(contributions), key=kept("step_scores")),
+                    jit(forward_value_and_grad(negative), key=kept("value_and_grad")), scoring)
 
 
 def observed_innovations(innovation, innovation_cov, mask):

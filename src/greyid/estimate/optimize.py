@@ -181,7 +181,7 @@ def _crawling(gains: list[float]) -> bool:
 
 
 #: Kinds of evaluation a search asks for: (f, g, H) exact, (f, g, F) scoring, (f,) value.
-EXACT, SCORING, VALUE = "exact", "scoring", "value"
+EXACT, SCORING, VALUE, GRADIENT = "exact", "scoring", "value", "gradient"
 
 
 def settle(outputs) -> tuple[tuple, bool]:
@@ -204,13 +204,14 @@ class Search:
 
     def __init__(self, z0: np.ndarray, maxiter: int = 500, report: Callable = _no_report,
                  scoring: bool = False, value: bool = False, handover: float = HANDOVER_DECREASE,
-                 step_limit: np.ndarray | float = np.inf):
+                 step_limit: np.ndarray | float = np.inf, hessian: np.ndarray | None = None):
         self.z = np.asarray(z0, dtype=float)
         self.f, self.iterations = np.inf, 0
         self.gradient = self.hessian = None
         self.history: list[float] = []  # the criterion after each accepted step
         self.maxiter, self.report, self.scoring, self.value = maxiter, report, scoring, value
         self.handover, self.step_limit = handover, step_limit
+        self.initial_hessian = None if hessian is None else np.array(hessian, dtype=float)
         self.evaluations = 0
         self.stage = SCORING if scoring else "newton"
 
@@ -233,10 +234,36 @@ class Search:
         scoring steps).  With value evaluations a Newton trial point (or a scoring
         one after a rejection) is judged on its value first, the derivatives taken
         only where it is accepted.
+
+        With ``hessian`` (a Hessian approximation at or near the start) the search is
+        quasi-Newton: it asks for values and gradients only (kind GRADIENT) and
+        updates the approximation by BFGS after each accepted step, for warm starts
+        near the optimum whose Hessian barely changes (the refits of a profile).
         """
-        ask, step_limit, report = self._ask, self.step_limit, self.report
+        step_limit, report = self.step_limit, self.report
         current = SCORING if self.scoring else EXACT
         stage = "newton" if current == EXACT else "scoring"
+        quasi = self.initial_hessian
+        if quasi is not None:
+            current, stage, self.stage = GRADIENT, "quasi-newton", "quasi-newton"
+            # BFGS keeps a positive definite approximation so, and only so: |eigenvalues|.
+            w0, V0 = np.linalg.eigh(0.5 * (quasi + quasi.T))
+            top = max(float(np.max(np.abs(w0))), 1e-300)
+            quasi = (V0 * np.maximum(np.abs(w0), SINGULAR * top)) @ V0.T
+
+        def ask(kind, z):
+            if kind != GRADIENT:
+                return (yield from self._ask(kind, z))
+            (f, g), finite = yield from self._ask(kind, z)
+            return (f, g, quasi), finite
+
+        def updated(H, p, g_old, g_new):
+            """BFGS: the approximation made to map the step p onto the change of gradient."""
+            y, Hp = np.asarray(g_new) - np.asarray(g_old), H @ p
+            if y @ p <= 1e-12 * np.linalg.norm(y) * np.linalg.norm(p) or p @ Hp <= 0:
+                return H  # no curvature information along p: keep H positive definite
+            return H - np.outer(Hp, Hp) / (p @ Hp) + np.outer(y, y) / (y @ p)
+
         z = self.z
         (f, g, H), finite = yield from ask(current, z)
         if not finite:
@@ -312,7 +339,7 @@ class Search:
             predicted = -(g @ p + 0.5 * p @ (H @ p))
             # Judge by the value alone where a rejection is likely to waste the derivatives:
             # exact Newton steps (costly), or scoring steps after a rejection.
-            judged = self.value and (stage == "newton" or rejected)
+            judged = self.value and (stage == "newton" or rejected) and quasi is None
             if judged:
                 (f_new,), finite = yield from ask(VALUE, z + p)
             else:
@@ -338,6 +365,8 @@ class Search:
                 slow = slow + 1 if interior and actual > SLOW_RATIO * last_decrease else 0
                 last_decrease = actual
                 gains.append(actual)
+                if quasi is not None:
+                    quasi = H_new = updated(H, p, g, g_new)
                 z, f, g, H = z + p, float(f_new), g_new, H_new
                 d, w, V = eigen(H)
                 iterations += 1
@@ -353,6 +382,8 @@ class Search:
                     if finite and float(f_try) < f:
                         last_decrease = f - float(f_try)
                         gains.append(last_decrease)
+                        if quasi is not None:
+                            quasi = H_try = updated(H, jump, g, g_try)
                         z, f, g, H = z + jump, float(f_try), g_try, H_try
                         d, w, V = eigen(H)
                         iterations += 1

@@ -18,8 +18,11 @@ from ..filters.api import prepare_datasets
 from . import objective
 from .estimation import FreeParameters, make_problem, new_search, single_programs, uses_scoring
 from .objective import compiled
-from .optimize import VALUE, Optimum, run_alone
+from .optimize import EXACT, GRADIENT, VALUE, Optimum, run_alone
 from .transforms import Transform
+
+#: Quasi-Newton steps a refit takes before exact Newton steps take over (see Refit.optimum).
+QUASI_NEWTON_STEPS = 12
 
 
 def fit_data(fit) -> list:
@@ -112,22 +115,44 @@ class Refit:
                 out = full[kind](self.z_full(z, held_values))
                 if kind == VALUE:
                     return out
+                if kind == GRADIENT:
+                    return out[0], np.asarray(out[1])[keep]
                 f, g, H = out
                 return f, np.asarray(g)[keep], np.asarray(H)[np.ix_(keep, keep)]
             return evaluate
 
         programs = {kind: restricted(kind) for kind in full}
-        # Warm starts lie near their optimum: Newton steps (scoring only on long series).
-        search = new_search(self.problem, z0, self.maxiter, lambda *a: None,
-                            self.scoring and self.problem.long_series)
-        search.step_limit = search.step_limit[keep] if np.ndim(search.step_limit) else search.step_limit
-        return run_alone(search, programs)
+
+        def search_from(z, hessian=None):
+            search = new_search(self.problem, z, self.maxiter if hessian is None else QUASI_NEWTON_STEPS,
+                                lambda *a: None, self.scoring and self.problem.long_series and hessian is None)
+            search.step_limit = search.step_limit[keep] if np.ndim(search.step_limit) else search.step_limit
+            search.initial_hessian = hessian
+            return run_alone(search, programs)
+
+        # Warm starts lie near their optimum, where the Hessian changes little: quasi-Newton
+        # steps from the fit's Hessian, each a gradient's cost; exact Newton steps (scoring
+        # on long series) finish where they do not converge within QUASI_NEWTON_STEPS.
+        quick = search_from(z0, self.hessian()[np.ix_(keep, keep)])
+        if quick.converged:
+            return quick
+        slow = search_from(quick.z if np.isfinite(quick.value) else z0)
+        return replace(slow, iterations=quick.iterations + slow.iterations,
+                       evaluations=quick.evaluations + slow.evaluations)
+
+    def hessian(self) -> np.ndarray:
+        """The criterion's exact Hessian at the fit's estimate, in the fit's coordinates (computed once)."""
+        if getattr(self, "_hessian", None) is None:
+            self._hessian = np.asarray(self.programs()[EXACT](self.z_full_hat)[2])
+        return self._hessian
 
     def programs(self) -> dict:
         """The fit's programs with their threads, opened once for every refit (closed by :meth:`close`)."""
         if getattr(self, "_programs", None) is None:
             self._stack = ExitStack()
             self._programs = single_programs(self.structure, self.problem, self.arguments, self._stack)
+            value_and_grad = compiled(self.structure, self.problem).value_and_grad
+            self._programs[GRADIENT] = lambda z: value_and_grad(np.asarray(z, dtype=np.float64), *self.arguments)
         return self._programs
 
     def close(self) -> None:

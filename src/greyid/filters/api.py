@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
-from ..compiler import jit
+from ..compiler import structure_program
 from ..data.prepare import Series, as_frames, prepare_series
 from ..errors import DataError, ModelError
 from ..model.structure import Structure
@@ -131,27 +131,22 @@ def accurate_options(structure: Structure, theta, prepared, method, **options):
 
 def compiled_filter(structure: Structure, options: FilterOptions, keep_outputs: bool | str):
     """The jitted filter for these settings, compiled once per model structure."""
-    key = ("filter", options, keep_outputs)
-    if key not in structure.cache:
-        structure.cache[key] = make_filter(structure, options, keep_outputs)
-    return structure.cache[key]
+    return structure_program(structure, ("filter", options, keep_outputs),
+                             lambda: make_filter(structure, options, keep_outputs))
 
 
 def check_at_parameters(structure: Structure, theta: np.ndarray, series: Series, data: FilterInputs) -> None:
     """Errors that depend on parameter values: negative variances, a bad P0, a delay out of range."""
     check_delays(structure, theta, series.times)
-    key = ("checks",)
-    if key not in structure.cache:
-        def checks(theta, data):
-            data = with_delayed_inputs(structure, theta, data)
-            x0, P0 = initial_state(structure, theta, data)
-            S = jax.vmap(lambda u, t: structure.observation_variance(x0, u, t, theta))(data.u_cur, data.t)
-            full = structure.observation_covariance
-            S_full = None if full is None else jax.vmap(lambda u, t: full(x0, u, t, theta))(data.u_cur, data.t)
-            return S, P0, S_full
+    def checks(theta, data):
+        data = with_delayed_inputs(structure, theta, data)
+        x0, P0 = initial_state(structure, theta, data)
+        S = jax.vmap(lambda u, t: structure.observation_variance(x0, u, t, theta))(data.u_cur, data.t)
+        full = structure.observation_covariance
+        S_full = None if full is None else jax.vmap(lambda u, t: full(x0, u, t, theta))(data.u_cur, data.t)
+        return S, P0, S_full
 
-        structure.cache[key] = jit(checks)
-    S, P0, S_full = structure.cache[key](jnp.asarray(theta), data)
+    S, P0, S_full = structure_program(structure, ("checks",), lambda: checks)(jnp.asarray(theta), data)
     S = np.asarray(S)[: series.n_rows]
     bad = np.argwhere(~(S > 0))
     if len(bad):
@@ -278,12 +273,10 @@ def predict_data(model, params, data, steps=1, time="t", hold="zoh", method=None
     """
     structure, theta, prepared = _prepare(model, params, data, time, hold, time_unit)
     opts = accurate_options(structure, theta, prepared, method, **options)[0]
-    key = ("ahead", opts, int(steps))
-    if key not in structure.cache:
-        structure.cache[key] = make_ahead(structure, opts, int(steps))
+    program = structure_program(structure, ("ahead", opts, int(steps)), lambda: make_ahead(structure, opts, int(steps)))
     frames = []
     for (series, inputs), frame in zip(prepared, as_frames(data)):
-        out = structure.cache[key](jnp.asarray(theta), inputs)
+        out = program(jnp.asarray(theta), inputs)
         n = series.n_rows
         y = np.asarray(out.output_prediction)[:n]
         sd = np.sqrt(np.diagonal(np.asarray(out.output_cov)[:n], axis1=1, axis2=2))
@@ -308,10 +301,9 @@ def predict_draws(model, thetas, data, steps=1, time="t", hold="zoh", method=Non
     thetas = np.asarray(thetas, dtype=np.float64)
     prepared = prepare_datasets(structure, thetas[0], data, time, hold, time_unit)
     opts = accurate_options(structure, thetas[0], prepared, method, **options)[0]
-    key = ("ahead", opts, int(steps), "draws")
-    if key not in structure.cache:
-        structure.cache[key] = jit(jax.vmap(make_ahead(structure, opts, int(steps)), in_axes=(0, None)))
+    program = structure_program(structure, ("ahead", opts, int(steps), "draws"),
+                                lambda: jax.vmap(make_ahead(structure, opts, int(steps)), in_axes=(0, None)))
     series, inputs = prepared[0]
-    out = structure.cache[key](jnp.asarray(thetas), inputs)
+    out = program(jnp.asarray(thetas), inputs)
     n = series.n_rows
     return series, np.asarray(out.output_prediction)[:, :n], np.asarray(out.output_cov)[:, :n]

@@ -9,6 +9,8 @@ class (4.1.4) is found, and every part is lambdified into JAX.
 
 from __future__ import annotations
 
+import hashlib
+
 import numpy as np
 import sympy as sp
 
@@ -104,6 +106,10 @@ def build_structure(model) -> Structure:
         initial_cov = InitialCovariance("matrix", matrix=cov_fn)
     else:
         initial_cov = InitialCovariance(cov, scale=model._initial_scale)
+    fingerprint = structure_fingerprint(
+        states, input_syms, outputs, ordered, noise_names, kind, drift, flat_g, observation, variance,
+        covariances, mean_exprs, cov if isinstance(cov, list) else (cov, model._initial_scale),
+        [(d.name, d.input, d.expression) for d in delayed])
     return Structure(
         state_names=tuple(states),
         input_names=tuple(inputs),
@@ -121,7 +127,24 @@ def build_structure(model) -> Structure:
         observation_covariance=None if correlation is None else lambdify_model(covariances, *args, (s, s)),
         delays=delayed,
         constant_observation=observation_is_constant(h_mat, [*variance, *covariances], state_syms, input_syms),
+        fingerprint=fingerprint,
     )
+
+
+def structure_fingerprint(*parts) -> str:
+    """A hash of the expressions as lambdified and of the names and settings around them.
+
+    ``srepr`` writes every symbol with its assumptions, so equal hashes mean equal
+    model functions.
+    """
+    def text(part):
+        if isinstance(part, sp.Basic):
+            return sp.srepr(part)
+        if isinstance(part, (list, tuple)):
+            return "[" + ", ".join(text(p) for p in part) + "]"
+        return repr(part)
+
+    return hashlib.sha256(text(parts).encode()).hexdigest()
 
 
 def zero_diffusion(n: int):

@@ -67,6 +67,10 @@ class Structure:
     #: Whether ∂h/∂x and the outputs' noise depend on neither inputs nor time (a linear
     #: model's filter then has a steady state at a constant sampling interval).
     constant_observation: bool = False
+    #: A hash of everything the functions above compute (the equations as lambdified, names,
+    #: settings), for programs kept on disk (:mod:`greyid.programs`); None for models of Python
+    #: functions, whose programs are never kept.
+    fingerprint: str | None = field(default=None, compare=False)
     #: Compiled filters and simulators for this structure, keyed by their settings.
     cache: dict = field(default_factory=dict, compare=False, repr=False)
 

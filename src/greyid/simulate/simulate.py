@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from ..data.prepare import Series, check_times, prepare_series
-from ..compiler import jit
+from ..compiler import structure_program
 from ..errors import DataError, ModelError
 from ..filters.api import HOLDS, filter_inputs
 from ..filters.core import initial_state
@@ -113,12 +113,6 @@ def _fine_grid(series, substeps: int, hold: str):
     return fine_t, fine_u
 
 
-def _compiled(structure, key, build):
-    if key not in structure.cache:
-        structure.cache[key] = build()
-    return structure.cache[key]
-
-
 def simulate(model, params, data_or_times, n_paths: int = 1, method: str = "euler", seed: int = 0,
              substeps: int = 10, hold: str = "zoh", calculus: str = "ito", time: str = "t",
              time_unit: str | None = None, noise: bool = True) -> Simulation:
@@ -146,8 +140,8 @@ def simulate(model, params, data_or_times, n_paths: int = 1, method: str = "eule
     # sampling times out of it.
     grid, rows = delayed_grid(structure, theta, series, hold)
     inputs = filter_inputs(grid, hold)
-    start = _compiled(structure, ("simulate", "initial"),
-                      lambda: jit(lambda theta, inputs: initial_state(structure, theta, inputs)))
+    start = structure_program(structure, ("simulate", "initial"),
+                              lambda: lambda theta, inputs: initial_state(structure, theta, inputs))
     x0, P0 = start(theta, inputs)
     key = jax.random.PRNGKey(seed)
     k_init, k_path, k_obs = jax.random.split(key, 3)
@@ -162,9 +156,9 @@ def simulate(model, params, data_or_times, n_paths: int = 1, method: str = "eule
         # Without noise the paths solve the ODE dx = f dt: the Itô–Stratonovich and
         # Milstein corrections belong to the noise and must go with it.
         diffusion = structure.diffusion if noise else _no_diffusion(m)
-        integrate = _compiled(structure, ("simulate", method, calculus, bool(noise)),
-                              lambda: jit(jax.vmap(make_integrator(structure.drift, diffusion, method, calculus),
-                                                       in_axes=(None, 0, None, None, 0))))
+        integrate = structure_program(structure, ("simulate", method, calculus, bool(noise)),
+                                      lambda: jax.vmap(make_integrator(structure.drift, diffusion, method, calculus),
+                                                       in_axes=(None, 0, None, None, 0)))
         dt = np.diff(fine_t)
         dW = scale * jax.random.normal(k_path, (n_paths, len(dt), m)) * jnp.sqrt(jnp.asarray(dt))[None, :, None]
         fine = integrate(theta, init, jnp.asarray(fine_t), jnp.asarray(fine_u), dW)
@@ -172,7 +166,7 @@ def simulate(model, params, data_or_times, n_paths: int = 1, method: str = "eule
     states = states[:, rows, :]
 
     u, t = jnp.asarray(grid.inputs[rows]), jnp.asarray(series.times)
-    observe = _compiled(structure, ("simulate", "observe"), lambda: jit(_make_observe(structure)))
+    observe = structure_program(structure, ("simulate", "observe"), lambda: _make_observe(structure))
     y_mean, S = observe(theta, jnp.asarray(states), u, t)
     if np.any(np.asarray(S) < 0):
         raise ModelError("an observation variance is negative along the simulated paths")
@@ -218,8 +212,8 @@ def _exact_paths(structure, theta, series, foh, init, key, scale=1.0, substeps=1
     """
     z = scale * jax.random.normal(key, (init.shape[0], len(series.times) - 1, structure.n_states))
     varying = structure.kind != LTI
-    run = _compiled(structure, ("simulate", "exact", substeps if varying else 1),
-                    lambda: jit(_make_exact(structure, substeps if varying else None)))
+    run = structure_program(structure, ("simulate", "exact", substeps if varying else 1),
+                            lambda: _make_exact(structure, substeps if varying else None))
     return np.asarray(run(theta, jnp.asarray(series.times), jnp.asarray(series.inputs), foh, init, z))
 
 

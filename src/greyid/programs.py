@@ -1,0 +1,125 @@
+"""Traced programs kept on disk, so that a later process need not trace them again.
+
+Tracing greyid's estimation programs (a filter's scan differentiated twice,
+vectorised over directions) takes most of a first fit's time once XLA's own
+compilation comes from JAX's persistent cache (Armadillo: 0.8 s of tracing
+against 0.3 s of lowering and loading).  A program given a ``key`` is exported
+as StableHLO (``jax.export``) into ``$GREYID_CACHE_DIR/programs`` and a later
+process with the same key loads it instead of tracing.
+
+A kept program must be the one tracing would give, or answers would be
+silently wrong: its file name is a hash of the key (the model's equations and
+every setting the program closes over, see
+:attr:`greyid.model.structure.Structure.fingerprint`), the arguments' shapes
+and types, greyid's source files and JAX's version and backend.  A process
+that replaces greyid's functions or constants at run time (the test suite
+does) must set ``GREYID_PROGRAMS=off``: the key does not see such changes.  A
+program that cannot be exported (a host callback, say) or a file that cannot
+be read or written is simply traced, as without this cache.  The files are
+Python pickles of JAX's serialized programs, read only from greyid's own
+cache folder.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import os
+import pickle
+import tempfile
+from pathlib import Path
+
+from . import _jax
+import jax
+
+#: Bump to invalidate every kept program (a change in how they are stored).
+FORMAT = 2
+
+
+def folder() -> Path | None:
+    """Where programs are kept, or None where greyid's cache is switched off."""
+    base = _jax.cache_dir()
+    return None if base is None else Path(base) / "programs"
+
+
+def enabled() -> bool:
+    """Whether programs are kept: greyid's cache is on and ``GREYID_PROGRAMS`` is not ``off``."""
+    return folder() is not None and os.environ.get("GREYID_PROGRAMS", "on").lower() not in OFF
+
+
+OFF = ("off", "0", "no", "false")
+
+
+@functools.cache
+def source_hash() -> str:
+    """A hash of greyid's source files and of the JAX that traces them."""
+    digest = hashlib.sha256()
+    root = Path(__file__).resolve().parent
+    for path in sorted(root.rglob("*.py")):
+        digest.update(str(path.relative_to(root)).encode())
+        digest.update(path.read_bytes())
+    import jaxlib
+
+    for part in (jax.__version__, jaxlib.__version__, jax.default_backend(), FORMAT,
+                 jax.config.jax_enable_x64, jax.config.jax_default_matmul_precision):
+        digest.update(repr(part).encode())
+    return digest.hexdigest()
+
+
+def path_for(key, args) -> Path:
+    leaves, tree = jax.tree_util.tree_flatten(args)
+    signature = (str(tree), [str(jax.typeof(a)) for a in leaves])
+    text = repr((key, signature, source_hash()))
+    return folder() / f"{hashlib.sha256(text.encode()).hexdigest()}.jaxexport"
+
+
+def flat_program(jitted, tree, out_trees: list):
+    """The function of the arguments' leaves to the results' leaves (export stores neither
+    greyid's own argument types nor its results'); tracing appends the results' tree to ``out_trees``."""
+    def program(*leaves):
+        out_leaves, out_tree = jax.tree_util.tree_flatten(jitted.nested(*jax.tree_util.tree_unflatten(tree, leaves)))
+        out_trees.append(out_tree)
+        return out_leaves
+
+    return program
+
+
+def load_or_export(jitted, args):
+    """The compiled program of ``jitted`` for ``args``: from its kept export, or exported now and kept.
+
+    Returns a callable taking the same arguments as ``jitted``, or None when
+    the program cannot be kept (the caller then compiles it as usual).
+    """
+    from .compiler import compiler_options
+
+    leaves, tree = jax.tree_util.tree_flatten(args)
+    try:
+        path = path_for(jitted.key, args)
+        try:
+            out_tree, blob = pickle.loads(path.read_bytes())
+            exported = jax.export.deserialize(bytearray(blob))
+        except OSError:
+            out_trees: list = []
+            exported = jax.export.export(jax.jit(flat_program(jitted, tree, out_trees)))(*leaves)
+            out_tree = out_trees[-1]
+            write(path, pickle.dumps((out_tree, exported.serialize())))
+        compiled = jax.jit(exported.call, compiler_options=compiler_options()).lower(*leaves).compile()
+    except Exception:  # noqa: BLE001  any failure: trace as without the cache
+        return None
+
+    def run(*call_args):
+        return jax.tree_util.tree_unflatten(out_tree, compiled(*jax.tree_util.tree_leaves(call_args)))
+
+    return run
+
+
+def write(path: Path, blob: bytes) -> None:
+    """Write atomically, so that a process reading at the same time sees all of it or nothing."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+    try:
+        with os.fdopen(handle, "wb") as out:
+            out.write(blob)
+        os.replace(temporary, path)
+    except OSError:
+        Path(temporary).unlink(missing_ok=True)

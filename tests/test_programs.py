@@ -1,0 +1,112 @@
+"""Programs kept on disk (greyid.programs): a later fit loads them and gets the same answer;
+anything that changes the program changes its key; nothing else is ever loaded."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+import greyid
+from greyid import programs
+
+SPEC = "dx = theta*(mu - x)*dt + exp(ls)*dw1"
+
+
+def ou_model(drift=SPEC):
+    m = greyid.Model("ou")
+    m.add_system(drift)
+    m.add_observation("y = x", variance="exp(le)")
+    m.set_initial_state(mean={"x": "x0"}, covariance=[[1.0]])
+    m.set_parameter("theta", 1.0, lower=0.01, upper=20)
+    m.set_parameter("mu", 0.5, lower=-10, upper=10)
+    m.set_parameter("ls", -1.0, lower=-10, upper=3)
+    m.set_parameter("le", -3.0, lower=-10, upper=3)
+    m.set_parameter("x0", 0.0, lower=-10, upper=10)
+    return m
+
+
+@pytest.fixture(scope="module")
+def ou_data():
+    truth = {"theta": 0.8, "mu": 1.0, "ls": -1.0, "le": -3.0, "x0": 0.5}
+    times = pd.DataFrame({"t": np.arange(200) * 0.5})
+    sim = ou_model().simulate(truth, times, method="exact", seed=3)
+    return times.assign(y=sim.outputs[0, :, 0])
+
+
+@pytest.fixture
+def cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("GREYID_CACHE_DIR", str(tmp_path))
+    monkeypatch.setenv("GREYID_PROGRAMS", "on")
+    return tmp_path / "programs"
+
+
+def kept_files(folder):
+    return sorted(folder.glob("*.jaxexport")) if folder.exists() else []
+
+
+def test_a_later_fit_loads_the_kept_program_and_gets_the_same_answer(cache, ou_data, monkeypatch):
+    first = ou_model().fit(ou_data)
+    files = kept_files(cache)
+    assert files, "the fit's derivatives program was not kept"
+    # A new model of the same equations (a new structure, as in a new process) loads, never exports.
+    def refuse(*args, **kwargs):
+        raise AssertionError("exported again although a kept program matches")
+
+    monkeypatch.setattr(programs.jax.export, "export", refuse)
+    model = ou_model()
+    loaded = model.fit(ou_data)
+    assert kept_files(cache) == files
+    program = model.structure.cache[next(k for k in model.structure.cache if k[0] == "objective")].derivatives
+    assert program.executables and all(callable(e) and e.__name__ == "run" for e in program.executables.values())
+    assert loaded.loglik == pytest.approx(first.loglik, abs=1e-9)
+    np.testing.assert_allclose(loaded.params["estimate"], first.params["estimate"], rtol=1e-9)
+    np.testing.assert_allclose(loaded.params["std_error"], first.params["std_error"], rtol=1e-7)
+
+
+def test_another_equation_or_setting_is_another_program(cache, ou_data):
+    ou_model().fit(ou_data)
+    count = len(kept_files(cache))
+    ou_model("dx = theta*(mu - x)*dt + exp(ls)*x*dw1").fit(ou_data)  # other diffusion: other fingerprint
+    assert len(kept_files(cache)) > count
+    count = len(kept_files(cache))
+    ou_model().fit(ou_data, method="ekf")  # other filter
+    assert len(kept_files(cache)) > count
+    model = ou_model()
+    key = ("objective", "x")
+    assert programs.path_for(key, (np.zeros(4),)) != programs.path_for(key, (np.zeros(3),))
+    assert programs.path_for(key, (np.zeros(3, dtype=np.int64),)) != programs.path_for(key, (np.zeros(3),))
+    assert model.structure.fingerprint == ou_model().structure.fingerprint
+    assert model.structure.fingerprint != ou_model(SPEC.replace("mu - x", "x - mu")).structure.fingerprint
+
+
+def test_python_function_models_and_switched_off_cache_keep_nothing(cache, tmp_path, ou_data, monkeypatch):
+    import jax.numpy as jnp
+
+    m = greyid.Model.from_functions(
+        states=["x"], outputs=["y"], parameters=["theta", "mu", "ls", "le"],
+        drift=lambda x, u, t, p: jnp.array([p["theta"] * (p["mu"] - x[0])]),
+        diffusion=lambda x, u, t, p: jnp.array([[jnp.exp(p["ls"])]]),
+        observation=lambda x, u, t, p: jnp.array([x[0]]),
+        observation_variance=lambda x, u, t, p: jnp.array([jnp.exp(p["le"])]), kind="lti")
+    m.set_initial_state(mean={"x": 0.5}, covariance=[[1.0]])
+    for name, value in {"theta": 1.0, "mu": 0.5, "ls": -1.0, "le": -3.0}.items():
+        m.set_parameter(name, value, lower=-10 if name != "theta" else 0.01, upper=20)
+    assert m.structure.fingerprint is None
+    m.fit(ou_data)
+    assert kept_files(tmp_path / "programs") == []
+    monkeypatch.setenv("GREYID_PROGRAMS", "off")
+    assert not programs.enabled()
+    ou_model().fit(ou_data)
+    assert kept_files(cache) == []
+    monkeypatch.setenv("GREYID_PROGRAMS", "on")
+    monkeypatch.setenv("GREYID_CACHE_DIR", "off")
+    assert not programs.enabled()
+
+
+def test_an_unreadable_kept_program_is_traced_again(cache, ou_data):
+    first = ou_model().fit(ou_data)
+    for path in kept_files(cache):
+        path.write_bytes(b"not a program")
+    again = ou_model().fit(ou_data)
+    assert again.loglik == pytest.approx(first.loglik, abs=1e-9)
