@@ -140,6 +140,20 @@ class Refit:
         return replace(slow, iterations=quick.iterations + slow.iterations,
                        evaluations=quick.evaluations + slow.evaluations)
 
+    def predicted(self, z, held_from, held_to) -> np.ndarray:
+        """The others' optimum at ``held_to`` predicted from theirs (``z``) at ``held_from``: to first
+        order it moves by −H_oo⁻¹H_oh Δz_h (H the fit's Hessian; o the others, h the held ones)."""
+        if len(self.other) == 0:
+            return np.asarray(z, dtype=np.float64)
+        H = self.hessian()
+        change = self.z_full(np.zeros(len(self.other)), held_to) - self.z_full(np.zeros(len(self.other)), held_from)
+        held = np.asarray(self.held_index, dtype=int)
+        try:
+            move = -np.linalg.solve(H[np.ix_(self.other, self.other)], H[np.ix_(self.other, held)] @ change[held])
+        except np.linalg.LinAlgError:
+            return np.asarray(z, dtype=np.float64)
+        return np.asarray(z, dtype=np.float64) + move if np.all(np.isfinite(move)) else np.asarray(z, dtype=np.float64)
+
     def hessian(self) -> np.ndarray:
         """The criterion's exact Hessian at the fit's estimate, in the fit's coordinates (computed once)."""
         if getattr(self, "_hessian", None) is None:

@@ -59,7 +59,8 @@ class _ParameterProfile:
 
     def at(self, value: float):
         nearest = min(self.solved, key=lambda v: abs(v - value))
-        optimum = self.refit.optimum([value], self.solved[nearest])
+        start = self.refit.predicted(self.solved[nearest], [nearest], [value])
+        optimum = self.refit.optimum([value], start)
         self.solved[float(value)] = optimum.z
         return optimum
 
