@@ -128,3 +128,47 @@ def test_quasi_newton_from_a_nearby_hessian_reaches_the_exact_minimum_on_gradien
     np.testing.assert_allclose(quasi.z, reference.z, atol=1e-5)  # decrement 1e-12: z to ~1e-5 here
     assert quasi.value == pytest.approx(reference.value, abs=1e-9)
     assert len(asked) <= 15
+
+
+def test_value_expansions_save_scoring_steps_and_reach_the_same_minimum():
+    """Scoring from far away (long-series fits): steps held back by the region grow by value alone
+    and the search reaches the minimum of a plain scoring search with fewer scoring evaluations."""
+    from greyid.estimate.optimize import EXACT, SCORING, VALUE, Search, run_alone
+
+    t = np.linspace(0.0, 20.0, 400)
+    y = 3.0 * np.exp(-0.5 * t) + 0.01 * np.random.default_rng(5).normal(size=t.size)
+
+    def residuals(z):  # z = (log a, log b)
+        return y - jnp.exp(z[0]) * jnp.exp(-jnp.exp(z[1]) * t)
+
+    def f(z):
+        return 0.5 * jnp.sum(residuals(z) ** 2)
+
+    exact = derivatives(f)
+
+    def scoring(z):
+        J = jax.jacfwd(residuals)(z)
+        return f(z), jax.grad(f)(z), J.T @ J
+
+    def run(expand):
+        counts = {SCORING: 0, VALUE: 0, EXACT: 0}
+
+        def counted(kind, fun):
+            def evaluate(z):
+                counts[kind] += 1
+                return fun(z)
+            return evaluate
+
+        search = Search(np.array([np.log(0.05), np.log(0.01)]), maxiter=200, scoring=True, value=True,
+                        handover=0.0, expand=expand)
+        programs = {SCORING: counted(SCORING, scoring), EXACT: counted(EXACT, exact),
+                    VALUE: counted(VALUE, lambda z: (f(z),))}
+        return run_alone(search, programs), counts
+
+    plain, plain_counts = run(False)
+    grown, grown_counts = run(True)
+    assert plain.converged and grown.converged
+    np.testing.assert_allclose(grown.z, plain.z, atol=1e-7)
+    np.testing.assert_allclose(np.exp(grown.z), [3.0, 0.5], rtol=0.02)
+    assert grown_counts[SCORING] < plain_counts[SCORING]
+    assert grown_counts[VALUE] > 0

@@ -187,7 +187,8 @@ def new_search(problem: Problem, z0, maxiter: int, report, scoring: bool, handov
     if handover is None:
         handover = 0.0 if problem.long_series else HANDOVER_DECREASE
     limit = np.where(problem.transform.kind == NONE, np.inf, MAX_STEP)
-    return Search(z0, maxiter, report, scoring=scoring, value=scoring, handover=handover, step_limit=limit)
+    return Search(z0, maxiter, report, scoring=scoring, value=scoring, handover=handover, step_limit=limit,
+                  expand=scoring and problem.long_series)
 
 
 def single_programs(structure, problem: Problem, arguments: tuple, stack: ExitStack, compile_at=None) -> dict:

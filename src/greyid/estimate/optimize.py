@@ -28,6 +28,9 @@ DECREMENT_TOLERANCE = 1e-12
 #: Eigenvalues of the (scaled) Hessian within ±SINGULAR·max|eigenvalue| of zero make
 #: it singular: an ill-determined direction, where only the gradient can tell.
 SINGULAR = 1e-8
+#: Longer trial steps, by value alone, after a scoring step held back by the trust region
+#: did well (long series, where a value costs a few scoring steps' tenth).
+MAX_EXPANSIONS = 4
 #: Gradient (max-norm, in z) below which a point with a singular Hessian is stationary.
 GRADIENT_TOLERANCE = 1e-6
 #: Where no step decreases the criterion any more, the gradient below which that is
@@ -204,7 +207,8 @@ class Search:
 
     def __init__(self, z0: np.ndarray, maxiter: int = 500, report: Callable = _no_report,
                  scoring: bool = False, value: bool = False, handover: float = HANDOVER_DECREASE,
-                 step_limit: np.ndarray | float = np.inf, hessian: np.ndarray | None = None):
+                 step_limit: np.ndarray | float = np.inf, hessian: np.ndarray | None = None,
+                 expand: bool = False):
         self.z = np.asarray(z0, dtype=float)
         self.f, self.iterations = np.inf, 0
         self.gradient = self.hessian = None
@@ -212,6 +216,7 @@ class Search:
         self.maxiter, self.report, self.scoring, self.value = maxiter, report, scoring, value
         self.handover, self.step_limit = handover, step_limit
         self.initial_hessian = None if hessian is None else np.array(hessian, dtype=float)
+        self.expand = expand
         self.evaluations = 0
         self.stage = SCORING if scoring else "newton"
 
@@ -239,6 +244,11 @@ class Search:
         quasi-Newton: it asks for values and gradients only (kind GRADIENT) and
         updates the approximation by BFGS after each accepted step, for warm starts
         near the optimum whose Hessian barely changes (the refits of a profile).
+
+        With ``expand`` (long series, where a value costs a tenth of a scoring step) a
+        scoring step held back by the region that gains what the model promised is
+        followed by up to MAX_EXPANSIONS doubled steps along the region's path, judged
+        by value alone, before the derivatives are taken at the best of them.
         """
         step_limit, report = self.step_limit, self.report
         current = SCORING if self.scoring else EXACT
@@ -337,9 +347,11 @@ class Search:
             else:
                 clipped = False
             predicted = -(g @ p + 0.5 * p @ (H @ p))
+            boundary = clipped or np.linalg.norm(q) >= 0.99 * radius
+            expanding = self.expand and stage == "scoring" and boundary
             # Judge by the value alone where a rejection is likely to waste the derivatives:
-            # exact Newton steps (costly), or scoring steps after a rejection.
-            judged = self.value and (stage == "newton" or rejected) and quasi is None
+            # exact Newton steps (costly), scoring steps after a rejection, or steps that may grow.
+            judged = self.value and (stage == "newton" or rejected or expanding) and quasi is None
             if judged:
                 (f_new,), finite = yield from ask(VALUE, z + p)
             else:
@@ -355,6 +367,20 @@ class Search:
                 # would cycle 5 → 10 → 20 (rejected) → 5, wasting every third evaluation.
                 radius = 2.0 * radius if 2.0 * radius < 0.9 * ceiling else max(radius, 0.9 * ceiling)
                 ceiling *= 1.5
+            if judged and expanding and rho > 0.75:
+                # A step held back by the region that did as well as the model promised: longer
+                # ones along the region's path, judged by their values, before the derivatives.
+                for _ in range(MAX_EXPANSIONS):
+                    longer = trust_region_step(w, V, g / d, 2.0 * step) / d
+                    longer = np.clip(longer, -step_limit, step_limit)
+                    if np.linalg.norm(d * longer) < 1.01 * step:
+                        break  # the model's full step, or the coordinates' limits, reached
+                    (f_longer,), finite = yield from ask(VALUE, z + longer)
+                    if not finite or f_longer >= f_new:
+                        break
+                    p, q, f_new = longer, d * longer, float(f_longer)
+                    actual, step = f - f_new, float(np.linalg.norm(d * longer))
+                    radius = max(radius, 2.0 * step)
             if rho > 1e-4 and judged:
                 (f_new, g_new, H_new), finite = yield from ask(current, z + p)
                 if not finite:  # the derivatives alone overflow: a rejected step
