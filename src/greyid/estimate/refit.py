@@ -83,11 +83,15 @@ class Refit:
         """The fit's coordinates: ``z`` for the other parameters, the held ones at their values."""
         out = np.empty(len(self.z_full_hat))
         out[self.other] = np.asarray(z, dtype=np.float64)
-        transform = self.parameters.transform
-        for j, value in zip(self.held_index, held_values):
-            one = Transform(transform.kind[j:j + 1], transform.lower[j:j + 1], transform.upper[j:j + 1])
-            out[j] = one.to_z([float(value)])[0]
+        out[self.held_index] = self.held_z(held_values)
         return out
+
+    def held_z(self, held_values) -> np.ndarray:
+        """The held parameters' values in the fit's coordinates."""
+        transform = self.parameters.transform
+        return np.array([Transform(transform.kind[j:j + 1], transform.lower[j:j + 1],
+                                   transform.upper[j:j + 1]).to_z([float(value)])[0]
+                         for j, value in zip(self.held_index, held_values)], dtype=np.float64)
 
     def theta(self, z, held_values) -> np.ndarray:
         """The full θ at z (the other free parameters) and the held values."""
@@ -145,14 +149,14 @@ class Refit:
         order it moves by −H_oo⁻¹H_oh Δz_h (H the fit's Hessian; o the others, h the held ones)."""
         if len(self.other) == 0:
             return np.asarray(z, dtype=np.float64)
+        z = np.asarray(z, dtype=np.float64)
         H = self.hessian()
-        change = self.z_full(np.zeros(len(self.other)), held_to) - self.z_full(np.zeros(len(self.other)), held_from)
-        held = np.asarray(self.held_index, dtype=int)
+        change = self.held_z(held_to) - self.held_z(held_from)
         try:
-            move = -np.linalg.solve(H[np.ix_(self.other, self.other)], H[np.ix_(self.other, held)] @ change[held])
+            move = -np.linalg.solve(H[np.ix_(self.other, self.other)], H[np.ix_(self.other, self.held_index)] @ change)
         except np.linalg.LinAlgError:
-            return np.asarray(z, dtype=np.float64)
-        return np.asarray(z, dtype=np.float64) + move if np.all(np.isfinite(move)) else np.asarray(z, dtype=np.float64)
+            return z
+        return z + move if np.all(np.isfinite(move)) else z
 
     def hessian(self) -> np.ndarray:
         """The criterion's exact Hessian at the fit's estimate, in the fit's coordinates (computed once)."""
