@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from ..data.prepare import Series, check_times, prepare_series
-from ..compiler import structure_program
+from ..compiler import jit, structure_program
 from ..errors import DataError, ModelError
 from ..filters.api import HOLDS, filter_inputs
 from ..filters.core import initial_state
@@ -143,36 +143,38 @@ def simulate(model, params, data_or_times, n_paths: int = 1, method: str = "eule
     start = structure_program(structure, ("simulate", "initial"),
                               lambda: lambda theta, inputs: initial_state(structure, theta, inputs))
     x0, P0 = start(theta, inputs)
-    key = jax.random.PRNGKey(seed)
-    k_init, k_path, k_obs = jax.random.split(key, 3)
     n, m = structure.n_states, len(structure.noise_names)
     scale = 1.0 if noise else 0.0
-    init = x0 + scale * jax.random.normal(k_init, (n_paths, n)) @ _psd_sqrt(P0).T
-
     if method == "exact":
-        states = _exact_paths(structure, theta, grid, HOLDS[hold], init, k_path, scale, substeps)
+        path_shape = (n_paths, len(grid.times) - 1, n)
     else:
         fine_t, fine_u = _fine_grid(grid, substeps, hold)
+        path_shape = (n_paths, len(fine_t) - 1, m)
+    init, path_noise, z = _draws(jax.random.PRNGKey(seed), x0, P0, scale, path_shape,
+                                 (n_paths, len(series.times), structure.n_outputs))
+
+    if method == "exact":
+        states = _exact_paths(structure, theta, grid, HOLDS[hold], init, path_noise, substeps)
+    else:
         # Without noise the paths solve the ODE dx = f dt: the Itô–Stratonovich and
         # Milstein corrections belong to the noise and must go with it.
         diffusion = structure.diffusion if noise else _no_diffusion(m)
         integrate = structure_program(structure, ("simulate", method, calculus, bool(noise)),
                                       lambda: jax.vmap(make_integrator(structure.drift, diffusion, method, calculus),
                                                        in_axes=(None, 0, None, None, 0)))
-        dt = np.diff(fine_t)
-        dW = scale * jax.random.normal(k_path, (n_paths, len(dt), m)) * jnp.sqrt(jnp.asarray(dt))[None, :, None]
+        dW = np.asarray(path_noise) * np.sqrt(np.diff(fine_t))[None, :, None]
         fine = integrate(theta, init, jnp.asarray(fine_t), jnp.asarray(fine_u), dW)
         states = np.asarray(fine)[:, ::substeps, :]
     states = states[:, rows, :]
 
     u, t = jnp.asarray(grid.inputs[rows]), jnp.asarray(series.times)
     observe = structure_program(structure, ("simulate", "observe"), lambda: _make_observe(structure))
-    y_mean, S = observe(theta, jnp.asarray(states), u, t)
-    if np.any(np.asarray(S) < 0):
+    y_mean, S = (np.asarray(a) for a in observe(theta, jnp.asarray(states), u, t))
+    if np.any(S < 0):
         raise ModelError("an observation variance is negative along the simulated paths")
-    z = jax.random.normal(k_obs, y_mean.shape)
+    z = np.asarray(z)
     if structure.observation_covariance is None:
-        y = y_mean + scale * jnp.sqrt(S) * z
+        y = y_mean + scale * np.sqrt(S) * z
     else:  # correlated measurement noise: e = L z with L Lᵀ = S (S free of the states)
         full = jax.vmap(lambda uu, tt: structure.observation_covariance(jnp.zeros(n), uu, tt, theta))(u, t)
         y = y_mean + scale * jnp.einsum("kij,pkj->pki", jnp.linalg.cholesky(full), z)
@@ -198,19 +200,30 @@ def _make_observe(structure):
     return observe
 
 
+def _draw(key, x0, P0, scale, path_shape, observation_shape):
+    """The paths' random numbers, in one program (drawn one by one, each would be a program
+    to trace in every process): initial states x0 + P0^½ z, the paths' standard normals
+    times ``scale`` and the observations' standard normals."""
+    k_init, k_path, k_obs = jax.random.split(key, 3)
+    init = x0 + scale * jax.random.normal(k_init, (path_shape[0], x0.shape[0])) @ _psd_sqrt(P0).T
+    return init, scale * jax.random.normal(k_path, path_shape), jax.random.normal(k_obs, observation_shape)
+
+
+_draws = jit(_draw, static_argnums=(4, 5))
+
+
 def _psd_sqrt(P):
     """A square root of a positive semi-definite matrix (eigenvalues clipped at 0)."""
     w, V = jnp.linalg.eigh(0.5 * (P + P.T))
     return V * jnp.sqrt(jnp.clip(w, 0.0, None))[None, :]
 
 
-def _exact_paths(structure, theta, series, foh, init, key, scale=1.0, substeps=10):
+def _exact_paths(structure, theta, series, foh, init, z, substeps=10):
     """x_{k+1} = Φx_k + Γb_k + Υ(b_{k+1} − b_k) + Λ^½ z_k for linear models.
 
     Exact for time-invariant models; a time-varying model's Φ, offset and Λ come
     from ``substeps`` midpoint pieces per interval, as in its Kalman filter.
     """
-    z = scale * jax.random.normal(key, (init.shape[0], len(series.times) - 1, structure.n_states))
     varying = structure.kind != LTI
     run = structure_program(structure, ("simulate", "exact", substeps if varying else 1),
                             lambda: _make_exact(structure, substeps if varying else None))
