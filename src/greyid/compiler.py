@@ -83,7 +83,12 @@ def structure_program(structure, key: tuple, make: Callable, **kwargs) -> Jitted
     """
     if key not in structure.cache:
         fun = make()
-        fun = getattr(fun, "__wrapped__", fun) if isinstance(fun, Jitted) else fun
-        disk = None if getattr(structure, "fingerprint", None) is None else ("structure", structure.fingerprint, key)
-        structure.cache[key] = jit(fun, key=disk, **kwargs)
+        fun = fun.__wrapped__ if isinstance(fun, Jitted) else fun
+        structure.cache[key] = jit(fun, key=kept_key(structure, key), **kwargs)
     return structure.cache[key]
+
+
+def kept_key(structure, key: tuple):
+    """The key on disk of a program of ``structure`` with settings ``key``: None for models of
+    Python functions (no fingerprint), whose programs are never kept."""
+    return None if structure.fingerprint is None else ("structure", structure.fingerprint, key)

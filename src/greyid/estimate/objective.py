@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..compiler import jit
+from ..compiler import jit, kept_key
 from ..filters.api import compiled_filter
 from ..filters.core import KALMAN, FilterOptions, make_ahead, make_summed_filter
 from .criteria import GaussianPrior, log_criterion, scale_consistency, step_criterion
@@ -165,10 +165,7 @@ def build(structure, problem: Problem) -> Programs:
     forward = forward_hessian(problem.options.method, len(problem.free)) or problem.long_series
 
     def kept(name):
-        """The key under which a program is kept on disk (greyid.programs): None for Python-function models."""
-        if structure.fingerprint is None:
-            return None
-        return ("objective", name, structure.fingerprint, problem.key(), problem.prior_index, forward)
+        return kept_key(structure, (name, problem.key(), problem.prior_index, forward))
 
     scoring = None
     if problem.horizon == 1 and problem.robust is None:
