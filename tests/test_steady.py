@@ -61,18 +61,34 @@ def test_riccati_solution_is_the_recursion_s_limit():
     np.testing.assert_allclose(solution, P, rtol=1e-11, atol=1e-14)
 
 
-def test_linear_recursion_is_the_loop():
-    rng = np.random.default_rng(1)
-    n, rows = 3, 5 * steady.BLOCK
-    F = rng.normal(size=(n, n)) * 0.4
-    v, start = rng.normal(size=(rows, n)), rng.normal(size=n)
-    x, expected = start, []
-    for r in range(rows):
+def loop_recursion(F, v, start):
+    x, out = start, []
+    for r in range(v.shape[0]):
         x = F @ x + v[r]
-        expected.append(x)
-    np.testing.assert_allclose(np.asarray(steady.linear_recursion(jnp.asarray(F), jnp.asarray(v),
-                                                                  jnp.asarray(start))),
-                               np.array(expected), rtol=1e-12, atol=1e-12)
+        out.append(x)
+    return jnp.stack(out)
+
+
+@pytest.mark.parametrize("rows", [5 * steady.BLOCK, 3 * steady.BLOCK - 7, 40 * steady.BLOCK])
+def test_linear_recursion_is_the_loop(rows):
+    """Blocks carried by powers of F^BLOCK (up to a chunk's blocks) or by a scan (more), a partial last
+    block; and the derivatives of first and second order (the recursion's own rule) equal the loop's."""
+    rng = np.random.default_rng(1)
+    n = 3
+    F = jnp.asarray(rng.normal(size=(n, n)) * 0.4)
+    v, start = jnp.asarray(rng.normal(size=(rows, n))), jnp.asarray(rng.normal(size=n))
+    np.testing.assert_allclose(np.asarray(steady.linear_recursion(steady.recursion(F), v, start)),
+                               np.asarray(loop_recursion(F, v, start)), rtol=1e-12, atol=1e-12)
+    weights = jnp.asarray(rng.normal(size=(rows, n)))
+
+    def summary(recursion, a):  # F, v and start all depend on a
+        return jnp.sum(weights * recursion(F * (1 + a[0]) + a[1], v * a[2] + a[0], start * a[1]) ** 2)
+
+    a = jnp.asarray([0.1, 0.05, 1.2])
+    fast = lambda a: summary(lambda *p: steady.linear_recursion(steady.recursion(p[0]), *p[1:]), a)
+    slow = lambda a: summary(loop_recursion, a)
+    np.testing.assert_allclose(jax.jacfwd(fast)(a), jax.jacfwd(slow)(a), rtol=1e-10)
+    np.testing.assert_allclose(jax.jacfwd(jax.jacfwd(fast))(a), jax.jacfwd(jax.jacfwd(slow))(a), rtol=1e-9)
 
 
 def linear_series(seed=2, missing=True, gap=True):
@@ -130,6 +146,38 @@ def test_steady_state_derivatives_equal_the_ordinary_filter_s(monkeypatch, short
     scale = np.max(np.abs(gradient))
     np.testing.assert_allclose(fast_gradient, gradient, atol=1e-8 * scale)
     np.testing.assert_allclose(fast_forward, gradient, atol=1e-8 * scale)
+
+
+def test_steady_state_hessian_equals_the_ordinary_filter_s(monkeypatch, short_chunks):
+    """Forward over forward, as a long fit's final Hessian (chunks that the blocks do not divide, a shorter
+    last chunk of padding rows only)."""
+    monkeypatch.setattr(steady, "CHUNK", 100)
+    params, frame = linear_series(seed=7)
+    theta, fast = summed_criterion(random_linear_model_spec(), params, frame)
+    directions = jnp.asarray(np.random.default_rng(7).normal(size=(2, len(theta))))
+
+    def hessian_rows(f):  # rows u·H, forward over forward
+        return jax.jit(jax.vmap(lambda u: jax.jvp(jax.jacfwd(f), (theta,), (u,))[1]))(directions)
+
+    rows = hessian_rows(fast)
+    assert short_chunks["steady"] >= 5
+    step_by_step(monkeypatch)
+    _, exact = summed_criterion(random_linear_model_spec(), params, frame)
+    expected = hessian_rows(exact)
+    np.testing.assert_allclose(rows, expected, atol=1e-8 * np.max(np.abs(expected)))
+
+
+def test_chunks_with_a_tail_and_padding_rows(monkeypatch, short_chunks):
+    """Chunks of 100 rows: partial blocks in each, a last chunk of 8 rows (the length bucket's padding)."""
+    monkeypatch.setattr(steady, "CHUNK", 100)
+    params, frame = linear_series(seed=8)
+    fast = random_linear_model_spec().filter(params, frame)
+    assert short_chunks["steady"] >= 5
+    step_by_step(monkeypatch)
+    exact = random_linear_model_spec().filter(params, frame)
+    np.testing.assert_allclose(fast.loglik_terms, exact.loglik_terms, atol=1e-10)
+    np.testing.assert_allclose(fast.filtered, exact.filtered, atol=1e-9)
+    np.testing.assert_allclose(fast.innovations.fillna(0), exact.innovations.fillna(0), atol=1e-9)
 
 
 def test_correlated_noise_and_robust_criterion(monkeypatch, short_chunks):

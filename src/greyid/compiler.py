@@ -25,7 +25,7 @@ from . import programs
 @functools.cache
 def compiler_options() -> dict:
     if jax.default_backend() == "cpu":
-        return {"xla_cpu_use_fusion_emitters": False}
+        return {"xla_cpu_use_fusion_emitters": False, "xla_cpu_experimental_ynn_fusion_type": ""}
     return {}
 
 

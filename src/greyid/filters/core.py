@@ -368,26 +368,35 @@ def scan_chunks(parts: FilterSteps, n_rows: int, step_by_step: Callable, collect
 
     def chunk(carry, rows):
         state, total, settled = carry
-        regular = settled & jnp.all(rows.dt_index == model.regular_index) & jnp.all(rows.mask > 0)
+        # The rows padding the series to its length bucket fit either form: a chunk
+        # holding the series' last rows stays in the steady state.
+        padding = steady_form.padding_rows(rows)
+        usable = (rows.dt_index == model.regular_index) & jnp.all(rows.mask > 0, axis=-1)
+        regular = settled & jnp.all(usable | padding)
 
         def in_steady_state(_):
-            outputs, end = steady_form.steady_rows(model, steady, state[0], rows)
+            outputs, end = steady_form.steady_rows(model, steady, state[0], rows, padding)
             if accumulate is not None:
                 return (end, total + jnp.sum(jax.vmap(accumulate)(outputs[3].terms)), jnp.asarray(True)), None
             return (end, total, jnp.asarray(True)), jax.vmap(collect)(*outputs)
 
         def ordinary(_):
-            end, chunk_total, collected = step_by_step(state, rows, size)
+            end, chunk_total, collected = step_by_step(state, rows, rows.t.shape[0])
             return (end, total + chunk_total, steady_form.at_steady_state(end[1], model.form, steady)), collected
 
         return jax.lax.cond(regular, in_steady_state, ordinary, None)
 
     count = n_rows // size
     head = jax.tree_util.tree_map(lambda a: a[:count * size].reshape(count, size, *a.shape[1:]), parts.rows)
-    tail = jax.tree_util.tree_map(lambda a: a[count * size:], parts.rows)
     start = (parts.initial, jnp.zeros((), dtype=jnp.float64), jnp.asarray(False))
-    (state, total, _), collected = jax.lax.scan(chunk, start, head)
-    _, tail_total, tail_collected = step_by_step(state, tail, n_rows - count * size)
+    (state, total, settled), collected = jax.lax.scan(chunk, start, head)
+    if n_rows == count * size:
+        tail_total = 0.0
+        tail_collected = jax.tree_util.tree_map(lambda a: a[0, :0], collected)
+    else:  # the last rows, a shorter chunk
+        (_, tail_total, _), tail_collected = chunk(
+            (state, jnp.zeros((), dtype=jnp.float64), settled),
+            jax.tree_util.tree_map(lambda a: a[count * size:], parts.rows))
     if accumulate is not None:
         return total + tail_total
     return jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a.reshape(-1, *a.shape[2:]), b]),

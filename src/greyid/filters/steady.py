@@ -25,13 +25,14 @@ from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
 import jax
 import jax.numpy as jnp
 
+from . import small
 from .discretize import Discretization
 from .updates import StepTerms, Update, from_matrix, symmetrize, to_matrix
 
 #: Rows of a series from which the filter takes the steady-state form where it can.
 MIN_ROWS = 20_000
 #: Rows per chunk: the unit in which the filter switches between the two forms.
-CHUNK = 4096
+CHUNK = 512
 #: Rows per block of the vectorised mean recursion (one matrix product each).
 BLOCK = 32
 #: The filtered covariance is at the steady state when every element is within
@@ -62,6 +63,8 @@ class SteadyState(NamedTuple):
     gain: jnp.ndarray  # K = P∞Cᵀ R⁻¹
     innovation_cov: jnp.ndarray  # R = C P∞ Cᵀ + S
     chol_R: jnp.ndarray
+    whitening: jnp.ndarray  # L⁻¹ with R = LLᵀ: one product per chunk instead of a triangular solve per row
+    recursion: "Recursion"  # of the filtered mean, F = (I − KC)Φ
 
 
 def riccati_solution(transition, noise, C, S):
@@ -97,7 +100,8 @@ def steady_state(model: SteadyModel) -> SteadyState:
     gain = jax.scipy.linalg.cho_solve((chol_R, True), PCt.T).T
     IKC = jnp.eye(P.shape[0]) - gain @ model.C
     filtered = symmetrize(IKC @ P @ IKC.T + gain @ model.noise @ gain.T)  # Joseph form
-    return SteadyState(P, filtered, gain, R, chol_R)
+    whitening = jax.scipy.linalg.solve_triangular(chol_R, jnp.eye(R.shape[0]), lower=True)
+    return SteadyState(P, filtered, gain, R, chol_R, whitening, recursion(IKC @ model.disc.transition))
 
 
 def at_steady_state(cov, form: str, steady: SteadyState):
@@ -107,55 +111,113 @@ def at_steady_state(cov, form: str, steady: SteadyState):
     return jnp.max(difference) <= TOLERANCE  # False where anything is NaN
 
 
-def linear_recursion(F, v, start):
+class Recursion(NamedTuple):
+    """The powers of F that :func:`linear_recursion` applies, computed once per steady state."""
+
+    powers: jnp.ndarray  # F⁰ … F^BLOCK
+    toeplitz: jnp.ndarray  # (BLOCK, BLOCK, n, n): F^(l−i) where l ≥ i, else 0
+    block_powers: jnp.ndarray  # (F^BLOCK)⁰ … (F^BLOCK)^⌈CHUNK/BLOCK⌉: from block to block
+
+
+def _powers(F, count):
+    return jax.lax.scan(lambda M, _: (F @ M, M), jnp.eye(F.shape[0]), None, length=count + 1)[1]
+
+
+def recursion(F) -> Recursion:
+    """:class:`Recursion` of x_r = F x_{r−1} + v_r."""
+    L = BLOCK
+    powers = _powers(F, L)
+    lag = jnp.arange(L)[:, None] - jnp.arange(L)[None, :]
+    return Recursion(powers, jnp.where((lag >= 0)[:, :, None, None], powers[jnp.maximum(lag, 0)], 0.0),
+                     _powers(powers[L], -(-CHUNK // L)))
+
+
+@jax.custom_jvp
+def linear_recursion(F: Recursion, v, start):
     """x_r = F x_{r−1} + v_r for r = 0 … len(v) − 1, x_{−1} = start, in blocks of BLOCK rows.
 
     Within a block the response to its own v is one product with the block's
-    lower block-Toeplitz matrix of powers of F; a short scan over the blocks
-    carries each block's end into the next.
+    lower block-Toeplitz matrix of powers of F; the blocks' ends are carried
+    into the following blocks the same way, with powers of F^BLOCK (a scan over
+    the blocks where there are more than a chunk's).  A last partial block is
+    padded with v = 0 (rows beyond the end, dropped).
     """
     rows, n = v.shape
     L = BLOCK
-    powers = jax.lax.scan(lambda M, _: (F @ M, M), jnp.eye(n), None, length=L + 1)[1]  # F⁰ … F^L
-    lag = jnp.arange(L)[:, None] - jnp.arange(L)[None, :]
-    toeplitz = jnp.where((lag >= 0)[:, :, None, None], powers[jnp.maximum(lag, 0)], 0.0)
-    local = jnp.einsum("liac,bic->bla", toeplitz, v.reshape(rows // L, L, n))
+    if rows % L:
+        padded = jnp.concatenate([v, jnp.zeros((L - rows % L, n), v.dtype)])
+        return linear_recursion(F, padded, start)[:rows]
+    count = rows // L
+    local = jnp.einsum("liac,bic->bla", F.toeplitz, v.reshape(count, L, n))
+    if count < F.block_powers.shape[0]:
+        # x at the end of block b − 1 = Σ_{j<b} (F^L)^(b−1−j) (own end of block j) + (F^L)^b start
+        lag = jnp.arange(count)[:, None] - jnp.arange(count)[None, :]
+        between = jnp.where((lag >= 1)[:, :, None, None], F.block_powers[jnp.maximum(lag - 1, 0)], 0.0)
+        previous_ends = (jnp.einsum("bjac,jc->ba", between, local[:, -1])
+                         + jnp.einsum("bac,c->ba", F.block_powers[:count], start))
+    else:
+        def carry(end, block_end):
+            return F.powers[L] @ end + block_end, end
 
-    def carry(end, block_end):
-        return powers[L] @ end + block_end, end
-
-    _, previous_ends = jax.lax.scan(carry, start, local[:, -1])
-    x = local + jnp.einsum("lac,bc->bla", powers[1:], previous_ends)
+        _, previous_ends = jax.lax.scan(carry, start, local[:, -1])
+    x = local + jnp.einsum("lac,bc->bla", F.powers[1:], previous_ends)
     return x.reshape(rows, n)
 
 
-def steady_rows(model: SteadyModel, steady: SteadyState, x_start, rows):
+@linear_recursion.defjvp
+def _linear_recursion_jvp(primals, tangents):
+    """The tangent of x_r = F x_{r−1} + v_r is the same recursion, x'_r = F x'_{r−1} + (F' x_{r−1} + v'_r):
+    derivatives of any order reuse F's powers instead of differentiating the products with them."""
+    F, v, start = primals
+    dF, dv, dstart = tangents
+    x = linear_recursion(F, v, start)
+    before = jnp.concatenate([start[None], x[:-1]])
+    return x, linear_recursion(F, applied(before, dF.powers[1]) + dv, dstart)
+
+
+def applied(rows, M):
+    """``rows @ Mᵀ`` for a matrix M of a few columns, as a fused multiply-sum: a matrix-multiply
+    call with two columns is several times slower here, and more so with the derivatives' tangents."""
+    if M.shape[1] > small.SMALL:
+        return rows @ M.T
+    return jnp.sum(rows[..., None, :] * M, axis=-1)
+
+
+def padding_rows(rows):
+    """The rows that pad a series to its length bucket (no interval, nothing observed), see ``filters.api``."""
+    return (rows.dt == 0) & jnp.all(rows.mask == 0, axis=-1)
+
+
+def steady_rows(model: SteadyModel, steady: SteadyState, x_start, rows, padding):
     """The filter over a chunk of rows in the steady state, all at once.
 
     Returns per-row ``(x_pred, cov_pred, transition, Update, y_pred)`` — what a
     step of the ordinary filter gives — and the carried ``(x, cov)`` at the end.
+    Rows marked ``padding`` (only after the series' last row) count nothing in
+    the criterion; the means carried through them are never used.
     """
     disc, C = model.disc, model.C
     n_rows = rows.t.shape[0]
     b_prev = jax.vmap(model.affine_drift)(rows.u_prev, rows.t_prev)
     b_cur = jax.vmap(model.affine_drift)(rows.u_cur, rows.t)
-    inputs = b_prev @ disc.input_gain.T + model.foh * ((b_cur - b_prev) @ disc.ramp_gain.T)  # Γb + Υ(b' − b)
+    inputs = applied(b_prev, disc.input_gain) + model.foh * applied(b_cur - b_prev, disc.ramp_gain)  # Γb + Υ(b' − b)
     offsets = jax.vmap(model.affine_output)(rows.u_cur, rows.t)  # h(0, u, t)
     IKC = jnp.eye(C.shape[1]) - steady.gain @ C
     # x_{k|k} = (I − KC)(Φ x_{k−1|k−1} + input terms) + K(y_k − h(0, u_k, t_k))
-    v = inputs @ IKC.T + (rows.y - offsets) @ steady.gain.T
-    filtered = linear_recursion(IKC @ disc.transition, v, x_start)
+    v = applied(inputs, IKC) + applied(rows.y - offsets, steady.gain)
+    filtered = linear_recursion(steady.recursion, v, x_start)
     before = jnp.concatenate([x_start[None], filtered[:-1]])
-    predicted = before @ disc.transition.T + inputs
-    y_pred = predicted @ C.T + offsets
+    predicted = applied(before, disc.transition) + inputs
+    y_pred = applied(predicted, C) + offsets
     innovation = rows.y - y_pred
-    whitened = jax.scipy.linalg.solve_triangular(steady.chol_R, innovation.T, lower=True).T
+    whitened = applied(innovation, steady.whitening)
     logdet = 2.0 * jnp.sum(jnp.log(jnp.diag(steady.chol_R)))
 
     def each(a):
         return jnp.broadcast_to(a, (n_rows, *jnp.shape(a)))
 
     cov_pred, cov_filt = from_matrix(steady.predicted, model.form), from_matrix(steady.filtered, model.form)
-    terms = StepTerms(whitened, each(logdet), each(jnp.sum(jnp.ones(C.shape[0]))))
+    counted = jnp.where(padding, 0.0, 1.0)
+    terms = StepTerms(whitened * counted[:, None], counted * logdet, counted * C.shape[0])
     update = Update(filtered, each(cov_filt), innovation, each(steady.innovation_cov), terms)
     return (predicted, each(cov_pred), each(disc.transition), update, y_pred), (filtered[-1], cov_filt)
