@@ -4,7 +4,10 @@ Every jitted function of the package goes through :func:`jit`, so compiler
 settings live in one place.  On CPUs, XLA's newer fusion emitters take about
 twice as long to compile a filter's scan as the classic ones and run it no
 faster (measured on the test-cell and Armadillo models, ``benchmarks/fit.py``),
-and compile time is most of a first fit.
+and compile time is most of a first fit.  XNNPACK's fusions are off: they turn
+the products and sums over a state's two or three elements into library calls,
+which made a scoring step of a 10⁵-row series 3 times and its Hessian 5 times
+slower (``benchmarks/length.py``).
 
 A function given a ``key`` — a description of everything its program depends
 on besides its arguments' shapes — also keeps its traced program on disk
