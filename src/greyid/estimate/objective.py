@@ -131,30 +131,22 @@ def build(structure, problem: Problem) -> Programs:
         def terms(theta, data):
             return ahead(theta, data).terms
 
-    def criterion(theta, data):
-        return log_criterion(terms(theta, data), problem.robust)
-
-    exact_criterion = criterion
     if problem.horizon == 1 and problem.long_series:
         # Summed in the scan: nothing kept per step, so memory independent of the length.
-        def summed(steady):
-            return make_summed_filter(structure, problem.options,
-                                      lambda step_terms: step_criterion(step_terms, problem.robust, kappa), steady)
-
-        criterion = exact_criterion = summed(True)
+        criterion = make_summed_filter(
+            structure, problem.options, lambda step_terms: step_criterion(step_terms, problem.robust, kappa))
+    else:
+        def criterion(theta, data):
+            return log_criterion(terms(theta, data), problem.robust)
 
     kinds = problem.transform.kind
 
-    def negative_of(criterion):
-        def negative(z, base, lower, upper, prior_mean, prior_chol, datasets):
-            theta = problem.theta(z, base, Transform(kinds, lower, upper), jnp)
-            total = sum(criterion(theta, d) for d in datasets)
-            if problem.prior is not None:
-                total = total + _log_prior(theta, problem.prior_index, prior_mean, prior_chol)
-            return -total
-        return negative
-
-    negative = negative_of(criterion)
+    def negative(z, base, lower, upper, prior_mean, prior_chol, datasets):
+        theta = problem.theta(z, base, Transform(kinds, lower, upper), jnp)
+        total = sum(criterion(theta, d) for d in datasets)
+        if problem.prior is not None:
+            total = total + _log_prior(theta, problem.prior_index, prior_mean, prior_chol)
+        return -total
 
     def contributions(z, base, lower, upper, data):
         theta = problem.theta(z, base, Transform(kinds, lower, upper), jnp)
@@ -169,7 +161,7 @@ def build(structure, problem: Problem) -> Programs:
     if problem.horizon == 1 and problem.robust is None:
         scoring = jit(expected_information(structure, problem, kinds), key=kept("scoring"))
     # Per-step scores (rows: steps, columns: ∂/∂z), forward mode: nothing stored per step.
-    return Programs(jit(hessian_rows(negative_of(exact_criterion), forward), key=kept("derivatives")),
+    return Programs(jit(hessian_rows(negative, forward), key=kept("derivatives")),
                     jit(negative, key=kept("value")),
                     jit(jax.jacfwd(contributions), key=kept("step_scores")),
                     jit(forward_value_and_grad(negative), key=kept("value_and_grad")), scoring)

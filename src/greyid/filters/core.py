@@ -139,13 +139,13 @@ class FilterSteps(NamedTuple):
     steady: steady_form.SteadyModel | None = None  # long regular series of a linear model, see .steady
 
 
-def filter_steps(structure: Structure, options: FilterOptions, steady: bool = True):
+def filter_steps(structure: Structure, options: FilterOptions):
     """``steps(theta, data) -> FilterSteps``: one implementation of each filter.
 
     The scan of :func:`make_filter` and the k-step predictions of
     :func:`make_ahead` are both built from these predict and update closures.
-    With ``steady`` a long regular series of a linear model takes the
-    steady-state form where the filter reaches it (:mod:`.steady`).
+    A long regular series of a linear model takes the steady-state form where
+    the filter reaches it (:mod:`.steady`).
     """
     f, G, h, S = structure.drift, structure.diffusion, structure.observation, structure.observation_variance
     S_full = structure.observation_covariance  # None unless the outputs' noise is correlated
@@ -216,7 +216,7 @@ def filter_steps(structure: Structure, options: FilterOptions, steady: bool = Tr
             first_noise = cache.noise_covariance[data.dt_index[1]]  # the first interval's Λ
         x0, P0 = initial_state(structure, theta, data, first_noise)
         steady_pieces = None
-        if (steady and exact_linear and delays is None and structure.constant_observation
+        if (exact_linear and delays is None and structure.constant_observation
                 and data.t.shape[0] >= steady_form.MIN_ROWS):
             steady_pieces = steady_model(theta, data, cache)
 
@@ -390,27 +390,21 @@ def scan_chunks(parts: FilterSteps, n_rows: int, step_by_step: Callable, collect
     head = jax.tree_util.tree_map(lambda a: a[:count * size].reshape(count, size, *a.shape[1:]), parts.rows)
     start = (parts.initial, jnp.zeros((), dtype=jnp.float64), jnp.asarray(False))
     (state, total, settled), collected = jax.lax.scan(chunk, start, head)
-    if n_rows == count * size:
-        tail_total = 0.0
-        tail_collected = jax.tree_util.tree_map(lambda a: a[0, :0], collected)
-    else:  # the last rows, a shorter chunk
-        (_, tail_total, _), tail_collected = chunk(
-            (state, jnp.zeros((), dtype=jnp.float64), settled),
-            jax.tree_util.tree_map(lambda a: a[count * size:], parts.rows))
-    if accumulate is not None:
-        return total + tail_total
-    return jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a.reshape(-1, *a.shape[2:]), b]),
-                                  collected, tail_collected)
+    collected = jax.tree_util.tree_map(lambda a: a.reshape(-1, *a.shape[2:]), collected)
+    if n_rows > count * size:  # the last rows, a shorter chunk
+        (_, total, _), last = chunk((state, total, settled),
+                                    jax.tree_util.tree_map(lambda a: a[count * size:], parts.rows))
+        collected = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), collected, last)
+    return total if accumulate is not None else collected
 
 
-def make_summed_filter(structure: Structure, options: FilterOptions, per_step: Callable, steady: bool = True):
+def make_summed_filter(structure: Structure, options: FilterOptions, per_step: Callable):
     """``run(theta, data) -> Σ_k per_step(StepTerms_k)``, summed in the scan's carry.
 
     Nothing is stored per step, so the memory of the value and of its forward
-    derivatives does not grow with the length of the series.  ``steady`` as in
-    :func:`filter_steps`.
+    derivatives does not grow with the length of the series.
     """
-    build = filter_steps(structure, options, steady)
+    build = filter_steps(structure, options)
 
     def run(theta, data: FilterInputs):
         return scan_rows(build(theta, data), data.t.shape[0], None, accumulate=per_step)
