@@ -101,6 +101,32 @@ def test_python_function_model_equals_equation_model():
     assert fn.loglik(p, df, method="ekf") == pytest.approx(eq.loglik(p, df), rel=1e-10)
 
 
+@pytest.mark.parametrize("inputs", [2, 0])
+def test_linear_drift_is_the_drift(inputs):
+    """(A, B, c) of a linear time-invariant model, from the symbolic derivatives: f(x, u) = A x + B u + c."""
+    from conftest import random_linear_model_spec, random_linear_parameters
+
+    model = random_linear_model_spec(nu=inputs) if inputs else greyid.Model("no_inputs")
+    if not inputs:
+        model.add_system("dx1 = (-a*x1 + k*x2 + c)*dt + s*dw1", "dx2 = (x1 - b*x2)*dt + s*dw2")
+        model.add_observation("y = x1", variance="r")
+        params = dict(a=0.7, k=0.2, b=1.1, c=0.4, s=0.3, r=0.1)
+    else:
+        params, _ = random_linear_parameters(np.random.default_rng(3), nu=inputs)
+    structure = model.structure
+    theta = jnp.asarray(model.parameter_vector(params))
+    A, B, c = structure.linear_drift(theta)
+    assert B.shape == (structure.n_states, inputs)
+    rng = np.random.default_rng(4)
+    for _ in range(3):
+        x, u = jnp.asarray(rng.normal(size=structure.n_states)), jnp.asarray(rng.normal(size=inputs))
+        np.testing.assert_allclose(A @ x + B @ u + c, structure.drift(x, u, 0.0, theta), rtol=1e-12, atol=1e-12)
+    nonlinear = greyid.Model("logistic")
+    nonlinear.add_system("dx = r*x*(1 - x/K)*dt + s*dw1")
+    nonlinear.add_observation("y = x", variance="v")
+    assert nonlinear.structure.linear_drift is None
+
+
 def test_compiles_once_per_structure_across_data_and_parameters():
     traces = []
 

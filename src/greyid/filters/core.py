@@ -160,11 +160,10 @@ def filter_steps(structure: Structure, options: FilterOptions):
     jac_f = jax.jacfwd(f, argnums=0)
     zeros = np.zeros(n)  # a constant of the traced code; NumPy, so nothing compiles here
 
-    def linear_discretization(theta, data):
+    def linear_discretization(theta, data, A):
         """Discretizations of a time-invariant linear model, one per distinct sampling interval."""
-        u0, t0 = data.u_cur[0], data.t[0]
-        g = G(zeros, u0, t0, theta)
-        return discretize_each(jac_f(zeros, u0, t0, theta), g @ g.T, data.unique_dt)
+        g = G(zeros, data.u_cur[0], data.t[0], theta)
+        return discretize_each(A, g @ g.T, data.unique_dt)
 
     def predict_interval(x, cov, interval: Interval, theta, linear_matrices):
         """One interval (or piece of one) with its inputs held or ramped: mean, covariance and Φ."""
@@ -200,25 +199,35 @@ def filter_steps(structure: Structure, options: FilterOptions):
         exact_linear = method == KALMAN and structure.kind == LTI
         regular = data.delay_slots.shape[0] == 0
         pieces = piece_gains = linear_matrices = None
+        if exact_linear and structure.linear_drift is not None:
+            A, B, c = structure.linear_drift(theta)
+
+            def affine(u, t):  # f(0, u, t) = B u + c: a few products, f itself never traced per step
+                return small.mm(B, u) + c
+        elif exact_linear:
+            A = jac_f(zeros, data.u_cur[0], data.t[0], theta)
+
+            def affine(u, t):
+                return f(zeros, u, t, theta)
         if delays is not None:
             step = jnp.max(data.unique_dt)
             offsets = regular_offsets(delays.taus, step) if regular else None
             pieces = interval_pieces(delays, data, structure.n_inputs, offsets)
             if exact_linear:  # A and G Gᵀ; irregular sampling discretizes each piece as it comes
                 g = G(zeros, data.u_cur[0], data.t[0], theta)
-                linear_matrices = (jac_f(zeros, data.u_cur[0], data.t[0], theta), g @ g.T)
+                linear_matrices = (A, g @ g.T)
                 if regular:  # the same D + 1 pieces in every interval: discretized once
                     lengths = jnp.diff(jnp.concatenate([jnp.zeros(1), offsets, step[None]]))
                     piece_gains = discretize_each(*linear_matrices, lengths)
         rows = Row(data.t, data.t_prev, data.dt, data.u_prev, data.u_cur, data.y, data.mask, data.dt_index, pieces)
         if exact_linear and (delays is None or regular):
-            cache = linear_discretization(theta, data)
+            cache = linear_discretization(theta, data, A)
             first_noise = cache.noise_covariance[data.dt_index[1]]  # the first interval's Λ
         x0, P0 = initial_state(structure, theta, data, first_noise)
         steady_pieces = None
         if (exact_linear and delays is None and structure.constant_observation
                 and data.t.shape[0] >= steady_form.MIN_ROWS):
-            steady_pieces = steady_model(theta, data, cache)
+            steady_pieces = steady_model(theta, data, cache, affine)
 
         def predict(x, cov, row: Row):
             if piece_gains is not None:
@@ -229,7 +238,7 @@ def filter_steps(structure: Structure, options: FilterOptions):
                 disc = jax.tree_util.tree_map(lambda a: a[row.dt_index], cache)
                 # The affine terms b = f(0, u, t) at both ends, in the step: stored per row
                 # they (and their derivatives) would grow with the series.
-                b_prev, b_cur = f(zeros, row.u_prev, row.t_prev, theta), f(zeros, row.u_cur, row.t, theta)
+                b_prev, b_cur = affine(row.u_prev, row.t_prev), affine(row.u_cur, row.t)
                 x_pred, cov_pred = linear_predict(x, cov, disc, b_prev, b_cur, data.foh, form)
                 return x_pred, cov_pred, disc.transition
             return predict_interval(x, cov, Interval(row.t_prev, row.dt, row.u_prev, row.u_cur, data.foh),
@@ -294,14 +303,14 @@ def filter_steps(structure: Structure, options: FilterOptions):
 
         return FilterSteps((x0, from_matrix(P0, form)), rows, predict, update, steady_pieces)
 
-    def steady_model(theta, data, cache):
+    def steady_model(theta, data, cache, affine):
         """The model's time-invariant pieces at its most frequent sampling interval."""
         u0, t0 = data.u_cur[0], data.t[0]
         regular = jnp.argmax(jnp.bincount(data.dt_index, length=data.unique_dt.shape[0]))
         C = jax.jacfwd(h, argnums=0)(zeros, u0, t0, theta)
         noise = jnp.diag(S(zeros, u0, t0, theta)) if S_full is None else S_full(zeros, u0, t0, theta)
         return steady_form.SteadyModel(jax.tree_util.tree_map(lambda a: a[regular], cache), regular, C, noise,
-                                       lambda u, t: f(zeros, u, t, theta), lambda u, t: h(zeros, u, t, theta),
+                                       affine, lambda u, t: h(zeros, u, t, theta),
                                        data.foh, form)
 
     return steps

@@ -17,8 +17,8 @@ import sympy as sp
 from ..errors import ModelError
 from .delays import find_delays
 from .equations import TIME, is_wiener_name
-from .structure import (InitialCovariance, Structure, classify, lambdify_model, lambdify_parameters,
-                        observation_is_constant)
+from .structure import (LTI, InitialCovariance, Structure, classify, lambdify_model, lambdify_parameters,
+                        linear_drift_function, observation_is_constant)
 
 
 def build_structure(model) -> Structure:
@@ -127,6 +127,7 @@ def build_structure(model) -> Structure:
         observation_covariance=None if correlation is None else lambdify_model(covariances, *args, (s, s)),
         delays=delayed,
         constant_observation=observation_is_constant(h_mat, [*variance, *covariances], state_syms, input_syms),
+        linear_drift=linear_drift_function(f_mat, state_syms, input_syms, param_syms) if kind == LTI else None,
         fingerprint=fingerprint,
     )
 

@@ -67,6 +67,10 @@ class Structure:
     #: Whether ∂h/∂x and the outputs' noise depend on neither inputs nor time (a linear
     #: model's filter then has a steady state at a constant sampling interval).
     constant_observation: bool = False
+    #: For a linear time-invariant model, θ → (A, B, c) with f(x, u, t) = A x + B u + c, from
+    #: the equations' symbolic derivatives (else None): the exact filter's drift terms without
+    #: differentiating or evaluating f in every step.
+    linear_drift: Callable[[Array], tuple] | None = None
     #: A hash of everything the functions above compute (the equations as lambdified, names,
     #: settings), for programs kept on disk (:mod:`greyid.programs`); None for models of Python
     #: functions, whose programs are never kept.
@@ -163,6 +167,23 @@ def lambdify_model(exprs, states, inputs, parameters, shape) -> ModelFunction:
         return fn(x, u, t, theta)
 
     return model_function
+
+
+def linear_drift_function(drift: sp.Matrix, states, inputs, parameters) -> Callable[[Array], tuple]:
+    """θ → (A, B, c) of a drift f = A x + B u + c that is affine in x and u with coefficients
+    free of x, u and t (a linear time-invariant model, see :func:`classify`)."""
+    n, p = len(states), len(inputs)
+    A = drift.jacobian(sp.Matrix(states))
+    offset = drift.subs({x: 0 for x in states})
+    B = offset.jacobian(sp.Matrix(inputs)) if p else sp.zeros(n, 0)
+    c = offset.subs({u: 0 for u in inputs})
+    fn = _vector_function([*A, *B, *c], [list(parameters)], (n * (n + p + 1),))
+
+    def linear_drift(theta):
+        flat = fn(theta)
+        return flat[:n * n].reshape(n, n), flat[n * n:n * (n + p)].reshape(n, p), flat[n * (n + p):]
+
+    return linear_drift
 
 
 def lambdify_parameters(exprs, parameters, shape) -> Callable[[Array], Array]:
