@@ -110,6 +110,7 @@ def test_linear_drift_is_the_drift(inputs):
     if not inputs:
         model.add_system("dx1 = (-a*x1 + k*x2 + c)*dt + s*dw1", "dx2 = (x1 - b*x2)*dt + s*dw2")
         model.add_observation("y = x1", variance="r")
+        model.set_initial_state(mean={"x1": 0.0, "x2": 0.0}, covariance=[[1.0, 0.0], [0.0, 1.0]])
         params = dict(a=0.7, k=0.2, b=1.1, c=0.4, s=0.3, r=0.1)
     else:
         params, _ = random_linear_parameters(np.random.default_rng(3), nu=inputs)
@@ -124,6 +125,7 @@ def test_linear_drift_is_the_drift(inputs):
     nonlinear = greyid.Model("logistic")
     nonlinear.add_system("dx = r*x*(1 - x/K)*dt + s*dw1")
     nonlinear.add_observation("y = x", variance="v")
+    nonlinear.set_initial_state(mean={"x": 1.0}, covariance=[[1.0]])
     assert nonlinear.structure.linear_drift is None
 
 
