@@ -108,7 +108,10 @@ def initial_state(structure: Structure, theta, data: FilterInputs, first_noise=N
     if spec.kind == "process" and first_noise is not None:
         return x0, spec.scale * first_noise
     u0, t0 = data.u_cur[0], data.t[0]
-    A = jax.jacfwd(structure.drift, argnums=0)(x0, u0, t0, theta)
+    if structure.linear_drift is not None:
+        A = structure.linear_drift(theta)[0]
+    else:
+        A = jax.jacfwd(structure.drift, argnums=0)(x0, u0, t0, theta)
     G = structure.diffusion(x0, u0, t0, theta)
     if spec.kind == "process":
         return x0, spec.scale * discretize(A, G @ G.T, data.first_interval).noise_covariance
