@@ -12,17 +12,26 @@ slower (``benchmarks/length.py``).
 A function given a ``key`` — a description of everything its program depends
 on besides its arguments' shapes — also keeps its traced program on disk
 (:mod:`greyid.programs`), so that a later process skips tracing it.
+
+Python's garbage collector is paused while a program is traced and compiled
+(:mod:`greyid._collector`).  XLA's compilation frees the interpreter, so
+modules needed later (a fit's results) are imported meanwhile on the other
+core (:func:`import_while_compiling`).
 """
 
 from __future__ import annotations
 
 import functools
+import importlib
+import sys
+import threading
 from typing import Callable
 
 from . import _jax  # noqa: F401  (64-bit JAX before any JAX work)
 import jax
 
 from . import programs
+from ._collector import collector_paused
 
 
 @functools.cache
@@ -30,6 +39,39 @@ def compiler_options() -> dict:
     if jax.default_backend() == "cpu":
         return {"xla_cpu_use_fusion_emitters": False, "xla_cpu_experimental_ynn_fusion_type": ""}
     return {}
+
+
+_pending_imports: set[str] = set()
+importer: threading.Thread | None = None  # the latest thread of pending imports
+
+
+def import_while_compiling(*modules: str) -> None:
+    """Import ``modules`` in a thread during the next XLA compilation (unless imported by then).
+
+    Compiling the Hessian program of a small model takes 1.3–1.5 s of C++ with
+    the interpreter free; the modules a fit needs afterwards (its results:
+    pandas tables, SciPy's distributions, 0.15–0.25 s) load meanwhile.
+    """
+    _pending_imports.update(modules)
+
+
+def _import_quietly(modules):
+    for module in modules:
+        try:
+            importlib.import_module(module)
+        except Exception:  # noqa: BLE001  raised again where the module is used
+            pass
+
+
+def compile_lowered(lowered, *options):
+    """``lowered.compile(*options)``, pending imports running beside it."""
+    global importer
+    pending = sorted(m for m in _pending_imports if m not in sys.modules)
+    _pending_imports.clear()
+    if pending:
+        importer = threading.Thread(target=_import_quietly, args=(pending,), daemon=True)
+        importer.start()
+    return lowered.compile(*options)
 
 
 class Jitted:
@@ -55,7 +97,8 @@ class Jitted:
             return self.nested(*args, **kwargs)
         if self.key is not None and not kwargs and programs.enabled():
             return self.executable(*args)(*args)
-        return self.top(*args, **kwargs)
+        with collector_paused():  # a first call traces and compiles
+            return self.top(*args, **kwargs)
 
     def executable(self, *args):
         """The program compiled ahead of time for these arguments' shapes and types, kept.
@@ -67,8 +110,9 @@ class Jitted:
         leaves, tree = jax.tree_util.tree_flatten(args)
         signature = (tree, tuple(jax.typeof(a) for a in leaves))
         if signature not in self.executables:
-            kept = programs.load_or_export(self, args) if self.key is not None and programs.enabled() else None
-            self.executables[signature] = kept or self.top.lower(*args).compile(compiler_options())
+            with collector_paused():
+                kept = programs.load_or_export(self, args) if self.key is not None and programs.enabled() else None
+                self.executables[signature] = kept or compile_lowered(self.top.lower(*args), compiler_options())
         return self.executables[signature]
 
 

@@ -90,7 +90,7 @@ def load_or_export(jitted, args):
     Returns a callable taking the same arguments as ``jitted``, or None when
     the program cannot be kept (the caller then compiles it as usual).
     """
-    from .compiler import compiler_options
+    from .compiler import compile_lowered, compiler_options
 
     leaves, tree = jax.tree_util.tree_flatten(args)
     try:
@@ -103,7 +103,7 @@ def load_or_export(jitted, args):
             exported = jax.export.export(jax.jit(flat_program(jitted, tree, out_trees)))(*leaves)
             out_tree = out_trees[-1]
             write(path, pickle.dumps((out_tree, exported.serialize())))
-        compiled = jax.jit(exported.call, compiler_options=compiler_options()).lower(*leaves).compile()
+        compiled = compile_lowered(jax.jit(exported.call, compiler_options=compiler_options()).lower(*leaves))
     except Exception:  # noqa: BLE001  any failure: trace as without the cache
         return None
 

@@ -1,7 +1,19 @@
-"""Estimation: maximum likelihood and MAP with exact derivatives (chapter 3)."""
+"""Estimation: maximum likelihood and MAP with exact derivatives (chapter 3).
+
+The results' module (pandas tables, SciPy's distributions) loads when first
+used, so that a fit's programs are traced before it is imported: a fit imports
+it while XLA compiles (:func:`greyid.compiler.import_while_compiling`).
+"""
 
 from .criteria import GaussianPrior, log_criterion, squared_norm
 from .estimation import fit
-from .results import FitResult, FitWarning, load_fit
 
 __all__ = ["fit", "FitResult", "FitWarning", "load_fit", "GaussianPrior", "log_criterion", "squared_norm"]
+
+
+def __getattr__(name):
+    if name in ("FitResult", "FitWarning", "load_fit"):
+        from . import results
+
+        return getattr(results, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

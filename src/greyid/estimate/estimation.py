@@ -16,6 +16,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..compiler import import_while_compiling
 from ..data.prepare import as_frames
 from ..errors import DataError, ModelError
 from ..filters.accuracy import LOGLIK_TOLERANCE, MAX_SUBSTEPS, SubstepChoice, needs_substeps
@@ -307,6 +308,7 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
         horizon=1, starts=1, seed=0, init=None, time_unit=None, maxiter=500, progress=False, cov_type=None,
         init_from=None, optimizer="auto", **filter_settings):
     """Estimate the free parameters of ``model`` from ``data``; see :meth:`Model.fit`."""
+    import_while_compiling(f"{__package__}.optimum")  # the results' module, needed at the end
     structure = model.structure
     robust, cov_type = check_settings(criterion, prior, robust, horizon, cov_type, optimizer, starts)
     parameters = free_parameters(model, init)

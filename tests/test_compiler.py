@@ -1,0 +1,92 @@
+"""How greyid compiles (greyid.compiler, greyid._collector): the garbage collector paused and
+restored, modules imported while XLA compiles, and the scan's initial carries tied to θ
+changing no number."""
+
+from __future__ import annotations
+
+import gc
+import subprocess
+import sys
+import threading
+
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+import pytest
+
+import greyid
+from greyid import compiler
+from greyid._collector import collector_paused
+from greyid.filters import core
+
+
+def test_the_collector_is_paused_in_the_block_and_restored_after_the_last_one():
+    assert gc.isenabled()
+    inside = threading.Event()
+    release = threading.Event()
+
+    def other_block():
+        with collector_paused():
+            inside.set()
+            release.wait(10)
+
+    with collector_paused():
+        assert not gc.isenabled()
+        worker = threading.Thread(target=other_block)
+        worker.start()
+        inside.wait(10)
+        with collector_paused():
+            assert not gc.isenabled()
+        assert not gc.isenabled()
+    assert not gc.isenabled(), "re-enabled while another thread's block is still open"
+    release.set()
+    worker.join()
+    assert gc.isenabled()
+    # A collector the user switched off stays off.
+    gc.disable()
+    try:
+        with collector_paused():
+            pass
+        assert not gc.isenabled()
+    finally:
+        gc.enable()
+
+
+def test_pending_modules_are_imported_while_a_program_compiles():
+    sys.modules.pop("colorsys", None)
+    compiler.import_while_compiling("colorsys", "greyid_no_such_module")
+    program = compiler.jit(lambda x: jnp.sin(x) * 2.0)
+    assert float(program.executable(np.float64(0.5))(np.float64(0.5))) == pytest.approx(2 * np.sin(0.5))
+    compiler.importer.join(10)
+    assert "colorsys" in sys.modules
+    assert not compiler._pending_imports  # a module that does not exist is left for its real import to raise
+
+
+def test_the_estimation_package_loads_its_results_module_only_when_used():
+    code = ("import sys, greyid.estimate as e; assert 'greyid.estimate.results' not in sys.modules; "
+            "from greyid.estimate import FitResult; assert FitResult is sys.modules['greyid.estimate.results'].FitResult")
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def ou_model():
+    m = greyid.Model("ou_fixed_p0")
+    m.add_system("dx = theta*(mu - x)*dt + exp(ls)*dw1")
+    m.add_observation("y = x", variance="exp(le)")
+    m.set_initial_state(mean={"x": "x0"}, covariance=[[1.0]])  # P0 independent of θ
+    for name, value, low, high in [("theta", 1.0, 0.01, 20), ("mu", 0.5, -10, 10), ("ls", -1.0, -10, 3),
+                                   ("le", -3.0, -10, 3), ("x0", 0.0, -10, 10)]:
+        m.set_parameter(name, value, lower=low, upper=high)
+    return m
+
+
+def test_tying_the_initial_carries_to_theta_changes_no_number(monkeypatch):
+    truth = {"theta": 0.8, "mu": 1.0, "ls": -1.0, "le": -3.0, "x0": 0.5}
+    times = pd.DataFrame({"t": np.arange(150) * 0.5})
+    data = times.assign(y=ou_model().simulate(truth, times, method="exact", seed=5).outputs[0, :, 0])
+    tied = ou_model().fit(data)
+    monkeypatch.setattr(core, "carried_from_start", lambda theta, *initial: tuple(initial))
+    untied = ou_model().fit(data)
+    assert tied.loglik == pytest.approx(untied.loglik, rel=1e-13)
+    np.testing.assert_allclose(tied.params["estimate"], untied.params["estimate"], rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(tied.params["std_error"], untied.params["std_error"], rtol=1e-10)
+    assert tied.iterations == untied.iterations
