@@ -211,3 +211,27 @@ def test_long_series_criterion_summed_in_the_scan_equals_the_stacked_one(ou_data
     summed = compiled(m.structure, replace(problem, long_series=True)).derivatives(z, rows, *args, datasets)
     for a, b in zip(summed, stacked):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.parametrize("m_out", [1, 2, 3])
+def test_whitened_sensitivities_give_the_gaussian_information(m_out):
+    """MMᵀ = Σ_k ∂ε_kᵀR_k⁻¹∂ε_k + ½ tr(R_k⁻¹∂_iR_k R_k⁻¹∂_jR_k) (4.32–4.33), against NumPy's
+    inverses, for correlated outputs too."""
+    from greyid.estimate.objective import whitened_sensitivities
+
+    rng = np.random.default_rng(3)
+    steps, directions = 7, 4
+    roots = rng.normal(size=(steps, m_out, m_out))
+    R = roots @ np.swapaxes(roots, 1, 2) + 0.5 * np.eye(m_out)
+    d_eps = rng.normal(size=(directions, steps, m_out))
+    d_R = rng.normal(size=(directions, steps, m_out, m_out))
+    d_R = d_R + np.swapaxes(d_R, 2, 3)
+    M = np.asarray(whitened_sensitivities(R, d_eps, d_R))
+    R_inv = np.linalg.inv(R)
+    reference = np.zeros((directions, directions))
+    for i in range(directions):
+        for j in range(directions):
+            for k in range(steps):
+                reference[i, j] += d_eps[i, k] @ R_inv[k] @ d_eps[j, k]
+                reference[i, j] += 0.5 * np.trace(R_inv[k] @ d_R[i, k] @ R_inv[k] @ d_R[j, k])
+    np.testing.assert_allclose(M @ M.T, reference, rtol=1e-12, atol=1e-12)

