@@ -110,3 +110,57 @@ def test_an_unreadable_kept_program_is_traced_again(cache, ou_data):
         path.write_bytes(b"not a program")
     again = ou_model().fit(ou_data)
     assert again.loglik == pytest.approx(first.loglik, abs=1e-9)
+
+
+LAPACK_SCRIPT = """
+import sys
+import numpy as np, pandas as pd
+sys.path.insert(0, sys.argv[1])
+from test_programs import ou_model
+data = pd.read_csv(sys.argv[2])
+m = ou_model()
+m.set_initial_state(mean={"x": "x0"}, covariance="stationary")  # solved by LU: LAPACK on CPUs
+values = {"theta": 0.9, "mu": 0.8, "ls": -1.1, "le": -2.9, "x0": 0.4}
+print(repr(m.fit(data).loglik), repr(m.loglik(values, data)))
+"""
+
+
+def test_a_kept_program_that_calls_lapack_runs_in_a_fresh_process(tmp_path, ou_data):
+    """Lowering a kept program skips JAX's LAPACK set-up only for programs without custom calls:
+    one that calls LAPACK (a stationary initial covariance, solved by LU) and is loaded by a
+    process that traced nothing still computes what tracing computes."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    data = tmp_path / "data.csv"
+    ou_data.to_csv(data, index=False)
+    env = dict(os.environ, GREYID_CACHE_DIR=str(tmp_path / "cache"), GREYID_PROGRAMS="on")
+    runs = [subprocess.run([sys.executable, "-c", LAPACK_SCRIPT, str(Path(__file__).parent), str(data)], env=env,
+                           check=True, capture_output=True, text=True).stdout.split() for _ in range(2)]
+    kept = kept_files(tmp_path / "cache" / "programs")
+    assert any(b"custom_call" in path.read_bytes() for path in kept)
+    m = ou_model()
+    m.set_initial_state(mean={"x": "x0"}, covariance="stationary")
+    traced = m.fit(ou_data).loglik
+    values = {"theta": 0.9, "mu": 0.8, "ls": -1.1, "le": -2.9, "x0": 0.4}
+    for fit_loglik, loglik in runs:
+        assert float(fit_loglik) == pytest.approx(traced, abs=1e-9)
+        assert float(loglik) == pytest.approx(m.loglik(values, ou_data), abs=1e-12)
+
+
+def test_the_lapack_set_up_is_skipped_only_where_asked(monkeypatch):
+    from jax._src.export import _export
+
+    calls = []
+    monkeypatch.setattr(_export, "_ensure_backends_initialized", lambda platforms: calls.append(platforms))
+    programs._install_lapack_guard()
+    programs._install_lapack_guard()  # installed once, not wrapped twice
+    with programs.lapack_needed(False):
+        _export._ensure_backends_initialized(("cpu",))
+    assert calls == []
+    with programs.lapack_needed(True):
+        _export._ensure_backends_initialized(("cpu",))
+    _export._ensure_backends_initialized(("cpu",))  # outside the block: as JAX does it
+    assert calls == [("cpu",), ("cpu",)]
