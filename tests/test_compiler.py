@@ -62,6 +62,31 @@ def test_pending_modules_are_imported_while_a_program_compiles():
     assert not compiler._pending_imports  # a module that does not exist is left for its real import to raise
 
 
+def test_what_tracing_left_is_collected_beside_the_compilation_unless_the_user_switched_off():
+    def collections_beside(program, x):
+        seen = []
+
+        def record(phase, info):
+            if phase == "start" and threading.current_thread() is not threading.main_thread():
+                seen.append(info["generation"])
+
+        gc.callbacks.append(record)
+        try:
+            program.executable(x)
+            compiler.importer.join(10)
+        finally:
+            gc.callbacks.remove(record)
+        return seen
+
+    assert collections_beside(compiler.jit(lambda x: jnp.cos(x) + 3.0), np.float64(0.25)) == [0]
+    gc.disable()
+    try:
+        assert collections_beside(compiler.jit(lambda x: jnp.cos(x) + 4.0), np.float64(0.25)) == []
+        assert not gc.isenabled()
+    finally:
+        gc.enable()
+
+
 def test_the_estimation_package_loads_its_results_module_only_when_used():
     code = ("import sys, greyid.estimate as e; assert 'greyid.estimate.results' not in sys.modules; "
             "from greyid.estimate import FitResult; assert FitResult is sys.modules['greyid.estimate.results'].FitResult")

@@ -31,7 +31,7 @@ from . import _jax  # noqa: F401  (64-bit JAX before any JAX work)
 import jax
 
 from . import programs
-from ._collector import collector_paused
+from ._collector import collect_young_garbage, collector_paused
 
 
 @functools.cache
@@ -42,7 +42,7 @@ def compiler_options() -> dict:
 
 
 _pending_imports: set[str] = set()
-importer: threading.Thread | None = None  # the latest thread of pending imports
+importer: threading.Thread | None = None  # the latest thread beside a compilation
 
 
 def import_while_compiling(*modules: str) -> None:
@@ -55,22 +55,23 @@ def import_while_compiling(*modules: str) -> None:
     _pending_imports.update(modules)
 
 
-def _import_quietly(modules):
+def _beside_compilation(modules):
     for module in modules:
         try:
             importlib.import_module(module)
         except Exception:  # noqa: BLE001  raised again where the module is used
             pass
+    collect_young_garbage()
 
 
 def compile_lowered(lowered, *options):
-    """``lowered.compile(*options)``, pending imports running beside it."""
+    """``lowered.compile(*options)``, with pending imports and the collection of what
+    tracing left behind running beside it (see :func:`collect_young_garbage`)."""
     global importer
     pending = sorted(m for m in _pending_imports if m not in sys.modules)
     _pending_imports.clear()
-    if pending:
-        importer = threading.Thread(target=_import_quietly, args=(pending,), daemon=True)
-        importer.start()
+    importer = threading.Thread(target=_beside_compilation, args=(pending,), daemon=True)
+    importer.start()
     return lowered.compile(*options)
 
 
