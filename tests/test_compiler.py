@@ -16,7 +16,7 @@ import pytest
 
 import greyid
 from greyid import compiler
-from greyid._collector import collector_paused
+from greyid._collector import collector_paused, imports_frozen
 from greyid.filters import core
 
 
@@ -50,6 +50,49 @@ def test_the_collector_is_paused_in_the_block_and_restored_after_the_last_one():
         assert not gc.isenabled()
     finally:
         gc.enable()
+
+
+def test_imports_run_with_the_collector_paused_and_what_they_made_is_frozen():
+    seen = []
+
+    def record(phase, info):
+        seen.append(phase)
+
+    gc.unfreeze()  # this process froze greyid's imports already
+    gc.callbacks.append(record)
+    try:
+        with imports_frozen():
+            assert not gc.isenabled()
+            made = [[i] for i in range(100_000)]  # enough to trigger automatic collections
+            assert seen == []
+        assert gc.isenabled()
+        assert gc.get_freeze_count() >= len(made)
+        assert not any(o is made for o in gc.get_objects()), "frozen objects are left out of collections"
+        # Inside another paused block, or with the collector switched off by the user: nothing frozen.
+        gc.unfreeze()
+        with collector_paused():
+            with imports_frozen():
+                pass
+        assert gc.get_freeze_count() == 0
+        gc.disable()
+        try:
+            with imports_frozen():
+                pass
+            assert not gc.isenabled() and gc.get_freeze_count() == 0
+        finally:
+            gc.enable()
+    finally:
+        gc.callbacks.remove(record)
+        gc.unfreeze()
+
+
+def test_a_fresh_process_freezes_the_model_modules_and_keeps_the_collector_on():
+    code = ("import gc, greyid; assert gc.get_freeze_count() == 0; import greyid.model, sys; "
+            "assert 'jax' in sys.modules and 'sympy' in sys.modules; "
+            "assert gc.isenabled() and gc.get_freeze_count() > 100_000, gc.get_freeze_count()")
+    subprocess.run([sys.executable, "-c", code], check=True)
+    off = "import gc; gc.disable(); import greyid.model; assert not gc.isenabled() and gc.get_freeze_count() == 0"
+    subprocess.run([sys.executable, "-c", off], check=True)
 
 
 def test_pending_modules_are_imported_while_a_program_compiles():

@@ -1,4 +1,5 @@
-"""Python's cyclic garbage collector paused while greyid traces and compiles a program.
+"""Python's cyclic garbage collector paused while greyid imports its dependencies and
+while it traces and compiles a program.
 
 Tracing allocates hundreds of thousands of objects that die young, and every
 automatic full collection among them walks the whole heap of JAX, SymPy and
@@ -6,9 +7,12 @@ pandas: 0.2–0.25 s of an Armadillo first fit in a fresh process went to it
 (``benchmarks/fit.py``), 0.03 s with the collector paused.  What tracing leaves
 behind is collected while XLA compiles, which frees the interpreter
 (:func:`collect_young_garbage`, 0.03 s of the same fit), or else after the
-block, as usual.  (Pausing it during
-the imports of JAX and SymPy gains nothing: what they allocate lives on, and the
-first collection afterwards walks it all.)
+block, as usual.
+
+Importing JAX, SymPy and pandas creates about a million objects that live as
+long as the process; the automatic full collections among them took 0.1 s of
+the same fit, and every later one would walk them all again.  They are imported
+with the collector paused and then frozen (:func:`imports_frozen`).
 """
 
 from __future__ import annotations
@@ -36,6 +40,24 @@ def collector_paused():
             _paused["depth"] -= 1
             if _paused["depth"] == 0 and _paused["was_enabled"]:
                 gc.enable()
+
+
+@contextlib.contextmanager
+def imports_frozen():
+    """The collector paused while the block imports modules; then every object tracked so far frozen.
+
+    ``gc.freeze`` moves the objects to a permanent generation that later
+    collections skip: modules, classes and functions, which live on anyway.
+    It also takes the objects the process had before greyid's first import;
+    they are still freed by reference counting, but a reference cycle among
+    them that becomes garbage later stays in memory (``gc.unfreeze()`` hands
+    them back to the collector).  Nothing is frozen where the user had
+    switched the collector off, or inside another paused block.
+    """
+    with collector_paused():
+        yield
+        if _paused["depth"] == 1 and _paused["was_enabled"]:
+            gc.freeze()
 
 
 def collect_young_garbage() -> None:

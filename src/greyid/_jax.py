@@ -12,7 +12,10 @@ once; the first use of a model does.
 
 import os
 
-import jax
+from ._collector import imports_frozen
+
+with imports_frozen():  # see greyid._collector
+    import jax
 
 jax.config.update("jax_enable_x64", True)
 
