@@ -7,8 +7,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
+import jax
+
 import greyid
-from greyid import programs
+from greyid import compiler, programs
 
 SPEC = "dx = theta*(mu - x)*dt + exp(ls)*dw1"
 
@@ -110,6 +112,56 @@ def test_an_unreadable_kept_program_is_traced_again(cache, ou_data):
         path.write_bytes(b"not a program")
     again = ou_model().fit(ou_data)
     assert again.loglik == pytest.approx(first.loglik, abs=1e-9)
+
+
+def test_a_small_fit_compiles_quick_first_and_keeps_the_optimised_program(cache, ou_data, monkeypatch):
+    """The first fit of a small model runs on a quickly compiled executable; the optimised one
+    compiles after the search, replaces it and is marked as kept, so that a later model (a new
+    process) compiles it directly.  Both give the same answer to rounding."""
+    options = []
+    compile_lowered = compiler.compile_lowered
+
+    def recording(lowered, *extra):
+        options.append(extra)
+        return compile_lowered(lowered, *extra)
+
+    monkeypatch.setattr(compiler, "compile_lowered", recording)
+    monkeypatch.setenv("GREYID_QUICK_FIRST", "on")  # the command line's tests, in this process, say off
+    setting = jax.config.jax_persistent_cache_min_compile_time_secs
+    model = ou_model()
+    first = model.fit(ou_data)
+    assert (compiler.QUICK,) in options
+    assert jax.config.jax_persistent_cache_min_compile_time_secs == setting
+    program = model.structure.cache[next(k for k in model.structure.cache if k[0] == "objective")].derivatives
+    (quick,) = program.executables.values()
+    compiler.settle()
+    (optimized,) = program.executables.values()
+    assert optimized is not quick, "the optimised executable replaces the quick one"
+    assert sorted(cache.glob("*.optimized")), "the optimised program is marked as kept"
+    again = model.fit(ou_data)
+
+    options.clear()
+    later = ou_model().fit(ou_data)
+    assert options and (compiler.QUICK,) not in options
+    for other in (again, later):
+        assert other.loglik == pytest.approx(first.loglik, abs=1e-9)
+        np.testing.assert_allclose(other.params["estimate"], first.params["estimate"], rtol=1e-8)
+        np.testing.assert_allclose(other.params["std_error"], first.params["std_error"], rtol=1e-6)
+
+    # A fit that scores (long series, many parameters), GREYID_QUICK_FIRST=off (the command
+    # line) or a cache switched off: never quick.
+    for path in cache.glob("*.optimized"):
+        path.unlink()
+    options.clear()
+    ou_model().fit(ou_data, optimizer="scoring")
+    monkeypatch.setenv("GREYID_QUICK_FIRST", "off")
+    ou_model().fit(ou_data)
+    assert options and not sorted(cache.glob("*.optimized"))
+    monkeypatch.setenv("GREYID_QUICK_FIRST", "on")
+    monkeypatch.setenv("GREYID_PROGRAMS", "off")
+    ou_model().fit(ou_data)
+    assert (compiler.QUICK,) not in options
+    compiler.settle()
 
 
 LAPACK_SCRIPT = """

@@ -30,6 +30,7 @@ import os
 import pickle
 import tempfile
 from pathlib import Path
+from typing import NamedTuple
 
 from . import _jax
 import jax
@@ -86,13 +87,32 @@ def flat_program(jitted, tree, out_trees: list):
     return program
 
 
-def load_or_export(jitted, args):
-    """The compiled program of ``jitted`` for ``args``: from its kept export, or exported now and kept.
+class KeptProgram(NamedTuple):
+    """A kept program's call, lowered and ready for XLA, and where it is kept."""
 
-    Returns a callable taking the same arguments as ``jitted``, or None when
-    the program cannot be kept (the caller then compiles it as usual).
-    """
-    from .compiler import compile_lowered, compiler_options
+    lowered: object  # jax.stages.Lowered
+    out_tree: object  # the results' tree structure
+    path: Path
+
+    def runner(self, compiled):
+        """A callable taking the jitted function's own arguments, running ``compiled``."""
+        out_tree = self.out_tree
+
+        def run(*call_args):
+            return jax.tree_util.tree_unflatten(out_tree, compiled(*jax.tree_util.tree_leaves(call_args)))
+
+        return run
+
+    @property
+    def optimized_mark(self) -> Path:
+        """A file that says the program's optimised executable is in JAX's persistent cache."""
+        return self.path.with_suffix(".optimized")
+
+
+def kept_lowering(jitted, args) -> KeptProgram | None:
+    """The lowered call of ``jitted``'s program for ``args``: loaded from its kept export, or
+    exported now and kept; None when the program cannot be kept (the caller then traces it)."""
+    from .compiler import compiler_options
 
     leaves, tree = jax.tree_util.tree_flatten(args)
     try:
@@ -107,14 +127,9 @@ def load_or_export(jitted, args):
             write(path, pickle.dumps((out_tree, blob)))
         with lapack_needed(b"custom_call" in blob):
             lowered = jax.jit(exported.call, compiler_options=compiler_options()).lower(*leaves)
-        compiled = compile_lowered(lowered)
     except Exception:  # noqa: BLE001  any failure: trace as without the cache
         return None
-
-    def run(*call_args):
-        return jax.tree_util.tree_unflatten(out_tree, compiled(*jax.tree_util.tree_leaves(call_args)))
-
-    return run
+    return KeptProgram(lowered, out_tree, path)
 
 
 _lapack_needed: contextvars.ContextVar[bool] = contextvars.ContextVar("greyid_lapack_needed", default=True)

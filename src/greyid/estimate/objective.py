@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..compiler import jit, kept_key
+from ..compiler import jit, kept_key, optimize_quick_programs
 from ..filters import small
 from ..filters.api import compiled_filter
 from ..filters.core import KALMAN, FilterOptions, make_ahead, make_summed_filter
@@ -308,10 +308,14 @@ class Derivatives:
     """
 
     def __init__(self, program, n: int, arguments: tuple, workers: int | None = None,
-                 combine: Callable = combine_hessian):
+                 combine: Callable = combine_hessian, quick_first: bool = False):
         self.blocks = direction_blocks(n, workers)
         self.n, self.program, self.arguments, self.combine = n, program, arguments, combine
         self.pool = ThreadPoolExecutor(len(self.blocks)) if len(self.blocks) > 1 else None
+        # A program compiled quick first is replaced by its optimised executable when that is
+        # ready; one search keeps the executable it started with, so that its steps, and so
+        # its answer, do not depend on when that happens (see greyid.compiler).
+        self.quick_first, self.pinned = quick_first, None
 
     def _block(self, program, z, rows):
         return jax.block_until_ready(program(z, rows, *self.arguments))
@@ -332,16 +336,25 @@ class Derivatives:
             pending.result()
             self.ahead.shutdown()
         z = np.asarray(z, dtype=np.float64)  # transferred by the call, without a compiled conversion
-        if self.pool is None:
-            parts = [self._block(self.program, z, rows) for rows in self.blocks]
+        if self.quick_first:
+            if self.pinned is None:
+                self.pinned = self.program.executable(z, self.blocks[0], *self.arguments, quick_first=True)
+            run = self.pinned
+        elif self.pool is None:
+            run = self.program
         else:  # compiled once before the threads start
             run = self.program.executable(z, self.blocks[0], *self.arguments)
+        if self.pool is None:
+            parts = [self._block(run, z, rows) for rows in self.blocks]
+        else:
             parts = list(self.pool.map(lambda rows: self._block(run, z, rows), self.blocks))
         return self.combine(parts, self.n)
 
     def close(self):
         if self.pool is not None:
             self.pool.shutdown()
+        if self.quick_first:
+            optimize_quick_programs()
         if getattr(self, "ahead", None) is not None:  # a compilation ahead never waited for
             self.ahead.shutdown()
 
