@@ -9,7 +9,7 @@ behind is collected while XLA compiles, which frees the interpreter
 (:func:`collect_young_garbage`, 0.03 s of the same fit), or else after the
 block, as usual.
 
-Importing JAX, SymPy and pandas creates about a million objects that live as
+Importing JAX, SymPy and pandas creates about 240 000 objects that live as
 long as the process; the automatic full collections among them took 0.1 s of
 the same fit, and every later one would walk them all again.  They are imported
 with the collector paused and then frozen (:func:`imports_frozen`).
