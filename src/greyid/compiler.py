@@ -14,9 +14,10 @@ on besides its arguments' shapes — also keeps its traced program on disk
 (:mod:`greyid.programs`), so that a later process skips tracing it.  Such a
 program can be asked for *quick first* (a small fit's value–gradient–Hessian
 program): where no process has compiled it yet, it is compiled at once with
-LLVM's optimisations off (:data:`QUICK`) and used so, while the optimised
-executable compiles in a background thread, goes into JAX's persistent cache
-for later processes and replaces the quick one for later calls in this one.
+LLVM's optimisations off (:data:`QUICK`) and the search runs on that; once the
+search is done the optimised executable compiles in a background thread, goes
+into JAX's persistent cache for later processes and replaces the quick one for
+later calls in this one.
 
 Python's garbage collector is paused while a program is traced and compiled
 (:mod:`greyid._collector`).  XLA's compilation frees the interpreter, so
