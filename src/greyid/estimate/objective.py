@@ -313,8 +313,8 @@ class Derivatives:
         self.n, self.program, self.arguments, self.combine = n, program, arguments, combine
         self.pool = ThreadPoolExecutor(len(self.blocks)) if len(self.blocks) > 1 else None
         # A program compiled quick first is replaced by its optimised executable when that is
-        # ready; one search keeps the executable it started with, so that its steps, and so
-        # its answer, do not depend on when that happens (see greyid.compiler).
+        # ready; these derivatives keep the executable they started with, so that a search's
+        # steps, and so its answer, do not depend on when that happens (see greyid.compiler).
         self.quick_first, self.pinned = quick_first, None
 
     def _block(self, program, z, rows):
@@ -336,14 +336,13 @@ class Derivatives:
             pending.result()
             self.ahead.shutdown()
         z = np.asarray(z, dtype=np.float64)  # transferred by the call, without a compiled conversion
-        if self.quick_first:
-            if self.pinned is None:
-                self.pinned = self.program.executable(z, self.blocks[0], *self.arguments, quick_first=True)
-            run = self.pinned
-        elif self.pool is None:
+        if self.pool is None and not self.quick_first:
             run = self.program
-        else:  # compiled once before the threads start
-            run = self.program.executable(z, self.blocks[0], *self.arguments)
+        else:  # compiled once, before any thread starts, and kept for the search
+            if self.pinned is None:
+                self.pinned = self.program.executable(z, self.blocks[0], *self.arguments,
+                                                      quick_first=self.quick_first)
+            run = self.pinned
         if self.pool is None:
             parts = [self._block(run, z, rows) for rows in self.blocks]
         else:
