@@ -8,11 +8,11 @@ compilation cache (see :mod:`greyid._jax`; ``GREYID_CACHE_DIR=off`` keeps it off
 
 import sys
 
-from .errors import DataError, ModelError
+from .errors import DataError, ModelError, UndeterminedWarning
 
 __version__ = "0.1.0"
 __all__ = ["Model", "FitResult", "FitWarning", "load_fit", "fit_many", "FleetResult", "ModelError", "DataError",
-           "__version__"]
+           "UndeterminedWarning", "__version__"]
 
 if "jax" in sys.modules:  # JAX is in use already: make it 64-bit now, as before any work
     from . import _jax  # noqa: F401

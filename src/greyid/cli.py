@@ -279,10 +279,13 @@ def design_command(model: str = typer.Argument(..., help="model file, fit file (
     """The Fisher information of a planned experiment, its criteria and Cramér–Rao bounds (chapter 6)."""
 
     def command() -> int:
+        import warnings
+
         import numpy as np
         import pandas as pd
 
         from . import design
+        from .errors import UndeterminedWarning as design_warning
 
         m, saved = load_model_or_fit(model)
         params = saved.values if saved is not None else m.initial_values()
@@ -297,21 +300,23 @@ def design_command(model: str = typer.Argument(..., help="model file, fit file (
             if path.stem in plans:
                 raise InputProblem(f"two plans are named '{path.stem}'; give the files different names")
             plans[path.stem] = _read_plan(m, path)
-        table = design.compare_inputs(m, params, plans, criteria={c: c for c in names}, **options)
-        info = table.attrs["information"][plan.stem]
+        with warnings.catch_warnings():  # printed below, as the command's own lines
+            warnings.simplefilter("ignore", design_warning)
+            table = design.compare_inputs(m, params, plans, criteria={c: c for c in names}, **options)
+            info = table.attrs["information"][plan.stem]
+            bound = design.cramer_rao_bound(info)
         out.print(f"Fisher information of plan '{plan.stem}' ({info.attrs.get('method')}), natural parameters:")
         out.print(info.to_string(float_format=lambda v: f"{v:.4g}"))
-        bound = design.cramer_rao_bound(info)
         out.print()
-        out.print("Cramér–Rao bound (least standard deviation of an unbiased estimate):")
+        out.print("Cramér–Rao bound (least standard deviation of an unbiased estimate; inf: not determined):")
         out.print(pd.DataFrame({"value": pd.Series(params)[bound.index], "sd bound": np.sqrt(bound)})
                   .to_string(float_format=lambda v: f"{v:.4g}"))
         out.print()
         out.print("criteria (smaller is better):")
         out.print(table.to_string(float_format=lambda v: f"{v:.5g}"))
         flat = design.local_identifiability(info)
-        for parameters in flat["parameters"]:
-            out.print(f"not determined by this plan: the direction involving {', '.join(parameters)}")
+        for name, direction in table.attrs["undetermined"].items():
+            out.print(f"not determined by plan '{name}': the direction {direction} (scaled parameters)")
         return OK if flat.empty else VERDICT
 
     _run(command)

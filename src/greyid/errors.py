@@ -7,3 +7,7 @@ class ModelError(ValueError):
 
 class DataError(ValueError):
     """Data that cannot be used with a model (names the column or the row)."""
+
+
+class UndeterminedWarning(UserWarning):
+    """An information matrix that does not determine some direction of the parameters (names it)."""

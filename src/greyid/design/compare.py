@@ -9,11 +9,13 @@ criterion (1 = best).
 
 from __future__ import annotations
 
+import warnings
 from typing import Mapping
 
 import pandas as pd
 
-from ..errors import DataError, ModelError
+from ..errors import DataError, ModelError, UndeterminedWarning
+from ..scaled import ScaledInformation
 from .criteria import criterion
 from .information import fisher_information
 
@@ -40,7 +42,9 @@ def compare_inputs(model, params, candidates: Mapping[str, pd.DataFrame], criter
     e.g. ``{"UA": {"name": "A", "derived": {"UA": "Hi*Hm/(Hi+Hm)"}}}``; default
     D, Ds, C and E (Ds with ``interest``).  Other keyword arguments go to
     :func:`fisher_information` (``time``, ``hold``, ``free``, ``method``,
-    ``n_paths``, ``seed``).  ``attrs["information"]`` holds each candidate's matrix.
+    ``n_paths``, ``seed``).  ``attrs["information"]`` holds each candidate's matrix,
+    ``attrs["undetermined"]`` the directions a candidate does not determine (its
+    criteria of them are +inf; one :class:`~greyid.errors.UndeterminedWarning` per candidate).
     """
     if not isinstance(candidates, Mapping) or not candidates:
         raise DataError("candidates must be a non-empty mapping name → plan DataFrame")
@@ -49,7 +53,7 @@ def compare_inputs(model, params, candidates: Mapping[str, pd.DataFrame], criter
     specs = {label: _spec(label, spec) for label, spec in criteria.items()}
     values = model.parameter_vector(params)
     point = dict(zip(model.structure.parameter_names, values))
-    rows, matrices = {}, {}
+    rows, matrices, undetermined = {}, {}, {}
     for name, plan in candidates.items():
         if not isinstance(plan, pd.DataFrame):
             raise DataError(f"candidate '{name}' is not a DataFrame of times and inputs")
@@ -59,19 +63,27 @@ def compare_inputs(model, params, candidates: Mapping[str, pd.DataFrame], criter
             raise type(error)(f"candidate '{name}': {error}") from None
         matrices[name] = info
         row = {}
+        scaled = ScaledInformation.of(info.to_numpy(), list(info.index))
+        if scaled.singular:
+            undetermined[name] = scaled.describe()
+            warnings.warn(f"candidate '{name}' does not determine the direction {undetermined[name]} (scaled "
+                          "parameters): its criteria of it are +inf", UndeterminedWarning, stacklevel=2)
         for label, spec in specs.items():
             options = {k: v for k, v in spec.items() if k != "name"}
             if spec["name"] == "Ds" and "interest" not in options:
                 if interest is None:
                     raise ModelError(f"criterion '{label}' (Ds) needs interest=, the parameters of interest")
                 options["interest"] = interest
-            row[label] = criterion(info, spec["name"], params=point, **options)
+            with warnings.catch_warnings():  # said once per candidate, above
+                warnings.simplefilter("ignore", UndeterminedWarning)
+                row[label] = criterion(info, spec["name"], params=point, **options)
         rows[name] = row
     table = pd.DataFrame.from_dict(rows, orient="index")
     for label in specs:
         table[f"{label} rank"] = table[label].rank(method="min").astype(int)
     table = table[[c for label in specs for c in (label, f"{label} rank")]]
     table.attrs["information"] = matrices
+    table.attrs["undetermined"] = undetermined
     return table
 
 

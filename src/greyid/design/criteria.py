@@ -18,12 +18,14 @@ a prior distribution of θ (J₃, 6.36–6.38) or its worst case over a box (6.3
 
 from __future__ import annotations
 
+import warnings
 from itertools import product
 
 import numpy as np
 import pandas as pd
 
-from ..errors import ModelError
+from ..errors import ModelError, UndeterminedWarning
+from ..scaled import ScaledInformation
 
 CRITERIA = ("D", "A", "C", "E", "L", "Ds")
 
@@ -54,6 +56,27 @@ def with_prior(info, prior) -> pd.DataFrame:
     return pd.DataFrame(out, index=names, columns=names)
 
 
+def _undetermined(scaled: ScaledInformation, what: str) -> float:
+    """+inf, with a warning naming the direction the information does not determine."""
+    warnings.warn(f"the information does not determine the direction {scaled.describe()} "
+                  f"(scaled parameters): {what} is +inf", UndeterminedWarning, stacklevel=3)
+    return float("inf")
+
+
+def _schur_information(scaled: ScaledInformation, interest: list[str]) -> np.ndarray:
+    """M_ss − M_sn M_nn⁻¹ M_ns in the user's units, computed on the unit-diagonal matrix."""
+    names = scaled.names
+    s = [names.index(n) for n in interest]
+    rest = [i for i in range(len(names)) if i not in s]
+    V, w = scaled.eigenvectors, scaled.eigenvalues
+    Ms = (V * w) @ V.T
+    block = Ms[np.ix_(s, s)]
+    if rest:
+        nuisance = ScaledInformation.of(Ms[np.ix_(rest, rest)])
+        block = block - Ms[np.ix_(s, rest)] @ nuisance.covariance() @ Ms[np.ix_(rest, s)]
+    return block / np.outer(scaled.scale[s], scaled.scale[s])
+
+
 def criterion(info, name: str, params=None, interest=None, V=None, k: float = 1.0, derived=None,
               prior=None) -> float:
     """The value of criterion ``name`` for the information ``info`` (smaller is better).
@@ -63,15 +86,19 @@ def criterion(info, name: str, params=None, interest=None, V=None, k: float = 1.
     names to expressions, with ``params`` — replaces M⁻¹ by the covariance of
     those quantities (6.35, 7.47) for ``"D"`` (log det J M⁻¹ Jᵀ), ``"A"``, ``"C"``
     (V = diag(1/f(θ))), ``"E"`` and ``"L"``.  ``prior`` (a Gaussian prior as for
-    MAP fits) adds its precision first: the MAP criteria (6.53).  A singular M
-    gives +inf (6.32).
+    MAP fits) adds its precision first: the MAP criteria (6.53).
+
+    Ranks, inverses and determinants are taken on M scaled to unit diagonal
+    (:mod:`greyid.scaled`), so that units alone never make M singular; a
+    criterion of quantities that M does not determine is +inf (6.32), with an
+    :class:`~greyid.errors.UndeterminedWarning` naming the direction.
     """
     if name not in CRITERIA:
         raise ModelError(f"unknown criterion {name!r}; use one of {list(CRITERIA)}")
     if prior is not None:  # the MAP forms (6.53, J₂ and J₄ of 6.65)
         info = with_prior(info if isinstance(info, pd.DataFrame) else pd.DataFrame(info), prior)
     M, names = _matrix(info)
-    M = 0.5 * (M + M.T)
+    scaled = ScaledInformation.of(M, names)
     if name == "Ds":
         if not interest:
             raise ModelError("criterion 'Ds' needs interest=[parameter names]")
@@ -79,23 +106,26 @@ def criterion(info, name: str, params=None, interest=None, V=None, k: float = 1.
         if missing:
             raise ModelError(f"'{missing[0]}' is not in the information matrix")
         s = [names.index(n) for n in interest]
-        rest = [i for i in range(len(names)) if i not in s]
-        block = M[np.ix_(s, s)]
-        if rest:
-            block = block - M[np.ix_(s, rest)] @ np.linalg.pinv(M[np.ix_(rest, rest)]) @ M[np.ix_(rest, s)]
-        sign, logdet = np.linalg.slogdet(block)
-        return float(-logdet) if sign > 0 else float("inf")
-    sign, logdet = np.linalg.slogdet(M)
-    if sign <= 0 or not np.isfinite(logdet):
-        return float("inf")
-    if name == "D" and derived is None:
-        return float(-logdet)
-    cov = np.linalg.inv(M)
-    if derived is not None:
-        cov, names, params = _derived_covariance(cov, names, params, derived, with_values=True)
+        rows = np.eye(len(names))[s]
+        if np.any(scaled.undetermined(rows)):
+            return _undetermined(scaled, f"criterion Ds of {', '.join(interest)}")
+        block = ScaledInformation.of(_schur_information(scaled, list(interest)), list(interest))
+        return -block.logdet() if not block.singular else _undetermined(block, "criterion Ds")
+    if derived is None:
+        if scaled.singular:
+            return _undetermined(scaled, f"criterion {name}")
+        cov = scaled.covariance()
+        if name == "D":
+            return float(-scaled.logdet())
+    else:  # quantities M may determine although it is singular (e.g. UA without Ri and Ro apart)
+        J, labels, params = _derived_jacobian(names, params, derived)
+        if np.any(scaled.undetermined(J)):
+            return _undetermined(scaled, f"criterion {name} of {', '.join(labels)}")
+        cov = J @ scaled.covariance() @ J.T
+        cov, names = 0.5 * (cov + cov.T), labels
         if name == "D":  # −log det of the derived quantities' information, log det J M⁻¹ Jᵀ
-            sign, logdet = np.linalg.slogdet(0.5 * (cov + cov.T))
-            return float(logdet) if sign > 0 else float("inf")
+            inner = ScaledInformation.of(cov, labels)  # a covariance: its log det, if it is one
+            return inner.logdet() if not inner.singular else _undetermined(inner, "criterion D")
     p = cov.shape[0]
     if name == "A":
         return float(np.trace(cov) / p)
@@ -117,9 +147,8 @@ def criterion(info, name: str, params=None, interest=None, V=None, k: float = 1.
     return float((np.sum(np.maximum(eig, 0.0) ** k) / p) ** (1.0 / k))
 
 
-def _derived_covariance(cov, names, params, derived, with_values: bool = False):
-    """J M⁻¹ Jᵀ for the quantities ``derived`` (6.35), J by SymPy differentiation; with
-    ``with_values``, also the quantities' names and values (for ``"C"``)."""
+def _derived_jacobian(names, params, derived):
+    """J = ∂f/∂θ of the quantities ``derived`` (6.35) by SymPy, their labels and values."""
     import sympy as sp
 
     from ..model.equations import parse_expression
@@ -136,33 +165,28 @@ def _derived_covariance(cov, names, params, derived, with_values: bool = False):
             raise ModelError(f"derived quantity '{label}' uses '{sorted(extra)[0]}', which is not in the matrix")
         rows.append([float(sp.diff(expr, s).subs(at)) for s in symbols])
         values[label] = float(expr.subs(at))
-    J = np.array(rows)
-    if with_values:
-        return J @ cov @ J.T, list(derived), values
-    return J @ cov @ J.T
+    return np.array(rows), list(derived), values
 
 
 def cramer_rao_bound(info, params=None, derived=None) -> pd.Series:
     """The Cramér–Rao bound: the least variance of an unbiased estimate of each parameter (the
     diagonal of M⁻¹, 6.30) and of each ``derived`` quantity (J M⁻¹ Jᵀ by Gauss' formula, 6.35).
 
-    An infinite bound marks a parameter the experiment does not determine
-    (a singular M, see :func:`~.information.local_identifiability`).
+    M is inverted scaled to unit diagonal (:mod:`greyid.scaled`), so the bounds
+    convert between unit systems by the units' factors.  An infinite bound marks
+    a parameter or quantity along a direction the experiment does not determine
+    (a singular M, see :func:`~.information.local_identifiability`); the others
+    keep their finite bounds.
     """
     M, names = _matrix(info)
-    w = np.linalg.eigvalsh(0.5 * (M + M.T))
-    if w.min() <= 1e-12 * max(w.max(), 1e-300):
-        values = np.full(len(names), np.inf)
-        out = pd.Series(values, index=names, name="variance bound")
-        if derived:
-            out = pd.concat([out, pd.Series(np.inf, index=list(derived), name="variance bound")])
-        return out
-    cov = np.linalg.inv(M)
-    out = pd.Series(np.diag(cov), index=names, name="variance bound")
+    scaled = ScaledInformation.of(M, names)
+    out = pd.Series(scaled.variances(), index=names, name="variance bound")
     if derived:
-        extra = pd.Series(np.diag(_derived_covariance(cov, names, params, derived)), index=list(derived),
-                          name="variance bound")
-        out = pd.concat([out, extra]).rename("variance bound")
+        J, labels, _ = _derived_jacobian(names, params, derived)
+        out = pd.concat([out, pd.Series(scaled.variances(J), index=labels)]).rename("variance bound")
+    if scaled.singular:
+        warnings.warn(f"the information does not determine the direction {scaled.describe()} (scaled "
+                      "parameters): the bounds along it are +inf", UndeterminedWarning, stacklevel=2)
     return out
 
 

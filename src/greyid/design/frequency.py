@@ -124,7 +124,7 @@ def _programs(structure, input_index: int, index: tuple[int, ...]):
 
 
 def _setup(model, params, input, free, several: bool = False):
-    from .information import _free_names
+    from .information import _free_names, in_dynamics
 
     structure = model.structure
     if not structure.is_linear or structure.kind != "lti":
@@ -136,7 +136,9 @@ def _setup(model, params, input, free, several: bool = False):
                          "fisher_information on a plan (time domain) does")
     if input not in structure.input_names:
         raise ModelError(f"'{input}' is not an input of model '{model.name}' (inputs: {list(structure.input_names)})")
-    names = _free_names(model, free)
+    # Per sample, a stationary experiment says nothing of the initial state's parameters: by default
+    # they are left out (an explicit free= keeps them, and its information is singular along them).
+    names = _free_names(model, free) if free is not None else in_dynamics(model, _free_names(model, None))
     all_names = list(structure.parameter_names)
     vectors = [model.parameter_vector(p) for p in (params if several else [params])]
     theta = jnp.asarray(np.array(vectors) if several else vectors[0], dtype=jnp.float64)
@@ -151,8 +153,9 @@ def frequency_information(model, params, omega: float, input: str, sampling_inte
 
     ``omega`` in radians per time unit of the model (0 for a constant input of
     unit power), the other inputs held at zero, the model sampled every
-    ``sampling_interval``.  A DataFrame over the free parameters (as
-    :func:`fisher_information`'s); ``attrs["input_independent"]`` holds M̄_c (6.49),
+    ``sampling_interval``.  A DataFrame over the free parameters that enter the
+    equations (``free=`` names others: parameters of the initial state only are
+    not seen per sample); ``attrs["input_independent"]`` holds M̄_c (6.49),
     the information per sample that no input changes.  See the module doc.
     """
     names, theta, (input_information, noise_information) = _setup(model, params, input, free)

@@ -109,21 +109,61 @@ def _linear_parts(model):
     return A, B, C, D, g * g.T, sp.diag(*v)
 
 
-def _observables(A, B, C, D, Q, R, points_p):
-    """G and H at the complex points p, and Σ, for numeric matrices (the stationary Kalman filter)."""
+def _time_scale(A) -> float:
+    """The system's own rate: the geometric mean of |eigenvalues of A| (of its entries for integrators)."""
+    rates = np.abs(np.linalg.eigvals(A))
+    rates = rates[rates > 1e-12 * max(rates.max(initial=0.0), 1e-300)]
+    if not rates.size:
+        rates = np.abs(A[A != 0]) if np.any(A != 0) else np.ones(1)
+    return float(np.exp(np.mean(np.log(rates))))
+
+
+def _frequencies(A, draws) -> np.ndarray:
+    """Complex points p spread over the system's own rates (one decade beyond each end), from the
+    unit-free ``draws`` (k × 2 uniform numbers): in seconds or hours, the same points of G(p)."""
+    rates = np.abs(np.linalg.eigvals(A))
+    rates = rates[rates > 1e-12 * max(rates.max(initial=0.0), 1e-300)]
+    low, high = (np.log(rates.min()) - 2.3, np.log(rates.max()) + 2.3) if rates.size else (0.0, 0.0)
+    rate = _time_scale(A)
+    magnitudes = np.exp(low + draws[:, 0] * (high - low)) if rates.size else rate * np.exp(draws[:, 0])
+    return magnitudes * np.exp(1j * (draws[:, 1] - 0.5) * 2.0)  # right half-plane, away from the axis
+
+
+def _observables(A, B, C, D, Q, R, points_p, rate):
+    """G and H at the complex points p, and Σ, for numeric matrices (the stationary Kalman filter):
+    one row per element of G, H and R, one column per point.
+
+    The measurement variance R enters the continuous Riccati equation as a spectral density R/rate
+    over the system's own time scale, so that a change of the time unit leaves K and H unchanged.
+    """
     n = A.shape[0]
     try:
-        P = sl.solve_continuous_are(A.T, C.T, Q, R)
-        K = P @ C.T @ np.linalg.inv(R)
+        Rc = R / rate
+        P = sl.solve_continuous_are(A.T, C.T, Q, Rc)
+        K = P @ C.T @ np.linalg.inv(Rc)
     except (np.linalg.LinAlgError, ValueError):
         K = np.zeros((n, C.shape[0]))
-    out = []
+    G, H = [], []
     for p in points_p:
-        resolvent = np.linalg.inv(p * np.eye(n) - A)
-        out.append((C @ resolvent @ B + D).ravel())
-        out.append((C @ resolvent @ K).ravel())
-    values = np.concatenate(out)
-    return np.concatenate([values.real, values.imag, R.ravel()])
+        resolvent = np.linalg.solve(p * np.eye(n) - A, np.eye(n))
+        G.append((C @ resolvent @ B + D).ravel())
+        H.append((C @ resolvent @ K).ravel())
+    per_point = np.concatenate([np.array(G).T, np.array(H).T])
+    return np.concatenate([per_point, np.repeat(R.reshape(-1, 1).astype(complex), len(points_p), axis=1)])
+
+
+def _relative_jacobian(observed, z, h: float = 1e-6) -> np.ndarray:
+    """∂(observables)/∂(log θ) by central differences, each element of G, H and R relative to its
+    largest magnitude over the points (its units cancel); real and imaginary parts as rows.
+    Elements that are zero at every point (a structural zero) carry no information and are left out."""
+    value = observed(z)
+    columns = [(observed(z + h * e) - observed(z - h * e)) / (2 * h) for e in np.eye(len(z))]
+    dJ = np.stack(columns, axis=-1)  # (elements, points, parameters)
+    magnitude = np.abs(value).max(axis=1)
+    keep = magnitude > 1e-300
+    rel = dJ[keep] / magnitude[keep, None, None]
+    rows = rel.reshape(-1, len(z))
+    return np.concatenate([rows.real, rows.imag])
 
 
 def _combinations(null, names):
@@ -162,18 +202,15 @@ def identifiability(model, params=None, plan=None, seed: int = 0, free=None) -> 
     ``free`` names the parameters to judge (default: the non-fixed ones).  For a
     model that is not linear time-invariant, ``plan`` (times and inputs) is needed.
     """
-    from .information import _free_names
+    from .information import _free_names, in_dynamics
 
     structure = model.structure
     all_names = list(structure.parameter_names)
     # Parameters of the initial state only are seen in an experiment's transient, not in
     # the stationary G, H and Σ: they are left out of the judgement (and say so).
-    eq = structure.equations
-    in_dynamics = {sym.name for key in ("drift", "diffusion", "observation", "variance")
-                   for sym in eq[key].free_symbols}
     judged = _free_names(model, free)
-    initial_only = [n for n in judged if n not in in_dynamics]
-    names = [n for n in judged if n in in_dynamics]
+    names = in_dynamics(model, judged)
+    initial_only = [n for n in judged if n not in names]
     points = _points(model, params, all_names, seed)
     if structure.kind != "lti" or structure.delays:  # a delay's e^{-sτ} is not rational in s
         return _by_information(model, judged, points, plan, seed)
@@ -184,21 +221,22 @@ def identifiability(model, params=None, plan=None, seed: int = 0, free=None) -> 
     p = sp.Symbol("p")
     G = (C * (p * sp.eye(A.shape[0]) - A).inv() * B + D).applyfunc(sp.cancel)
     numeric = sp.lambdify([syms[n] for n in all_names], [A, B, C, D, Q, R], "numpy")
-    rng = np.random.default_rng(seed + 1)
-    at_p = rng.uniform(0.2, 2.0, A.shape[0] + 2) + 1j * rng.uniform(-1.0, 1.0, A.shape[0] + 2)
+    draws = np.random.default_rng(seed + 1).uniform(size=(A.shape[0] + 2, 2))
     free_index = [all_names.index(n) for n in names]
     ranks, nulls = [], []
     for point in points:
         values = np.array([point[n] for n in all_names], dtype=float)
+        at = [np.asarray(M, dtype=float) for M in numeric(*values)]
+        rate = _time_scale(at[0])
+        at_p = _frequencies(at[0], draws)
 
         def observed(log_free):
             v = values.copy()
             v[free_index] = np.exp(log_free)
-            return _observables(*[np.asarray(M, dtype=float) for M in numeric(*v)], at_p)
+            return _observables(*[np.asarray(M, dtype=float) for M in numeric(*v)], at_p, rate)
 
-        z = np.log(np.abs(values[free_index]))
-        h = 1e-6
-        J = np.column_stack([(observed(z + h * e) - observed(z - h * e)) / (2 * h) for e in np.eye(len(z))])
+        # Log-parameters (columns) and relative observables (rows): no unit enters the rank.
+        J = _relative_jacobian(observed, np.log(np.abs(values[free_index])))
         norms = np.maximum(np.linalg.norm(J, axis=0), 1e-300)
         U, sv, Vt = np.linalg.svd(J / norms, full_matrices=True)
         rank = int(np.sum(sv > RANK_TOLERANCE * sv.max()))
@@ -232,13 +270,25 @@ def identifiability(model, params=None, plan=None, seed: int = 0, free=None) -> 
                            G, "transfer functions G, H and Σ of the innovations form (6.15–6.18)", notes)
 
 
+def _rational(value: float):
+    """A small rational near ``value`` with two significant digits, whatever its magnitude
+    (0.005 K/W stays 1/200, not 0)."""
+    import sympy as sp
+
+    if value == 0:
+        return sp.Integer(0)
+    exponent = int(np.floor(np.log10(abs(value))))
+    mantissa = Fraction(value / 10.0**exponent).limit_denominator(8)
+    return sp.Rational(mantissa) * sp.Integer(10) ** exponent
+
+
 def _global(G, p, names, syms, point, declared):
     """The number of parameter vectors within the declared bounds giving the G(p) of a random rational θ*
     (None if undecided)."""
     import sympy as sp
 
     # θ*: a generic point inside the bounds, as small rationals (exact arithmetic for SymPy).
-    star = {syms[n]: sp.Rational(Fraction(point[n]).limit_denominator(8)) for n in names}
+    star = {syms[n]: _rational(point[n]) for n in names}
     equations = []
     for element in G:
         num, den = sp.fraction(sp.cancel(sp.together(element)))

@@ -19,6 +19,7 @@ import pandas as pd
 from ..errors import DataError, ModelError
 from ..estimate.information import loglik_derivatives
 from ..filters.api import prepare_datasets
+from ..scaled import RANK_TOLERANCE, ScaledInformation
 from .exact import exact_information
 
 METHODS = ("exact", "montecarlo")
@@ -33,6 +34,16 @@ def _free_names(model, free):
     if unknown:
         raise ModelError(f"'{unknown[0]}' is not a parameter of model '{model.name}'")
     return list(free)
+
+
+def in_dynamics(model, names) -> list[str]:
+    """The parameters of ``names`` that enter the equations, not only the initial state: those a
+    stationary experiment (the information per sample, G, H and Σ) can see."""
+    equations = model.structure.equations
+    used = {sym.name for key in ("drift", "diffusion", "observation", "variance", "covariance")
+            for sym in equations[key].free_symbols}
+    used |= {sym.name for delay in model.structure.delays for sym in getattr(delay.expression, "free_symbols", ())}
+    return [n for n in names if n in used]
 
 
 def fisher_information(model, params, plan: pd.DataFrame, time: str = "t", hold: str = "zoh", free=None,
@@ -95,24 +106,18 @@ def fisher_information(model, params, plan: pd.DataFrame, time: str = "t", hold:
     return info
 
 
-def local_identifiability(info: pd.DataFrame, tolerance: float = 1e-8) -> pd.DataFrame:
+def local_identifiability(info: pd.DataFrame, tolerance: float = RANK_TOLERANCE) -> pd.DataFrame:
     """Which parameters the planned experiment determines, from the information matrix.
 
-    The matrix is scaled to unit diagonal; eigenvalues below ``tolerance`` times
-    the largest are flat directions, whose loadings (above 0.05) name the
-    parameters involved.  Returns one row per flat direction (``eigenvalue``,
-    ``parameters``); an empty table means locally identifiable at these values.
+    The matrix is scaled to unit diagonal (:mod:`greyid.scaled`: the verdict does
+    not depend on the parameters' units); eigenvalues below ``tolerance`` times
+    the largest are flat directions, whose loadings (above 0.05 of the largest)
+    name the parameters involved.  Returns one row per flat direction
+    (``eigenvalue``, ``parameters``, ``loadings``); an empty table means locally
+    identifiable at these values.  The same directions make
+    :func:`~.criteria.cramer_rao_bound` infinite.
     """
-    M = info.to_numpy(dtype=np.float64)
-    scale = np.sqrt(np.abs(np.diag(M)))
-    if np.any(scale == 0):
-        zero = [n for n, s in zip(info.index, scale) if s == 0]
-        rows = [dict(eigenvalue=0.0, parameters=[n]) for n in zero]
-        return pd.DataFrame(rows, columns=["eigenvalue", "parameters"])
-    w, V = np.linalg.eigh(M / np.outer(scale, scale))
-    rows = []
-    for j in np.flatnonzero(w < tolerance * w.max()):
-        vec = V[:, j] / np.max(np.abs(V[:, j]))
-        rows.append(dict(eigenvalue=float(w[j]),
-                         parameters=[n for n, v in zip(info.index, vec) if abs(v) > 0.05]))
-    return pd.DataFrame(rows, columns=["eigenvalue", "parameters"])
+    scaled = ScaledInformation.of(info.to_numpy(dtype=np.float64), list(info.index), tolerance)
+    eigenvalues = scaled.eigenvalues[scaled.null_mask]
+    rows = [dict(eigenvalue=float(w), parameters=list(d), loadings=d) for w, d in zip(eigenvalues, scaled.directions())]
+    return pd.DataFrame(rows, columns=["eigenvalue", "parameters", "loadings"])

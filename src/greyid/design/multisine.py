@@ -32,6 +32,7 @@ import pandas as pd
 from scipy import optimize
 
 from ..errors import ModelError
+from ..scaled import RANK_TOLERANCE, ScaledInformation
 from .criteria import parameter_points
 from .frequency import frequency_information_grid, frequency_information_points
 
@@ -80,17 +81,34 @@ class MultisineDesign:
         return pd.DataFrame({"frequency": self.frequencies, "weight": self.weights})
 
 
-def _criterion_and_derivatives(M, Ms, kind):
-    """Value of the criterion at M and the directional derivative towards each M_u(ω)."""
-    M_inv = np.linalg.inv(M)
+def _criterion_and_derivatives(M_s, Ms_s, kind, weight):
+    """Value of the criterion at the scaled information M_s = S M S (without the scaling's offset of
+    D) and the directional derivative towards each scaled S M_u(ω) S; ``weight`` is diag(S²), which
+    takes A's trace of M⁻¹ = S M_s⁻¹ S back to the model's units.  +inf where M_s is singular.
+
+    Batched: M_s (K, p, p), Ms_s (K, L, p, p), weight (K, p) give values (K,) and derivatives (K, L).
+    """
+    sign, logdet = np.linalg.slogdet(M_s)
+    singular = (sign <= 0) | ~(np.linalg.cond(M_s) < 1.0 / RANK_TOLERANCE)
+    M_s = np.where(singular[:, None, None], np.eye(M_s.shape[-1]), M_s)
+    M_inv = np.linalg.inv(M_s)
     if kind == "D":
-        return -np.linalg.slogdet(M)[1], np.einsum("ij,lji->l", M_inv, Ms)
-    M2 = M_inv @ M_inv
-    return np.trace(M_inv) / M.shape[0], np.einsum("ij,lji->l", M2, Ms)
+        values, towards = -logdet, M_inv
+    else:
+        values = np.einsum("ki,kii->k", weight, M_inv) / M_s.shape[-1]
+        towards = M_inv @ (weight[:, :, None] * M_inv)
+    derivatives = np.einsum("kij,klji->kl", towards, Ms_s)
+    return np.where(singular, np.inf, values), np.where(singular[:, None], 0.0, derivatives)
 
 
 class _Problem:
-    """The information of every candidate frequency at every parameter point, scaled for the criterion."""
+    """The information of every candidate frequency at every parameter point, scaled for the criterion.
+
+    Each point's matrices are scaled to the unit diagonal of the uniform design's
+    information, S M S (:mod:`greyid.scaled`): the same optimum in better
+    conditioned numbers, whatever the parameters' units.  D's offset 2 Σ log S_ii
+    and A's weights S_ii² give back each point's value in the model's units.
+    """
 
     def __init__(self, model, points, input, tau, power, free, include_noise, omegas, criterion):
         self.model, self.points, self.input, self.tau = model, points, input, tau
@@ -98,27 +116,29 @@ class _Problem:
         M_u, M_c, self.names = frequency_information_points(model, points, omegas, input, tau, free)
         self.Ms = power * M_u  # (K, L, p, p)
         self.bases = M_c if include_noise else np.zeros_like(M_c)  # (K, p, p)
-        # D is computed in scaled units (the same optimum, better conditioned; the
-        # offset restores each point's value in the model's units); A depends on units.
-        p = self.bases.shape[-1]
-        if criterion == "D":
-            scale = np.sqrt(np.maximum(np.einsum("klii->ki", self.Ms) + np.einsum("kii->ki", self.bases), 1e-300))
-            self.S = np.array([np.diag(1.0 / s) for s in scale])
-            self.offsets = -2.0 * np.log(scale).sum(axis=1)
-        else:
-            self.S = np.broadcast_to(np.eye(p), (len(points), p, p)).copy()
-            self.offsets = np.zeros(len(points))
-        self.Ms_s = np.einsum("kab,klbc,kcd->klad", self.S, self.Ms, self.S)
-        self.bases_s = np.einsum("kab,kbc,kcd->kad", self.S, self.bases, self.S)
+        total = self.Ms.mean(axis=1) + self.bases  # the uniform design's information at each point
+        self.scales = []
+        for point, M in zip(points, total):
+            scaled = ScaledInformation.of(M, self.names)
+            if scaled.singular:
+                raise ModelError(f"sinusoids on '{input}' at every candidate frequency do not determine the "
+                                 f"direction {scaled.describe()} (scaled parameters) at {_point_text(point, self.names)}:"
+                                 " no input design can; fix those parameters or choose free=")
+            self.scales.append(scaled.scale)
+        self.scales = np.array(self.scales)  # (K, p)
+        self.weights = self.scales**2
+        self.offsets = 2.0 * np.log(self.scales).sum(axis=1) if criterion == "D" else np.zeros(len(points))
+        self.Ms_s = self._scaled(self.Ms)
+        self.bases_s = np.einsum("ka,kab,kb->kab", self.scales, self.bases, self.scales)
+
+    def _scaled(self, Ms):
+        return np.einsum("ka,klab,kb->klab", self.scales, Ms, self.scales)
 
     def on_grid(self, alpha):
         """Each point's criterion and directional derivatives (K, L) of the grid design ``alpha``."""
         M = self.bases_s + np.einsum("l,klij->kij", alpha, self.Ms_s)
-        M_inv = np.linalg.inv(M)
-        if self.criterion == "D":
-            return -np.linalg.slogdet(M)[1] + self.offsets, np.einsum("kij,klji->kl", M_inv, self.Ms_s)
-        return (np.trace(M_inv, axis1=1, axis2=2) / M.shape[-1],
-                np.einsum("kij,klji->kl", M_inv @ M_inv, self.Ms_s))
+        values, derivatives = _criterion_and_derivatives(M, self.Ms_s, self.criterion, self.weights)
+        return values + self.offsets, derivatives
 
     def support_information(self, freqs):
         """M_u at each point and each of ``freqs``, times the power: (K, k, p, p)."""
@@ -128,20 +148,21 @@ class _Problem:
 
     def values(self, freqs, weights):
         """Each point's criterion of sinusoids at ``freqs`` with power fractions ``weights``."""
-        M = self.bases + np.einsum("l,klij->kij", weights, self.support_information(freqs))
-        return np.array([_criterion_and_derivatives(Mj, Mj[None], self.criterion)[0] for Mj in M])
+        M_f = self._scaled(self.support_information(freqs))
+        M = self.bases_s + np.einsum("l,klij->kij", weights, M_f)
+        return _criterion_and_derivatives(M, M_f, self.criterion, self.weights)[0] + self.offsets
 
     def at_design(self, freqs, weights):
         """Each point's criterion at a design, and its derivatives towards the grid and the support."""
-        M_f = self.support_information(freqs)
-        M = self.bases + np.einsum("l,klij->kij", weights, M_f)
-        values, grid, support = [], [], []
-        for j in range(len(self.points)):
-            S = self.S[j]
-            values.append(_criterion_and_derivatives(M[j], M[j][None], self.criterion)[0])
-            grid.append(_criterion_and_derivatives(S @ M[j] @ S, self.Ms_s[j], self.criterion)[1])
-            support.append(_criterion_and_derivatives(S @ M[j] @ S, S @ M_f[j] @ S, self.criterion)[1])
-        return np.array(values), np.array(grid), np.array(support)
+        M_f = self._scaled(self.support_information(freqs))
+        M = self.bases_s + np.einsum("l,klij->kij", weights, M_f)
+        values, grid = _criterion_and_derivatives(M, self.Ms_s, self.criterion, self.weights)
+        _, support = _criterion_and_derivatives(M, M_f, self.criterion, self.weights)
+        return values + self.offsets, grid, support
+
+
+def _point_text(point, names) -> str:
+    return ", ".join(f"{n} = {point[n]:.4g}" for n in names)
 
 
 def _multiplicative(problem, alpha, pi, iterations):
