@@ -214,3 +214,61 @@ def test_a_delayed_model_gets_its_report_and_uncertainty_bands(tmp_path):
     text = fit.report(tmp_path / "report.html", profile=False)
     section = text[text.find('<section id="identifiability">'):text.find('<section id="validation">')]
     assert "delayed inputs" in section and "plan=" in section
+
+
+@pytest.mark.parametrize("method", ["kalman", "ekf", "ukf"])
+def test_the_gradient_at_a_whole_number_of_sampling_intervals(method):
+    """τ = 2 and 1 sampling intervals exactly: the interval is cut into a piece of length 0, whose
+    derivative in τ must not be dropped.  With a held input the log-likelihood has a kink there (the
+    switch passes an observation): the gradient is the right-sided one; with a ramped (foh) input it
+    is smooth, and the gradient is the central difference.  Beside the whole multiples both agree."""
+    import jax
+    import jax.numpy as jnp
+    from greyid.data import prepare_series
+    from greyid.filters.api import compiled_filter, filter_inputs, filter_options
+
+    rng = np.random.default_rng(4)
+    n, step = 60, 0.6
+    # A proper initial covariance: the sigma points' square root of a near-zero P has no usable derivative.
+    two_delays = first_order("k*delay(u, tau) + c*delay(u, tau2)", "two_delays_p0")
+    two_delays.set_initial_state(mean={"x": 0.0}, covariance=[[0.01]])
+    s = two_delays.structure
+    data = pd.DataFrame({"t": np.arange(n) * step, "u": np.repeat(rng.normal(size=n // 4), 4),
+                         "y": rng.normal(size=n)})
+    run = compiled_filter(s, filter_options(s, method), keep_outputs=False)
+    for hold in ("zoh", "foh"):
+        inputs = filter_inputs(prepare_series(data, s.input_names, s.output_names), hold)
+        f = lambda th: run(th, inputs)[0].loglik.sum()  # noqa: E731
+        # (Two delays at the same offset within the interval at once are a tie of their cuts, whose
+        # order as one of them grows the sort cannot know: not covered.)
+        for taus in ((2 * step, step - 0.23), (2 * step + 0.17, step), (2 * step + 0.17, step - 0.23)):
+            p = dict(T=2.0, k=1.0, c=0.5, tau=taus[0], tau2=taus[1], ls=-1.0, le=-2.0)
+            theta = jnp.asarray(two_delays.parameter_vector(p))
+            g = np.asarray(jax.grad(f)(theta))
+            whole = taus[0] == 2 * step or taus[1] == step
+            for name in ("tau", "tau2"):
+                i = s.parameter_names.index(name)
+                if hold == "zoh" and whole:
+                    eps = 1e-7
+                    fd = (f(theta.at[i].add(eps)) - f(theta)) / eps
+                    assert g[i] == pytest.approx(float(fd), rel=1e-4, abs=1e-5), (hold, name, taus)
+                else:
+                    eps = 1e-6
+                    fd = (f(theta.at[i].add(eps)) - f(theta.at[i].add(-eps))) / (2 * eps)
+                    assert g[i] == pytest.approx(float(fd), rel=1e-5, abs=1e-6), (hold, name, taus)
+
+
+def test_the_information_of_a_delay_is_continuous_across_whole_sampling_intervals(two_delays):
+    """With ramped inputs the likelihood is smooth in τ: its information at τ = 2 intervals is the limit
+    of the information just beside it (no jump from a dropped piece derivative)."""
+    from greyid import design
+
+    rng = np.random.default_rng(6)
+    n, step = 60, 0.6
+    plan = pd.DataFrame({"t": np.arange(n) * step, "u": np.repeat(rng.normal(size=n // 4), 4)})
+    base = dict(T=2.0, k=1.0, c=0.5, tau2=0.3, ls=-1.0, le=-2.0)
+    free = ["T", "k", "tau"]
+    at = [design.fisher_information(two_delays, dict(base, tau=2 * step + d), plan, hold="foh", free=free)
+          .to_numpy() for d in (-1e-6, 0.0, 1e-6)]
+    np.testing.assert_allclose(at[1], 0.5 * (at[0] + at[2]), rtol=1e-4)
+    np.testing.assert_allclose(at[0], at[2], rtol=1e-4)

@@ -51,10 +51,18 @@ def delayed_values(times, column, at, foh):
     Before ``times[0]`` the first value, after the last the last.
     """
     n = times.shape[0]
-    j = jnp.clip(jnp.searchsorted(times, at, side="right") - 1, 0, n - 1)
+    # Held: the value from t_j on (right-continuous).  Interpolated: at a sampling instant itself (to
+    # within rounding) the segment before it, so that the derivative in τ of u(s − τ) is the one a
+    # growing τ sees; the value is the same either way.
+    tiny = 1e-10 * (times[-1] - times[0]) + 1e-14 * jnp.maximum(jnp.abs(times[0]), jnp.abs(times[-1]))
+    j = jnp.searchsorted(times, jnp.where(foh > 0, at - tiny, at), side="right") - 1
+    j = jnp.clip(j, 0, n - 1)
     nxt = jnp.minimum(j + 1, n - 1)
     span = times[nxt] - times[j]
-    weight = jnp.where(span > 0, jnp.clip((at - times[j]) / jnp.where(span > 0, span, 1.0), 0.0, 1.0), 0.0)
+    # No clip of the weight inside the series: at a sampling instant it may round to just past 0 or 1,
+    # and a clip would cut (or halve) its derivative there.
+    weight = jnp.where(span > 0, (at - times[j]) / jnp.where(span > 0, span, 1.0), 0.0)
+    weight = jnp.where(at < times[0], 0.0, weight)
     return column[j] + foh * weight * (column[nxt] - column[j])
 
 
@@ -121,15 +129,20 @@ def interval_pieces(delays: Delays, data, n_inputs: int, offsets=None) -> Pieces
     t_prev, t = data.t_prev, data.t
 
     def cuts(tau):  # (N, slots)
-        first = jnp.searchsorted(delays.times, t_prev - tau, side="right")
+        # A switch exactly at t_{k-1} (a delay of whole sampling intervals) is kept as a cut there:
+        # its piece has length 0, and moves into the interval as τ grows (its derivative in τ).
+        first = jnp.searchsorted(delays.times, t_prev - tau, side="left")
         j = first[:, None] + jnp.arange(slots)[None, :]
         at = delays.times[jnp.minimum(j, n - 1)] + tau
-        return jnp.where((j < n) & (at > t_prev[:, None]) & (at < t[:, None]), at, t[:, None])
+        return jnp.where((j < n) & (at >= t_prev[:, None]) & (at < t[:, None]), at, t[:, None])
 
     if offsets is None:
         inner = jnp.sort(jnp.concatenate([cuts(tau) for tau in delays.taus], axis=1), axis=1)
     else:
-        inner = jnp.clip(t_prev[:, None] + offsets[None, :], t_prev[:, None], t[:, None])
+        # offsets lie in [0, step): a where, not a clip, so that a cut exactly at t_{k-1} (a delay of
+        # whole sampling intervals) keeps its derivative ∂cut/∂τ = 1 (a clip would halve it there).
+        at = t_prev[:, None] + offsets[None, :]
+        inner = jnp.where(at <= t[:, None], at, t[:, None])
     bounds = jnp.concatenate([t_prev[:, None], inner, t[:, None]], axis=1)
     start, end = bounds[:, :-1], bounds[:, 1:]
     dt = (t - t_prev)[:, None]
@@ -137,7 +150,12 @@ def interval_pieces(delays: Delays, data, n_inputs: int, offsets=None) -> Pieces
     fraction_end = jnp.where(dt > 0, (end - t_prev[:, None]) / jnp.where(dt > 0, dt, 1.0), 0.0)
     own_prev, own_cur = data.u_prev[:, None, :n_inputs], data.u_cur[:, None, :n_inputs]
     ramp = delays.foh * (own_cur - own_prev)
-    held = values_at(delays, 0.5 * (start + end))  # constant on each piece (zero-order hold)
+    # Constant on each piece (zero-order hold): the value at its midpoint; on a piece of length 0 the
+    # value just before its end — the piece that grows with τ, whose derivative carries the value
+    # before the switch (at the midpoint, a switching instant itself, it would read the value after).
+    tiny = 1e-9 * jnp.maximum(dt, 1e-300)
+    inside = jnp.where(end - start > tiny, 0.5 * (start + end), end - tiny)
+    held = values_at(delays, inside)
     delayed_start = jnp.where(delays.foh > 0, values_at(delays, start), held)
     delayed_end = jnp.where(delays.foh > 0, values_at(delays, end), held)
     return Pieces(start, end - start,

@@ -92,7 +92,8 @@ def discretize(A: jnp.ndarray, Q: jnp.ndarray, tau: jnp.ndarray) -> Discretizati
     state = jax.lax.cond(doublings > 0, doubled, lambda x: x, (phi, gamma, gamma2, lam, h))
     phi, gamma, gamma2, lam, _ = state
     safe_tau = jnp.where(tau > 0, tau, 1.0)
-    ramp = jnp.where(tau > 0, gamma2 / safe_tau, jnp.zeros_like(gamma2))
+    # Υ = Γ₂/τ → τ/2·I as τ → 0: the limit keeps Υ's derivative in τ where a piece has length 0.
+    ramp = jnp.where(tau > 0, gamma2 / safe_tau, 0.5 * tau * jnp.eye(A.shape[0]))
     return Discretization(phi, gamma, ramp, 0.5 * (lam + lam.T))
 
 
@@ -101,12 +102,20 @@ def discretize_each(A: jnp.ndarray, Q: jnp.ndarray, taus: jnp.ndarray) -> Discre
 
     One step after the other rather than vectorized: the number of doublings
     then stays a scalar, so each step runs only the doublings it needs, and the
-    zero-length steps that pad ``taus`` cost nothing.
+    zero-length steps that pad ``taus`` cost next to nothing: they take the
+    second-order Taylor polynomials in τ, which are exactly (I, 0, 0, 0) at τ = 0
+    and keep the first and second derivatives in τ (a delay's piece of length 0
+    still moves with the delay: ∂Φ/∂τ = A there, not 0).
     """
     n = A.shape[0]
-    zero = jnp.zeros((n, n))
-    identity = Discretization(jnp.eye(n), zero, zero, zero)
-    return jax.lax.map(lambda tau: jax.lax.cond(tau > 0, discretize, lambda *_: identity, A, Q, tau), taus)
+    eye = jnp.eye(n)
+
+    def at_zero(A, Q, tau):
+        AQ = mm(A, Q)
+        return Discretization(eye + tau * A + 0.5 * tau**2 * mm(A, A), tau * eye + 0.5 * tau**2 * A,
+                              0.5 * tau * eye + tau**2 / 6.0 * A, tau * Q + 0.5 * tau**2 * (AQ + AQ.T))
+
+    return jax.lax.map(lambda tau: jax.lax.cond(tau > 0, discretize, at_zero, A, Q, tau), taus)
 
 
 def stationary_covariance(A: jnp.ndarray, Q: jnp.ndarray) -> jnp.ndarray:
