@@ -11,3 +11,7 @@ class DataError(ValueError):
 
 class UndeterminedWarning(UserWarning):
     """An information matrix that does not determine some direction of the parameters (names it)."""
+
+
+class FilterWarning(UserWarning):
+    """A filter step whose approximation needed a guard (e.g. a negative variance replaced)."""

@@ -18,7 +18,7 @@ import pandas as pd
 
 from ..compiler import structure_program
 from ..data.prepare import Series, as_frames, prepare_series
-from ..errors import DataError, ModelError
+from ..errors import DataError, FilterWarning, ModelError
 from ..model.structure import Structure
 from .accuracy import choose_substeps, needs_substeps
 from .core import EKF, EKF2, KALMAN, FilterInputs, FilterOptions, initial_state, make_ahead, make_filter
@@ -231,7 +231,21 @@ def _result(structure: Structure, method: str, series: Series, terms, outputs) -
         innovation_cov=R,
         loglik_terms=pd.Series(loglik_terms, index=idx, name="loglik"),
         transitions=cut.transition,
+        guarded=_guarded(method, series, np.asarray(cut.guarded) > 0),
     )
+
+
+def _guarded(method: str, series: Series, guarded: np.ndarray) -> pd.Series:
+    """The rows whose update was guarded, with a warning that names the first."""
+    if guarded.any():
+        import warnings
+
+        first = int(np.flatnonzero(guarded)[0])
+        warnings.warn(f"filter '{method}': at {int(guarded.sum())} row(s), first row {first} "
+                      f"({series.time_name} = {series.times[first]:g}), the measurement update's covariance "
+                      "P − K R Kᵀ was not positive semi-definite (the approximation's moments are "
+                      "inconsistent there); the Joseph form replaced it", FilterWarning, stacklevel=4)
+    return pd.Series(guarded, index=series.index, name="guarded")
 
 
 def filter_data(model, params, data, time="t", hold="zoh", method=None, time_unit=None, **options):

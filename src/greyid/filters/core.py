@@ -94,6 +94,7 @@ class StepOutput(NamedTuple):
     innovation: jnp.ndarray
     innovation_cov: jnp.ndarray
     transition: jnp.ndarray
+    guarded: jnp.ndarray  # 1 where a moment update's covariance was guarded (see predictors.moment_update)
 
 
 def initial_state(structure: Structure, theta, data: FilterInputs, first_noise=None):
@@ -352,7 +353,8 @@ def make_filter(structure: Structure, options: FilterOptions, keep_outputs: bool
             out = (upd.innovation, upd.innovation_covariance)
         elif keep_outputs:
             out = StepOutput(x_pred, to_matrix(cov_pred, form), upd.mean, to_matrix(upd.covariance, form),
-                             y_pred, upd.innovation, upd.innovation_covariance, transition)
+                             y_pred, upd.innovation, upd.innovation_covariance, transition,
+                             jnp.broadcast_to(jnp.asarray(upd.guarded, jnp.float64), upd.innovation.shape[:-1]))
         return upd.terms, out
 
     def run(theta, data: FilterInputs):

@@ -111,9 +111,23 @@ def sigma_weights(n: int, alpha: float, beta: float, kappa: float) -> SigmaWeigh
 
 
 def sigma_points(mean, P, weights: SigmaWeights):
-    L = jnp.linalg.cholesky(0.5 * (P + P.T))
+    # The guarded factor: a known initial state or a noise-free state (P singular) gives sigma
+    # points that coincide in those directions instead of NaN.
+    L = small.cholesky(0.5 * (P + P.T))
     offsets = weights.spread * L.T  # rows are scaled columns of L
     return jnp.concatenate([mean[None, :], mean + offsets, mean - offsets], axis=0)
+
+
+def statistical_linearization(P, cross, jacobian):
+    """A = Cov(x, f) P⁻¹ (4.48); along a direction of the state that P does not spread (zero
+    variance: a known or noise-free state) the sigma points say nothing, and A takes the Jacobian
+    there, the limit of the statistical slope as the spread goes to 0."""
+    P = 0.5 * (P + P.T)
+    diagonal = jnp.diag(P)
+    flat = diagonal <= small.PIVOT_ROUNDING * jnp.max(jnp.abs(diagonal))
+    scale = jnp.where(flat, 1e-12 * jnp.max(jnp.abs(diagonal)) + 1e-300, 0.0)
+    J = jacobian()
+    return jnp.linalg.solve(P + jnp.diag(scale), cross + scale[:, None] * J.T).T
 
 
 def unscented_predict(mean, cov, interval: Interval, theta, drift, diffusion, substeps: int, form: str,
@@ -132,7 +146,7 @@ def unscented_predict(mean, cov, interval: Interval, theta, drift, diffusion, su
         F = jax.vmap(lambda xi: drift(xi, u, t, theta))(X)
         f_mean = weights.mean @ F
         cross = (X - x).T @ (weights.cov[:, None] * (F - f_mean))  # Cov(x, f)
-        A = jnp.linalg.solve(0.5 * (P + P.T), cross).T  # (4.48)
+        A = statistical_linearization(P, cross, lambda: jax.jacfwd(drift, argnums=0)(x, u, t, theta))  # (4.48)
         Gs = jax.vmap(lambda xi: diffusion(xi, u, t, theta))(X)
         Q = jnp.einsum("i,ijk,ilk->jl", weights.mean, Gs, Gs)
         rate = weights.mean @ jax.vmap(lambda xi: _input_rate(drift, xi, u, t, theta, u_rate))(X)
@@ -157,14 +171,23 @@ def unscented_update(mean, cov, y, mask, u, t, theta, observation, variance, for
     y_pred = weights.mean @ Y
     dY = Y - y_pred
     S = variance  # the outputs' noise: variances (a vector) or a full covariance matrix
-    R = dY.T @ (weights.cov[:, None] * dY) + (jnp.diag(S) if S.ndim == 1 else S)
+    noise = jnp.diag(S) if S.ndim == 1 else S
+    R = dY.T @ (weights.cov[:, None] * dY) + noise
     cross = (X - mean).T @ (weights.cov[:, None] * dY)
-    return moment_update(mean, P, y, mask, y_pred, cross, R, form), y_pred
+    return moment_update(mean, P, y, mask, y_pred, cross, R, form, noise), y_pred
 
 
-def moment_update(mean, P, y, mask, y_pred, cross, R, form) -> Update:
+def moment_update(mean, P, y, mask, y_pred, cross, R, form, noise) -> Update:
     """The update from the first two moments of the output: ŷ, R = Cov(y) and Cov(x, y) (4.21–4.22
-    with Gaussian approximations); unobserved elements are masked out."""
+    with Gaussian approximations); unobserved elements are masked out.
+
+    P − K R Kᵀ is a covariance only if the moments are those of a joint distribution, which the
+    approximations do not guarantee: the truncated second-order filter's R neglects fourth moments
+    and can fall below Cov(x, y)ᵀ P⁻¹ Cov(x, y), giving a negative variance.  Where the plain form
+    is not positive semi-definite the Joseph form (I − K H) P (I − K H)ᵀ + K S Kᵀ, with
+    H = Cov(x, y)ᵀ P⁻¹ and the outputs' noise S, replaces it (never negative), and the update says
+    so (``guarded``).
+    """
     m = mask
     R = R * m[:, None] * m[None, :] + jnp.diag(1.0 - m)
     cross = cross * m[None, :]
@@ -173,7 +196,16 @@ def moment_update(mean, P, y, mask, y_pred, cross, R, form) -> Update:
     gain = jax.scipy.linalg.cho_solve((chol_R, True), cross.T).T
     new_mean = mean + gain @ innovation
     new_P = symmetrize(P - gain @ R @ gain.T)
-    return Update(new_mean, from_matrix(new_P, form), innovation, R, gaussian_term(innovation, chol_R, m))
+    P = symmetrize(P)
+    lowest = jnp.linalg.eigvalsh(new_P)[0]
+    negative = lowest < -1e-10 * jnp.maximum(jnp.max(jnp.abs(jnp.diag(P))), 1e-300)
+    n = P.shape[0]
+    H = statistical_linearization(P, cross, lambda: jnp.zeros((cross.shape[1], n)))  # Cov(x, y)ᵀ P⁻¹
+    I_KH = jnp.eye(n) - gain @ H
+    joseph = symmetrize(I_KH @ P @ I_KH.T + gain @ (noise * m[:, None] * m[None, :]) @ gain.T)
+    new_P = jnp.where(negative, joseph, new_P)
+    return Update(new_mean, from_matrix(new_P, form), innovation, R, gaussian_term(innovation, chol_R, m),
+                  jnp.where(negative, 1.0, 0.0))
 
 
 def linearized_observation(observation: Callable, x, u, t, theta):
@@ -203,4 +235,4 @@ def second_order_update(mean, cov, y, mask, u, t, theta, observation, noise, for
         fourth = -0.25 * jnp.outer(b, b)
     S = noise if noise.ndim == 2 else jnp.diag(noise)
     R = H @ P @ H.T + S + fourth
-    return moment_update(mean, P, y, mask, y_pred, P @ H.T, R, form), y_pred
+    return moment_update(mean, P, y, mask, y_pred, P @ H.T, R, form, S), y_pred

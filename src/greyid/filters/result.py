@@ -28,6 +28,9 @@ class FilterResult:
     innovation_cov: np.ndarray  # R_{k|k-1}
     loglik_terms: pd.Series
     transitions: np.ndarray  # Φ over the interval ending at row k (for smoothing)
+    #: Rows whose measurement update gave a covariance that was not positive semi-definite and was
+    #: replaced by the guarded (Joseph) form (UKF and second-order filters; see ``filters.predictors``).
+    guarded: pd.Series | None = None
 
     @property
     def loglik(self) -> float:

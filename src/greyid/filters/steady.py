@@ -219,5 +219,6 @@ def steady_rows(model: SteadyModel, steady: SteadyState, x_start, rows, padding)
     cov_pred, cov_filt = from_matrix(steady.predicted, model.form), from_matrix(steady.filtered, model.form)
     counted = jnp.where(padding, 0.0, 1.0)
     terms = StepTerms(whitened * counted[:, None], counted * logdet, counted * C.shape[0])
-    update = Update(filtered, each(cov_filt), innovation, each(steady.innovation_cov), terms)
+    update = Update(filtered, each(cov_filt), innovation, each(steady.innovation_cov), terms,
+                    jnp.zeros(innovation.shape[:-1]))
     return (predicted, each(cov_pred), each(disc.transition), update, y_pred), (filtered[-1], cov_filt)

@@ -37,6 +37,9 @@ class Update(NamedTuple):
     innovation: jnp.ndarray  # ε_k (0 where unobserved)
     innovation_covariance: jnp.ndarray  # R_{k|k-1} (identity rows where unobserved)
     terms: "StepTerms"  # what this step adds to the criterion
+    #: 1 where the update's plain covariance P − K R Kᵀ was not positive semi-definite and the
+    #: guarded (Joseph) form replaced it (the moment-based updates of the UKF and second-order filters).
+    guarded: jnp.ndarray | float = 0.0
 
 
 class StepTerms(NamedTuple):
