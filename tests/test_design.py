@@ -325,13 +325,34 @@ def test_identifiability_names_the_identifiable_combinations():
     assert "b*g" in result.combinations and "q*g**2" in result.combinations
     direction = result.directions[0]
     assert direction["q"] == pytest.approx(-2 * direction["g"]) and direction["b"] == pytest.approx(-direction["g"])
-    with pytest.raises(greyid.ModelError, match="plan="):
-        design.identifiability(greyid.Model("logistic").add_system("dx = r*x*(1 - x)*dt + s*dw1")
-                               .add_observation("y = x", variance="e")
-                               .set_initial_state(mean={"x": "x0"}, covariance=[["p0"]])
-                               .set_parameter("r", init=1.0).set_parameter("s", init=0.1)
-                               .set_parameter("e", init=0.01).set_parameter("x0", init=0.2)
-                               .set_parameter("p0", init=0.01))
+
+
+def test_identifiability_of_a_nonlinear_model_without_a_plan():
+    """dx = (−k1·k2·x² + u) dt: only k1·k2 enters.  With no plan, a generic rich plan decides (and the
+    result says so): k1 and k2 are not identifiable, k1*k2 is the combination."""
+    m = greyid.Model("quadratic")
+    m.add_inputs("u")
+    m.add_system("dx = (-k1*k2*x^2 + u)*dt + s*dw1")
+    m.add_observation("y = x", variance="r^2")
+    m.set_initial_state(mean={"x": 1.0}, covariance=[[0.01]])
+    for name, value in dict(k1=2.0, k2=0.5, s=0.1, r=0.05).items():
+        m.set_parameter(name, init=value, lower=value / 10, upper=value * 10)
+    result = design.identifiability(m)
+    assert result.status == {"k1": "not identifiable", "k2": "not identifiable", "s": "local", "r": "local"}
+    assert result.combinations == ["k1*k2"]
+    assert result.directions[0] == pytest.approx({"k1": 1.0, "k2": -1.0})
+    assert any("generic plan" in note for note in result.notes)
+    # Written with k2 in other units (×1e6), the same verdict and combination.
+    m.set_parameter("k2", init=0.5e-6, lower=0.5e-7, upper=0.5e-5)
+    m2 = greyid.Model("quadratic_scaled")
+    m2.add_inputs("u")
+    m2.add_system("dx = (-k1*k2*1000000*x^2 + u)*dt + s*dw1")
+    m2.add_observation("y = x", variance="r^2")
+    m2.set_initial_state(mean={"x": 1.0}, covariance=[[0.01]])
+    for name, value in dict(k1=2.0, k2=0.5e-6, s=0.1, r=0.05).items():
+        m2.set_parameter(name, init=value, lower=value / 10, upper=value * 10)
+    again = design.identifiability(m2)
+    assert again.status == result.status and again.combinations == ["k1*k2"]
 
 
 def test_map_average_and_minimax_criteria(linear_model):

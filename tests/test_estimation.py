@@ -225,8 +225,14 @@ def test_robust_loglik_follows_ctsm_convention(ou):
     tukey = np.where(np.abs(r) < c, (c**2 / 3) * (1 - (1 - (r / c) ** 2) ** 3), c**2 / 3)
     assert m.loglik(fit.values, df, robust=("tukey", c)) == pytest.approx(
         -0.5 * np.sum(np.log(2 * np.pi) + kappa["tukey"] * np.log(R) + tukey), rel=1e-10)
+    # CTSM-R's convention by name: log det R unweighted.
+    assert m.loglik(fit.values, df, robust=("huber", c, "ctsm")) == pytest.approx(
+        -0.5 * np.sum(np.log(2 * np.pi) + np.log(R) + rho), rel=1e-10)
+    assert m.loglik(fit.values, df, robust=("huber", c, "consistent")) == pytest.approx(expected, rel=1e-10)
     with pytest.raises(greyid.ModelError, match="robust must be"):
         m.loglik(fit.values, df, robust=("cauchy", 1.0))
+    with pytest.raises(greyid.ModelError, match="'ctsm'"):
+        m.loglik(fit.values, df, robust=("huber", 1.0, "ctsmr"))
 
 
 def test_non_identifiable_product_is_reported():

@@ -17,9 +17,11 @@ its coefficients are what the data determine, (6.17)) and decides:
   the null space of the Jacobian in log-parameters (e.g. "a*b" where only the
   product enters).
 
-For other models, ``plan=`` (times and inputs) gives the local rank of the
-Fisher information (Monte Carlo, :func:`~.information.fisher_information`)
-at random points inside the bounds.
+For other models the local rank of the Fisher information of a plan
+(Monte Carlo, :func:`~.information.fisher_information`) at random points
+inside the bounds decides, on the information scaled to unit diagonal: the
+``plan=`` given, or a generic rich one (:func:`generic_plan`, said in the
+result's notes).
 """
 
 from __future__ import annotations
@@ -29,10 +31,9 @@ from dataclasses import dataclass, field
 from fractions import Fraction
 
 import numpy as np
-
+import pandas as pd
 import scipy.linalg as sl
 
-from ..errors import ModelError
 
 #: Singular values of the scaled Jacobian below this, relative to the largest, are zero.
 RANK_TOLERANCE = 1e-7
@@ -166,6 +167,16 @@ def _relative_jacobian(observed, z, h: float = 1e-6) -> np.ndarray:
     return np.concatenate([rows.real, rows.imag])
 
 
+def _directions(null, names) -> list[dict]:
+    """Each undetermined direction (a column of ``null``, log-parameters) as {parameter: loading},
+    the largest loading ±1, loadings under 0.05 left out."""
+    directions = []
+    for column in null.T:
+        column = column / column[np.argmax(np.abs(column))]
+        directions.append({names[i]: float(column[i]) for i in np.argsort(-np.abs(column)) if abs(column[i]) > 0.05})
+    return directions
+
+
 def _combinations(null, names):
     """Monomials θ^k identifiable although their factors are not: k ⟂ every null direction (in
     log-parameters), small integer powers, fewest factors first."""
@@ -200,7 +211,8 @@ def identifiability(model, params=None, plan=None, seed: int = 0, free=None) -> 
 
     ``params`` centres the generic points (default: the declared initial values);
     ``free`` names the parameters to judge (default: the non-fixed ones).  For a
-    model that is not linear time-invariant, ``plan`` (times and inputs) is needed.
+    model that is not linear time-invariant, ``plan`` (times and inputs) is the
+    experiment judged; without it a generic rich plan is used (:func:`generic_plan`).
     """
     from .information import _free_names, in_dynamics
 
@@ -262,12 +274,8 @@ def identifiability(model, params=None, plan=None, seed: int = 0, free=None) -> 
     if initial_only:
         notes.append(f"not judged: {', '.join(initial_only)} (initial state only, seen in an experiment's "
                      "transient, not in G, H or Σ)")
-    directions = []
-    for column in null.T:
-        column = column / np.max(np.abs(column))
-        directions.append({names[i]: float(column[i]) for i in np.argsort(-np.abs(column)) if abs(column[i]) > 0.05})
-    return Identifiability(identifiable, status, _combinations(null, names) if null.size else [], directions,
-                           G, "transfer functions G, H and Σ of the innovations form (6.15–6.18)", notes)
+    return Identifiability(identifiable, status, _combinations(null, names) if null.size else [],
+                           _directions(null, names), G, "transfer functions G, H and Σ of the innovations form (6.15–6.18)", notes)
 
 
 def _rational(value: float):
@@ -317,27 +325,72 @@ def _global(G, p, names, syms, point, declared):
     return len(real) if real else None
 
 
-def _by_information(model, names, points, plan, seed):
-    """Local rank of the Fisher information of ``plan`` at generic points (models other than LTI)."""
-    from .information import fisher_information, local_identifiability
+#: Rows of the generic plan used for models other than LTI when no plan is given.
+GENERIC_ROWS = 240
+#: Levels of each input in the generic plan.
+GENERIC_LEVELS = 16
 
+
+def generic_plan(model, point, seed: int = 0) -> tuple[pd.DataFrame, str]:
+    """A rich experiment for a model that no transfer function describes, and its description.
+
+    The drift linearised at the initial state (inputs at 1) gives the model's
+    rates; the plan covers five of the slowest time constants, sampled at least
+    four times per fastest one (at most :data:`GENERIC_ROWS` rows), with each
+    input held at :data:`GENERIC_LEVELS` random levels in [0.5, 1.5] (seeded).
+    """
+    import jax
+    import jax.numpy as jnp
+
+    s = model.structure
+    theta = jnp.asarray(model.parameter_vector(point), dtype=jnp.float64)
+    x0 = s.initial_mean(theta)
+    ones = jnp.ones(s.n_inputs)
+    A = np.asarray(jax.jacfwd(s.drift, argnums=0)(x0, ones, jnp.asarray(0.0), theta), dtype=float)
+    rates = np.abs(np.linalg.eigvals(A)) if A.size and np.all(np.isfinite(A)) else np.zeros(0)
+    rates = rates[rates > 1e-12 * max(rates.max(initial=0.0), 1e-300)]
+    slow, fast = (rates.min(), rates.max()) if rates.size else (1.0, 1.0)
+    span = 5.0 / slow
+    step = max(span / (GENERIC_ROWS - 1), 0.25 / fast) if fast > slow else span / (GENERIC_ROWS - 1)
+    rows = int(min(GENERIC_ROWS, np.floor(span / step) + 1))
+    rng = np.random.default_rng(seed)
+    plan = {"t": np.arange(rows) * step}
+    hold = max(1, rows // GENERIC_LEVELS)
+    for name in s.input_names:
+        levels = rng.uniform(0.5, 1.5, -(-rows // hold))
+        plan[name] = np.repeat(levels, hold)[:rows]
+    text = (f"{rows} samples every {step:.4g} time units (five of the slowest time constants), "
+            + (f"inputs held at {GENERIC_LEVELS} random levels in [0.5, 1.5]" if s.n_inputs else "no inputs"))
+    return pd.DataFrame(plan), text
+
+
+def _by_information(model, names, points, plan, seed):
+    """Local rank of the Fisher information of ``plan`` (or of :func:`generic_plan`) at generic points
+    (models other than LTI), decided on the scaled information; combinations from its null space."""
+    from ..scaled import ScaledInformation
+    from .information import fisher_information
+
+    notes = ["a rank judged on one plan: another experiment may determine more"]
     if plan is None:
-        why = "has delayed inputs" if model.structure.delays else f"is {model.structure.kind}"
-        raise ModelError(f"model '{model.name}' {why}: its identifiability is judged on a "
-                         "planned experiment; give plan= (a DataFrame of times and inputs)")
-    worst = None
+        plan, text = generic_plan(model, points[0], seed)
+        notes = [f"no plan given: judged on a generic plan, {text}; another experiment may determine more"]
+    best = None
     for k, point in enumerate(points):
         info = fisher_information(model, point, plan, free=names, method="montecarlo", n_paths=20, seed=seed + k)
-        flat = local_identifiability(info, tolerance=1e-6)
-        if worst is None or len(flat) < len(worst):
-            worst = flat
-    unseen = {n for row in worst["parameters"] for n in row}
-    identifiable = {n: n not in unseen for n in names}
+        scaled = ScaledInformation.of(info.to_numpy(), names, tolerance=1e-8)
+        if best is None or scaled.rank > best[0].rank:
+            best = (scaled, point)
+    scaled, point = best
+    # The undetermined directions in log-parameters (δ log θ = S v / θ), for the combinations.
+    theta = np.array([abs(point[n]) for n in names])
+    null = scaled.null_directions() * (scaled.scale / np.where(theta > 0, theta, 1.0))[:, None]
+    null = sl.orth(null) if null.size else null
+    unseen = np.any(np.abs(null) > 1e-4, axis=1) if null.size else np.zeros(len(names), dtype=bool)
+    identifiable = {n: not bool(unseen[i]) for i, n in enumerate(names)}
     status = {n: ("local" if identifiable[n] else "not identifiable") for n in names}
-    directions = [{n: 1.0 for n in row} for row in worst["parameters"]]
-    return Identifiability(identifiable, status, [], directions, None,
-                           "rank of the Fisher information of the plan at generic points (Monte Carlo)",
-                           ["a rank judged on one plan: another experiment may determine more"])
+    return Identifiability(identifiable, status, _combinations(null, names) if null.size else [],
+                           _directions(null, names), None,
+                           "rank of the Fisher information of a plan at generic points (Monte Carlo)", notes)
 
 
 __all__ = ["identifiability", "Identifiability"]

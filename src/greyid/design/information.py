@@ -37,13 +37,10 @@ def _free_names(model, free):
 
 
 def in_dynamics(model, names) -> list[str]:
-    """The parameters of ``names`` that enter the equations, not only the initial state: those a
-    stationary experiment (the information per sample, G, H and Σ) can see."""
-    equations = model.structure.equations
-    used = {sym.name for key in ("drift", "diffusion", "observation", "variance", "covariance")
-            for sym in equations[key].free_symbols}
-    used |= {sym.name for delay in model.structure.delays for sym in getattr(delay.expression, "free_symbols", ())}
-    return [n for n in names if n in used]
+    """The parameters of ``names`` that enter the equations (see :func:`greyid.model.parameters.in_dynamics`)."""
+    from ..model.parameters import in_dynamics as of_structure
+
+    return of_structure(model.structure, names)
 
 
 def fisher_information(model, params, plan: pd.DataFrame, time: str = "t", hold: str = "zoh", free=None,

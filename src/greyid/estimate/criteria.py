@@ -6,7 +6,8 @@
   Tukey's bisquare (c²/3)(1 − (1 − (r/c)²)³), capped at c²/3 for |r| ≥ c; both
   equal r² for small r — and log det R by κ log det R, κ = E[Zρ'(Z)]/2 (see
   :func:`scale_consistency`), so that variances estimated with the other
-  parameters are consistent on Gaussian data;
+  parameters are consistent on Gaussian data (the default); ``(norm, c, "ctsm")``
+  keeps log det R unweighted, CTSM-R's convention, to reproduce its numbers;
 * MAP (3.46): the log-likelihood plus the log-density of a multivariate
   Gaussian prior on the parameters.
 """
@@ -26,14 +27,27 @@ from ..filters.updates import LOG_2PI
 ROBUST_NORMS = ("huber", "tukey")
 
 
-def check_robust(robust) -> tuple[str, float] | None:
+#: Conventions for log det R under a robust norm: "consistent" weights it by κ (the default),
+#: "ctsm" leaves it unweighted, as CTSM-R does (its printed criterion values).
+ROBUST_CONVENTIONS = ("consistent", "ctsm")
+
+
+def check_robust(robust) -> tuple | None:
+    """``None``, ``(norm, c)`` or ``(norm, c, "ctsm")``: the robust setting in its normal form."""
     if robust is None:
         return None
-    if not (isinstance(robust, (tuple, list)) and len(robust) == 2 and robust[0] in ROBUST_NORMS):
-        raise ModelError(f"robust must be None, ('huber', c) or ('tukey', c); got {robust!r}")
-    c = float(robust[1])
+    if not (isinstance(robust, (tuple, list)) and len(robust) in (2, 3) and robust[0] in ROBUST_NORMS
+            and (len(robust) == 2 or robust[2] in ROBUST_CONVENTIONS)):
+        raise ModelError(f"robust must be None, ('huber', c) or ('tukey', c), optionally with the convention "
+                         f"'consistent' (default) or 'ctsm' as a third element; got {robust!r}")
+    try:
+        c = float(robust[1])
+    except (TypeError, ValueError):
+        raise ModelError(f"the robust threshold c must be a positive number, got {robust[1]!r}") from None
     if not c > 0:
         raise ModelError(f"the robust threshold c must be positive, got {robust[1]!r}")
+    if len(robust) == 3 and robust[2] == "ctsm":
+        return robust[0], c, "ctsm"
     return robust[0], c
 
 
@@ -41,7 +55,7 @@ def squared_norm(r, robust: tuple[str, float] | None):
     """r² or its robust replacement ρ(r), element-wise."""
     if robust is None:
         return r**2
-    kind, c = robust
+    kind, c = robust[:2]
     if kind == "huber":
         a = jnp.abs(r)
         return jnp.where(a < c, r**2, 2.0 * c * a - c**2)
@@ -59,11 +73,11 @@ def scale_consistency(robust) -> float:
     rewards shrinking R until many residuals count as outliers (0.012 against a
     true 0.041 in the issue's example).
     """
-    if robust is None:
-        return 1.0
+    if robust is None or (len(robust) == 3 and robust[2] == "ctsm"):
+        return 1.0  # the Gaussian norm; CTSM-R's convention leaves log det R unweighted
     from scipy import integrate, special, stats
 
-    kind, c = robust
+    kind, c = robust[:2]
     if kind == "huber":
         return float(special.erf(c / np.sqrt(2.0)))  # 2Φ(c) − 1
     integrand = lambda z: z**2 * (1 - (z / c) ** 2) ** 2 * stats.norm.pdf(z)

@@ -15,6 +15,7 @@ import numpy as np
 import pandas as pd
 from scipy import special
 
+from ..model.parameters import log_parametrised
 from .covariance import FEW_STEPS, parameter_covariance
 from .results import FitResult, FitWarning, filter_settings
 
@@ -147,7 +148,10 @@ def build_result(model, frames, theta, problem, best, optima, settings, scores=N
         params[col] = params[col].astype(float)
     units = getattr(model, "units", {})
     if units:
-        params["unit"] = [units.get(name, "") for name in params.index]
+        # A log-parameter holds the logarithm of a quantity in its declared unit (exp(p11)·dω).
+        logs = log_parametrised(model.structure)
+        params["unit"] = [(f"log({units[name]})" if name in logs else units[name]) if units.get(name) else ""
+                          for name in params.index]
 
     criterion_value = -best.value
     simple = settings["criterion"] == "ml" and not settings["robust"] and settings["horizon"] == 1

@@ -83,6 +83,14 @@ class FitResult:
         return self.n_obs
 
     @property
+    def tests_against_zero(self) -> dict:
+        """Per parameter, whether its t- and p-value (a test against 0) mean anything: not for a
+        log-parameter nor a parameter of the initial state only (the summary and report leave them out)."""
+        from ..model.parameters import tests_against_zero
+
+        return tests_against_zero(self.model)
+
+    @property
     def tvalues(self) -> pd.Series:
         """Estimates over standard errors (NaN for fixed parameters)."""
         return self.params["t_value"]
@@ -196,15 +204,20 @@ class FitResult:
                      f"{f'[{tail:.3g}':>11s} {f'{1 - tail:.3g}]':>11s}")
         fmt = lambda v, w, p: f"{v:{w}.{p}g}" if v is not None and np.isfinite(v) else " " * (w - 1) + "-"
         intervals = self.conf_int(level)
+        tested = self.tests_against_zero
         for name, row in self.params.iterrows():
             flag = " fixed" if row["fixed"] else (" at bound" if row["at_bound"] else "")
             if not row["fixed"] and not row["reliable"]:
                 flag += " (unreliable)"
             ci = intervals.loc[name]
             unit = f" [{row['unit']}]" if row.get("unit") else ""
+            t, p = (row["t_value"], row["p_value"]) if tested.get(name, True) else (None, None)
             lines.append(f"{name:12.12s} {fmt(row['estimate'], 13, 6)} {fmt(row['std_error'], 11, 4)} "
-                         f"{fmt(row['t_value'], 9, 4)} {fmt(row['p_value'], 9, 3)} {fmt(ci['lower'], 11, 5)} "
+                         f"{fmt(t, 9, 4)} {fmt(p, 9, 3)} {fmt(ci['lower'], 11, 5)} "
                          f"{fmt(ci['upper'], 11, 5)}{unit}{flag}")
+        if not all(tested.get(n, True) for n in self.params.index):
+            lines.append("t_value, p_value: against 0; not shown for log-parameters (exp(p) in the equations) and "
+                         "parameters of the initial state only, where 0 is no null value")
         bounded = self.params[self.params["lower_bound"].notna() | self.params["upper_bound"].notna()]
         if len(bounded):
             lines.append("-" * 78)

@@ -63,3 +63,48 @@ class Parameter:
                 )
         if self.fixed and self.init is None:
             raise ModelError(f"parameter '{self.name}' is fixed but has no value")
+
+
+def _equation_expressions(structure):
+    expressions = [e for key in ("drift", "diffusion", "observation", "variance", "covariance")
+                   for e in structure.equations[key]]
+    return expressions + [d.expression for d in structure.delays if hasattr(d.expression, "free_symbols")]
+
+
+def in_dynamics(structure, names) -> list[str]:
+    """The parameters of ``names`` that enter the equations, not only the initial state: those a
+    stationary experiment (the information per sample, G, H and Σ) can see."""
+    used = {s.name for e in _equation_expressions(structure) for s in e.free_symbols}
+    return [n for n in names if n in used]
+
+
+def log_parametrised(structure) -> set[str]:
+    """Parameters that enter the equations only as exp(p) (CTSM's log-parametrisation of noise
+    intensities: p11 in exp(p11)·dω): p is the logarithm of a quantity, 0 is not a null value."""
+    import sympy as sp
+
+    out = set()
+    expressions = _equation_expressions(structure)
+    for name in structure.parameter_names:
+        symbol = sp.Symbol(name, real=True)
+        occurs = [e for e in expressions if any(s.name == name for s in e.free_symbols)]
+        if not occurs:
+            continue
+        symbol = next(s for e in occurs for s in e.free_symbols if s.name == name)
+        dummy = sp.Dummy()
+        # Every occurrence inside exp(p): replacing exp(p) by a dummy removes p altogether.
+        if all(symbol not in e.replace(lambda x: isinstance(x, sp.exp) and x.args[0] == symbol,
+                                       lambda x: dummy).free_symbols for e in occurs):
+            out.add(name)
+    return out
+
+
+def tests_against_zero(model) -> dict[str, bool]:
+    """Whether a t-test of each parameter against 0 means anything: not for a log-parameter (0 is
+    a value of 1 in its unit) nor for a parameter of the initial state only (an initial temperature
+    of 0 °C is no null hypothesis)."""
+    structure = model.structure
+    names = list(structure.parameter_names)
+    dynamic = set(in_dynamics(structure, names))
+    logs = log_parametrised(structure)
+    return {name: name in dynamic and name not in logs for name in names}

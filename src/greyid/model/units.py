@@ -46,6 +46,8 @@ def pretty(text: str) -> str:
     """A unit string as a reader writes it (``m^2`` → m², ``degC`` → °C); unchanged if Pint cannot read it."""
     if not text:
         return text
+    if text.startswith("log(") and text.endswith(")"):  # a log-parameter's unit: log of a unit
+        return f"log({pretty(text[4:-1])})"
     try:
         return format(registry().Unit(text), "~P") or text
     except Exception:  # Pint raises several kinds; the text as given is still right

@@ -136,7 +136,7 @@ def _data_section(fit, frames) -> str:
 
 def _estimation_section(fit) -> str:
     s = fit.settings
-    criterion = s["criterion"].upper() + (f", robust {s['robust'][0]} (c = {s['robust'][1]:g})" if s.get("robust")
+    criterion = s["criterion"].upper() + (f", robust {s['robust'][0]} (c = {s['robust'][1]:g}{', CTSM-R convention' if len(s['robust']) > 2 else ''})" if s.get("robust")
                                           else "") + (f", {s['horizon']}-step" if s.get("horizon", 1) > 1 else "")
     facts = [("criterion", criterion), ("filter", f"{s['method']} ({s['form']})"),
              ("log-likelihood", f"{fit.loglik:.6f}"), ("AIC", f"{fit.aic:.4f}"), ("BIC", f"{fit.bic:.4f}"),
@@ -191,8 +191,9 @@ def _parameters_section(fit, profile=None) -> str:
         if likelihood_ratio is not None:
             table["95 % profile interval"] = [_interval(lo, hi) for lo, hi in
                                               zip(likelihood_ratio["lower"], likelihood_ratio["upper"])]
-    table["t"] = params["t_value"]
-    table["p"] = [_p_value(p) for p in params["p_value"]]
+    tested = fit.tests_against_zero
+    table["t"] = [t if tested.get(n, True) else np.nan for n, t in params["t_value"].items()]
+    table["p"] = [_p_value(p) if tested.get(n, True) else "–" for n, p in params["p_value"].items()]
     table["bounds"] = [_interval(lo, hi) if not fixed else "–" for lo, hi, fixed in
                        zip(params["lower_bound"].astype(float), params["upper_bound"].astype(float), params["fixed"])]
     table["note"] = ["fixed" if r["fixed"] else ("at bound" if r["at_bound"] else
@@ -201,7 +202,9 @@ def _parameters_section(fit, profile=None) -> str:
     text = ("<p>Standard errors from the exact Hessian of the negative log-likelihood, mapped to the natural "
             "parameters; 95 % intervals by Wald (estimate ± t quantile × SE) and, where computed, by the "
             "profile likelihood (where 2(ℓ̂ − ℓ_p) reaches the χ²₁ quantile; it follows a skewed "
-            "likelihood); t and p test the parameter against 0.</p>")
+            "likelihood); t and p test the parameter against 0, and are left out (–) for log-parameters "
+            "(exp(p) in the equations: p = 0 is a value of 1 in its unit) and parameters of the initial state "
+            "only (0 °C is no null hypothesis); a log-parameter's unit is written log(unit).</p>")
     text += "".join(f"<p>{_esc(n)}</p>" for n in notes)
     return _section("parameters", "Parameters",
                     _table(table, 5, row_class=lambda r: "reject" if r["note"] in ("at bound", "unreliable") else "")
