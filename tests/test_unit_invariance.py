@@ -153,3 +153,21 @@ def test_optimal_multisine_is_the_same_in_either_unit_system(models):
     factors = np.array([FACTOR[n] for n in a.information.index])
     assert a.value == pytest.approx(b.value + 2.0 * np.sum(np.log(factors)), abs=1e-4)
     assert a.max_derivative == pytest.approx(a.support_derivative, rel=1e-2)
+
+
+def test_a_fit_gives_the_same_answer_in_either_unit_system(models):
+    """The Armadillo fit in SI and in kWh/K, K/kW, hours: estimates and standard errors convert by the
+    unit factors, the log-likelihoods differ by the Jacobian of the time change alone (none here:
+    the output is a temperature in both), and the same parameters are flagged."""
+    if not DATA.is_file():
+        pytest.skip(f"shared dataset {DATA} is not available")
+    si, kwh = models
+    data = pd.read_csv(DATA).iloc[:-1]
+    data_kwh = data.assign(Time=data["Time"] / 3600.0, P_hea=data["P_hea"] / 1000.0)
+    a = si.fit(data, time="Time", hold="foh", init=POINT_SI)
+    b = kwh.fit(data_kwh, time="Time", hold="foh", init=POINT_KWH)
+    assert a.loglik == pytest.approx(b.loglik, abs=1e-6)
+    factors = pd.Series(FACTOR)[a.params.index]
+    np.testing.assert_allclose(a.params["estimate"], b.params["estimate"] * factors, rtol=1e-5)
+    np.testing.assert_allclose(a.params["std_error"], b.params["std_error"] * factors, rtol=1e-4)
+    assert a.ill_determined == b.ill_determined == []

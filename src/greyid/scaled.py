@@ -123,4 +123,16 @@ class ScaledInformation:
         return np.where(self.undetermined(C), np.inf, values)
 
 
-__all__ = ["ScaledInformation", "RANK_TOLERANCE"]
+def scaled_inverse(M, pseudo: bool = False) -> np.ndarray:
+    """M⁻¹ taken as S (S M S)⁻¹ S with S = diag(1/√|M_ii|): the same in any units; with ``pseudo``
+    the pseudo-inverse of the scaled matrix (relative cutoff :data:`RANK_TOLERANCE`), for a
+    singular M."""
+    M = np.asarray(M, dtype=np.float64)
+    diagonal = np.abs(np.diag(M))
+    scale = np.where(diagonal > 0, 1.0 / np.sqrt(np.where(diagonal > 0, diagonal, 1.0)), 1.0)
+    inner = scale[:, None] * M * scale[None, :]
+    inverse = np.linalg.pinv(inner, rcond=RANK_TOLERANCE, hermitian=True) if pseudo else np.linalg.inv(inner)
+    return scale[:, None] * inverse * scale[None, :]
+
+
+__all__ = ["ScaledInformation", "RANK_TOLERANCE", "scaled_inverse"]

@@ -24,6 +24,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..errors import ModelError
+from ..scaled import scaled_inverse
 
 COV_TYPES = ("hessian", "opg", "sandwich")
 
@@ -77,13 +78,16 @@ def score_covariance(scores: list[np.ndarray], horizon: int = 1) -> ScoreCovaria
 
 
 def parameter_covariance(H: np.ndarray, J: np.ndarray | None, cov_type: str, singular: bool) -> np.ndarray:
-    """The covariance of the estimates from H (and J); pseudo-inverses where H is ``singular``."""
-    inverse = np.linalg.pinv if singular else np.linalg.inv
+    """The covariance of the estimates from H (and J); pseudo-inverses where H is ``singular``.
+
+    Inverses are taken scaled to unit diagonal (:func:`greyid.scaled.scaled_inverse`): capacities
+    in J/K beside resistances in K/W give H a condition number of 1e20 from the units alone.
+    """
     if cov_type == "hessian":
-        cov = inverse(H)
+        cov = scaled_inverse(H, singular)
     elif cov_type == "opg":
-        cov = np.linalg.pinv(J)
+        cov = scaled_inverse(J, True)
     else:
-        H_inv = inverse(H)
+        H_inv = scaled_inverse(H, singular)
         cov = H_inv @ J @ H_inv
     return 0.5 * (cov + cov.T)
