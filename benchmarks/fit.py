@@ -46,16 +46,13 @@ else:
 ready = time.perf_counter()
 fit = model.fit(data, **kwargs)
 first = time.perf_counter()
-greyid.compiler.settle()  # the optimised programs, where the first fit used quick ones
-settled = time.perf_counter()
 again = []
 for _ in range(7):
     t = time.perf_counter()
     model.fit(data, **kwargs)
     again.append(time.perf_counter() - t)
 again.sort()
-print(f"{ready - start:.3f} {first - ready:.3f} {again[3]:.3f} {again[0]:.3f} {fit.loglik:.4f} {fit.iterations} "
-      f"{settled - first:.3f}")
+print(f"{ready - start:.3f} {first - ready:.3f} {again[3]:.3f} {again[0]:.3f} {fit.loglik:.4f} {fit.iterations}")
 """
 
 
@@ -81,16 +78,16 @@ def fit_case(case: str, data: Path, repeats: int) -> None:
             out = subprocess.run([sys.executable, "-c", FIT_SCRIPT, case, str(data)], env=env, check=True,
                                  capture_output=True, text=True).stdout.split()
             total = time.perf_counter() - start
-            setup, first, median, fastest, settle = (float(v) for v in out[:4] + out[6:7])
-            results.append(dict(setup=setup, first=setup + first, settle=settle,
-                                start=total - setup - first - settle - 7 * median,
+            setup, first, median, fastest = (float(v) for v in out[:4])
+            results.append(dict(setup=setup, first=setup + first,
+                                start=total - setup - first - 7 * median,
                                 median=median, fastest=fastest, loglik=out[4], iterations=out[5]))
     for label, results in runs.items():
         def stat(key, fmt):
             values = sorted(r[key] for r in results)
             return f"{values[len(values) // 2]:{fmt}} ({values[0]:{fmt}}–{values[-1]:{fmt}})"
         print(f"  {label}: first fit in a fresh process {stat('first', '.2f')} s, of which import + data + model "
-              f"{stat('setup', '.2f')} s; optimised programs ready {stat('settle', '.2f')} s later; "
+              f"{stat('setup', '.2f')} s; "
               f"interpreter start and exit add {stat('start', '.2f')} s; compiled fit "
               f"{stat('median', '.3f')} s (medians of 7 fits per process; fastest single fit "
               f"{min(r['fastest'] for r in results):.3f} s); loglik {results[0]['loglik']}, "

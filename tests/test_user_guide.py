@@ -6,11 +6,9 @@ Estimates the fit marks unreliable (at a bound, in a flat direction) must be
 marked so in the guide, not matched digit for digit.
 """
 
-import re
 import warnings
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 import greyid

@@ -17,7 +17,6 @@ rejects), 2 bad input (model, data or arguments; the message says which).
 
 from __future__ import annotations
 
-import os
 import sys
 import time
 from pathlib import Path
@@ -58,8 +57,6 @@ def _options(debug: bool = typer.Option(False, "--debug", help="show the traceba
                                                help="print the version and exit")) -> None:
     """Grey-box identification of physical systems with stochastic differential equations."""
     DEBUG["on"] = debug
-    # The process ends with the command: no quick compilation first (see greyid.compiler).
-    os.environ.setdefault("GREYID_QUICK_FIRST", "off")
 
 
 # ---------------------------------------------------------------------- loading

@@ -11,13 +11,9 @@ slower (``benchmarks/length.py``).
 
 A function given a ``key`` — a description of everything its program depends
 on besides its arguments' shapes — also keeps its traced program on disk
-(:mod:`greyid.programs`), so that a later process skips tracing it.  Such a
-program can be asked for *quick first* (a small fit's value–gradient–Hessian
-program): where no process has compiled it yet, it is compiled at once with
-LLVM's optimisations off (:data:`QUICK`) and the search runs on that; once the
-search is done the optimised executable compiles in a background thread, goes
-into JAX's persistent cache for later processes and replaces the quick one for
-later calls in this one.
+(:mod:`greyid.programs`), so that a later process skips tracing it.  Every
+program is compiled with the same options, whichever process or cache state
+compiles it first, so that no answer depends on the cache.
 
 Python's garbage collector is paused while a program is traced and compiled
 (:mod:`greyid._collector`).  XLA's compilation frees the interpreter, so
@@ -27,10 +23,8 @@ core (:func:`import_while_compiling`).
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import importlib
-import os
 import sys
 import threading
 from typing import Callable
@@ -47,73 +41,6 @@ def compiler_options() -> dict:
     if jax.default_backend() == "cpu":
         return {"xla_cpu_use_fusion_emitters": False, "xla_cpu_experimental_ynn_fusion_type": ""}
     return {}
-
-
-#: XLA options of a program compiled for its first use only (see :meth:`Jitted.executable`):
-#: the Armadillo fit's Hessian program compiles in 0.9 s instead of 1.4 s and runs
-#: in twice the time (0.10 against 0.05 s for the fit), ``benchmarks/fit.py``.
-QUICK = {"xla_backend_optimization_level": 0}
-
-
-def quick_first_allowed() -> bool:
-    """Whether programs may be compiled quick first (``GREYID_QUICK_FIRST=off`` says no).
-
-    The command line says no: its process ends after the command and would wait
-    for the optimised compilation anyway, so the quick one would only add to it.
-    """
-    return os.environ.get("GREYID_QUICK_FIRST", "on").lower() not in programs.OFF
-
-
-_lock = threading.Lock()
-_to_optimize: list[Callable] = []  # compilations of optimised executables not started yet
-_optimizing: list[threading.Thread] = []  # and those running in the background
-
-
-def optimize_quick_programs() -> None:
-    """Start compiling the optimised executables of the programs compiled quick first.
-
-    Called when the searches that use the quick executables are done, so that the
-    compilation does not take the second core from their evaluations.  Each runs in
-    a thread that is not a daemon: a process that ends first waits for it, so that
-    the executable is kept for the next one.
-    """
-    while _to_optimize:
-        thread = threading.Thread(target=_to_optimize.pop(), name="greyid-optimize")
-        _optimizing.append(thread)
-        thread.start()
-
-
-def settle() -> None:
-    """Wait until the optimised executables of programs compiled quick first are in use."""
-    optimize_quick_programs()
-    while _optimizing:
-        _optimizing.pop().join()
-
-
-_unkept = {"open": 0, "opened": 0}  # blocks of _not_kept_by_jax: open now, opened ever
-
-
-@contextlib.contextmanager
-def _not_kept_by_jax():
-    """JAX's persistent cache not written for the block's compilations.
-
-    JAX's setting is process-wide: a compilation in another thread that ends
-    meanwhile is not kept either (:meth:`Jitted._optimize` checks for that).
-    """
-    setting = "jax_persistent_cache_min_compile_time_secs"
-    with _lock:
-        if _unkept["open"] == 0:
-            _unkept["previous"] = getattr(jax.config, setting)
-            jax.config.update(setting, float("inf"))
-        _unkept["open"] += 1
-        _unkept["opened"] += 1
-    try:
-        yield
-    finally:
-        with _lock:
-            _unkept["open"] -= 1
-            if _unkept["open"] == 0:
-                jax.config.update(setting, _unkept["previous"])
 
 
 _pending_imports: set[str] = set()
@@ -176,15 +103,12 @@ class Jitted:
         with collector_paused():  # a first call traces and compiles
             return self.top(*args, **kwargs)
 
-    def executable(self, *args, quick_first: bool = False):
+    def executable(self, *args):
         """The program compiled ahead of time for these arguments' shapes and types, kept.
 
         Callers that run one program from several threads at once compile it
         first: through ``__call__`` each thread's first call would wait for (or
-        repeat) the compilation.  With ``quick_first``, a kept program that no
-        process has compiled with optimisations yet is compiled quickly for this
-        call (see the module's docstring); callers that fix the executable for a
-        whole search keep its answers independent of when the optimised one is ready.
+        repeat) the compilation.
         """
         leaves, tree = jax.tree_util.tree_flatten(args)
         signature = (tree, tuple(jax.typeof(a) for a in leaves))
@@ -193,27 +117,9 @@ class Jitted:
                 kept = programs.kept_lowering(self, args) if self.key is not None and programs.enabled() else None
                 if kept is None:
                     self.executables[signature] = compile_lowered(self.top.lower(*args), compiler_options())
-                elif quick_first and quick_first_allowed() and not kept.optimized_mark.exists():
-                    # Not kept in JAX's cache (0.09 s): a later process wants the optimised one.
-                    with _not_kept_by_jax():
-                        self.executables[signature] = kept.runner(compile_lowered(kept.lowered, QUICK))
-                    _to_optimize.append(functools.partial(self._optimize, signature, kept))
                 else:
                     self.executables[signature] = kept.runner(compile_lowered(kept.lowered))
         return self.executables[signature]
-
-    def _optimize(self, signature, kept) -> None:
-        """Compile the optimised executable (kept in JAX's cache) and use it from then on."""
-        try:
-            with _lock:
-                opened = _unkept["opened"] if _unkept["open"] == 0 else None
-            self.executables[signature] = kept.runner(kept.lowered.compile())
-            with _lock:
-                kept_by_jax = opened == _unkept["opened"]  # no quick compilation meanwhile
-            if kept_by_jax:
-                programs.write(kept.optimized_mark, b"")
-        except Exception:  # noqa: BLE001  the quick executable stays in use
-            pass
 
 
 def jit(fun, key=None, **kwargs) -> Jitted:

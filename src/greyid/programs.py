@@ -103,11 +103,6 @@ class KeptProgram(NamedTuple):
 
         return run
 
-    @property
-    def optimized_mark(self) -> Path:
-        """A file that says the program's optimised executable is in JAX's persistent cache."""
-        return self.path.with_suffix(".optimized")
-
 
 def kept_lowering(jitted, args) -> KeptProgram | None:
     """The lowered call of ``jitted``'s program for ``args``: loaded from its kept export, or

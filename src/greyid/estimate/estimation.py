@@ -192,19 +192,14 @@ def new_search(problem: Problem, z0, maxiter: int, report, scoring: bool, handov
                   expand=scoring and problem.long_series)
 
 
-def single_programs(structure, problem: Problem, arguments: tuple, stack: ExitStack, compile_at=None,
-                    quick_first: bool = False) -> dict:
+def single_programs(structure, problem: Problem, arguments: tuple, stack: ExitStack, compile_at=None) -> dict:
     """``{kind: evaluate(z)}`` for one search at a time, the derivatives' directions split over threads.
 
     With ``compile_at`` (a point z), the exact program compiles in the background
-    while the search takes its first (scoring) steps.  With ``quick_first`` (a small
-    Newton fit, where compiling the exact program costs more than running it) a
-    program that no process has compiled yet is compiled quickly for this fit
-    (see :mod:`greyid.compiler`).
+    while the search takes its first (scoring) steps.
     """
     programs = compiled(structure, problem)
-    out = {EXACT: stack.enter_context(Derivatives(programs.derivatives, len(problem.free), arguments,
-                                                  quick_first=quick_first))}
+    out = {EXACT: stack.enter_context(Derivatives(programs.derivatives, len(problem.free), arguments))}
     if programs.scoring is not None:
         # One thread on long series: two concurrent scoring programs of 10⁶ rows
         # have deadlocked in XLA's CPU runtime (benchmarks/length.py).
@@ -225,9 +220,8 @@ class SearchesAlone:
     """Runs one search at a time, with each problem's :func:`single_programs` opened once
     (a fit's starts and its refits with more sub-steps share them)."""
 
-    def __init__(self, structure, arguments: tuple, stack: ExitStack, small: bool = False):
+    def __init__(self, structure, arguments: tuple, stack: ExitStack):
         self.structure, self.arguments, self.stack, self.programs = structure, arguments, stack, {}
-        self.small = small  # rows × (free parameters)² below SCORING_WORK: compilation dominates
 
     def run(self, problem: Problem, search: Search) -> Optimum:
         if problem.key() not in self.programs:
@@ -235,8 +229,7 @@ class SearchesAlone:
             # series the background evaluation would cost more than it saves.
             ahead = search.scoring and not problem.long_series
             self.programs[problem.key()] = single_programs(self.structure, problem, self.arguments, self.stack,
-                                                           search.z if ahead else None,
-                                                           quick_first=self.small and not search.scoring)
+                                                           search.z if ahead else None)
         return run_alone(search, self.programs[problem.key()])
 
 
@@ -361,8 +354,7 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
         def finished(i, optimum):
             shown.end_start(-optimum.value, optimum.iterations, optimum.converged, optimum.message, start=i)
 
-        alone = SearchesAlone(structure, (*args, datasets), open_programs,
-                              small=rows * len(free) ** 2 < SCORING_WORK)
+        alone = SearchesAlone(structure, (*args, datasets), open_programs)
 
         def optimize(problem, z_start, i, exact_only=False):
             """One search alone (one start, or the refit with more sub-steps)."""

@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..compiler import jit, kept_key, optimize_quick_programs
+from ..compiler import jit, kept_key
 from ..filters import small
 from ..filters.api import compiled_filter
 from ..filters.core import KALMAN, FilterOptions, make_ahead, make_summed_filter
@@ -308,14 +308,11 @@ class Derivatives:
     """
 
     def __init__(self, program, n: int, arguments: tuple, workers: int | None = None,
-                 combine: Callable = combine_hessian, quick_first: bool = False):
+                 combine: Callable = combine_hessian):
         self.blocks = direction_blocks(n, workers)
         self.n, self.program, self.arguments, self.combine = n, program, arguments, combine
         self.pool = ThreadPoolExecutor(len(self.blocks)) if len(self.blocks) > 1 else None
-        # A program compiled quick first is replaced by its optimised executable when that is
-        # ready; these derivatives keep the executable they started with, so that a search's
-        # steps, and so its answer, do not depend on when that happens (see greyid.compiler).
-        self.quick_first, self.pinned = quick_first, None
+        self.pinned = None
 
     def _block(self, program, z, rows):
         return jax.block_until_ready(program(z, rows, *self.arguments))
@@ -336,12 +333,11 @@ class Derivatives:
             pending.result()
             self.ahead.shutdown()
         z = np.asarray(z, dtype=np.float64)  # transferred by the call, without a compiled conversion
-        if self.pool is None and not self.quick_first:
+        if self.pool is None:
             run = self.program
         else:  # compiled once, before any thread starts, and kept for the search
             if self.pinned is None:
-                self.pinned = self.program.executable(z, self.blocks[0], *self.arguments,
-                                                      quick_first=self.quick_first)
+                self.pinned = self.program.executable(z, self.blocks[0], *self.arguments)
             run = self.pinned
         if self.pool is None:
             parts = [self._block(run, z, rows) for rows in self.blocks]
@@ -352,8 +348,6 @@ class Derivatives:
     def close(self):
         if self.pool is not None:
             self.pool.shutdown()
-        if self.quick_first:
-            optimize_quick_programs()
         if getattr(self, "ahead", None) is not None:  # a compilation ahead never waited for
             self.ahead.shutdown()
 

@@ -21,7 +21,7 @@ from ..data.prepare import Series, as_frames, prepare_series
 from ..errors import DataError, FilterWarning, ModelError
 from ..model.structure import Structure
 from .accuracy import choose_substeps, needs_substeps
-from .core import EKF, EKF2, KALMAN, FilterInputs, FilterOptions, initial_state, make_ahead, make_filter
+from .core import EKF, KALMAN, FilterInputs, FilterOptions, initial_state, make_ahead, make_filter
 from .delays import check_delays, delay_slots, with_delayed_inputs
 from .result import FilterResult, SmootherResult
 from .smoother import rts_smooth
