@@ -158,3 +158,59 @@ def test_tying_the_initial_carries_to_theta_changes_no_number(monkeypatch):
     np.testing.assert_allclose(tied.params["estimate"], untied.params["estimate"], rtol=1e-10, atol=1e-12)
     np.testing.assert_allclose(tied.params["std_error"], untied.params["std_error"], rtol=1e-10)
     assert tied.iterations == untied.iterations
+
+
+def test_an_xla_option_this_jaxlib_does_not_know_is_left_out(monkeypatch):
+    """A JAX upgrade that drops or renames an (experimental) XLA option must not fail every compilation:
+    the option is left out and XLA's default applies."""
+    import jax.numpy as jnp
+
+    from greyid import compiler
+
+    monkeypatch.setattr(compiler, "CPU_OPTIONS", dict(compiler.CPU_OPTIONS, xla_no_such_option_in_any_xla=True))
+    compiler.compiler_options.cache_clear()
+    try:
+        options = compiler.compiler_options()
+        assert "xla_no_such_option_in_any_xla" not in options
+        assert "xla_cpu_use_fusion_emitters" in options  # known to this jaxlib: kept
+        assert float(compiler.jit(lambda x: jnp.sin(x) * 2.0)(0.5)) == pytest.approx(2 * np.sin(0.5))
+    finally:
+        compiler.compiler_options.cache_clear()
+
+
+def test_a_jit_without_compiler_options_compiles_with_none(monkeypatch):
+    """JAX versions whose jit takes no compiler_options: greyid compiles with JAX's defaults."""
+    import jax
+    import jax.numpy as jnp
+
+    from greyid import compiler
+
+    real = jax.jit
+
+    def old_jit(fun, **kwargs):
+        if "compiler_options" in kwargs:
+            raise TypeError("jit() got an unexpected keyword argument 'compiler_options'")
+        return real(fun, **kwargs)
+
+    monkeypatch.setattr(jax, "jit", old_jit)
+    compiler.compiler_options.cache_clear()
+    try:
+        assert compiler.compiler_options() == {}
+        assert float(compiler.jit(lambda x: jnp.cos(x))(0.25)) == pytest.approx(np.cos(0.25))
+    finally:
+        monkeypatch.setattr(jax, "jit", real)
+        compiler.compiler_options.cache_clear()
+
+
+def test_lowering_kept_programs_works_where_jax_lacks_the_private_function(monkeypatch):
+    """greyid wraps jax._src.export._export._ensure_backends_initialized where it exists; without it
+    (a JAX that renamed it) the guard installs nothing and lowering runs JAX's own set-up."""
+    from jax._src.export import _export
+
+    from greyid import programs
+
+    monkeypatch.delattr(_export, "_ensure_backends_initialized", raising=False)
+    programs._install_lapack_guard()
+    assert not hasattr(_export, "_ensure_backends_initialized")
+    with programs.lapack_needed(False):
+        pass

@@ -79,12 +79,46 @@ def load_model_or_fit(source: str):
                        f"(see 'greyid models')")
 
 
+def _writable_folder(folder: Path, what: str) -> None:
+    """Refuse a folder greyid cannot create files in, by creating (and removing) one."""
+    import tempfile
+
+    try:
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".greyid-check-"):
+            pass
+    except OSError as problem:
+        raise InputProblem(f"{what}: cannot write in '{folder}' ({problem.strerror or problem})") from None
+
+
 def check_output_file(path: Path) -> None:
     """Refuse an output file that cannot be written, before any work is done."""
-    if path.is_dir():
-        raise InputProblem(f"--out '{path}' is a folder; give a file name")
-    if not path.parent.is_dir():
-        raise InputProblem(f"--out '{path}': the folder '{path.parent}' does not exist")
+    try:
+        if path.is_dir():
+            raise InputProblem(f"--out '{path}' is a folder; give a file name")
+        if not path.parent.is_dir():
+            raise InputProblem(f"--out '{path}': the folder '{path.parent}' does not exist")
+    except OSError as problem:  # a symlink loop, a name too long ...
+        raise InputProblem(f"--out '{path}' cannot be used ({problem.strerror or problem})") from None
+    _writable_folder(path.parent, f"--out '{path}'")
+
+
+def check_output_folder(path: Path) -> None:
+    """Refuse an output folder that cannot be created or written, before any work is done."""
+    what = f"--out '{path}'"
+    try:
+        if path.exists() and not path.is_dir():
+            raise InputProblem(f"{what} is a file; give a folder for fit.json, summary.txt, parameters.csv")
+        existing = path
+        while not existing.exists():  # the nearest folder that exists: where the new ones are made
+            if existing.is_symlink():
+                raise InputProblem(f"{what}: '{existing}' is a symbolic link that leads nowhere "
+                                   "(a loop or a missing target)")
+            existing = existing.parent
+        if not existing.is_dir():
+            raise InputProblem(f"{what}: '{existing}' is a file, not a folder")
+    except OSError as problem:  # a symlink loop, a name too long ...
+        raise InputProblem(f"{what} cannot be used ({problem.strerror or problem})") from None
+    _writable_folder(existing, what)
 
 
 def load_data(model, data: Optional[Path], fit=None, time: Optional[str] = None):
@@ -144,8 +178,8 @@ def fit(model: str = typer.Argument(..., help="model file (.toml) or library mod
     """Estimate the parameters of MODEL from DATA and print the summary."""
 
     def command() -> int:
-        if out_dir is not None and out_dir.exists() and not out_dir.is_dir():
-            raise InputProblem(f"--out '{out_dir}' is a file; give a folder for fit.json, summary.txt, parameters.csv")
+        if out_dir is not None:
+            check_output_folder(out_dir)
         if report and out_dir is None:
             raise InputProblem("--report needs --out DIR to write the report into")
         m, _ = load_model_or_fit(model)
@@ -163,15 +197,17 @@ def fit(model: str = typer.Argument(..., help="model file (.toml) or library mod
             out.print("\nderived quantities (delta-method standard errors):")
             out.print(result.derived().to_string())
         if out_dir is not None:
-            out_dir.mkdir(parents=True, exist_ok=True)
-            result.save(out_dir / "fit.json")
-            (out_dir / "summary.txt").write_text(result.summary() + "\n", encoding="utf-8")
-            result.params.to_csv(out_dir / "parameters.csv")
-            written = ["fit.json", "summary.txt", "parameters.csv"]
+            import json
+
+            from .outputs import write_generation
+
+            # One generation: all of this run's files replace the previous run's, or none do.
+            files = {"fit.json": json.dumps(result.to_dict(), indent=2), "summary.txt": result.summary() + "\n",
+                     "parameters.csv": result.params.to_csv()}
             if report:
-                result.report(out_dir / "report.html")
-                written.append("report.html")
-            err.print(f"wrote {', '.join(written)} to {out_dir}")
+                files["report.html"] = result.report()
+            write_generation(out_dir, files)
+            err.print(f"wrote {', '.join(files)} to {out_dir}")
         elif report:
             raise InputProblem("--report needs --out DIR to write the report into")
         return OK if result.converged else VERDICT
@@ -202,7 +238,9 @@ def simulate(model: str = typer.Argument(..., help="model file, fit file (.json)
         if out_file is None:
             out.print(table.to_csv(index=False), end="")
         else:
-            table.to_csv(out_file, index=False)
+            from .outputs import write_atomic
+
+            write_atomic(out_file, table.to_csv(index=False))
             err.print(f"wrote {paths} path(s), {len(frame)} rows each, to {out_file}")
         return OK
 
@@ -363,6 +401,7 @@ def demo(out_dir: Path = typer.Option(Path("greyid-demo"), "--out", help="folder
     def command() -> int:
         from .datasets import TRUE_PARAMETERS, building_model
 
+        check_output_folder(out_dir)
         model = building_model()
         data, data_file = load_data(model, None)
         out.print(model)
@@ -377,10 +416,15 @@ def demo(out_dir: Path = typer.Option(Path("greyid-demo"), "--out", help="folder
         out.print(result.derived().to_string())
         truth = model.loglik(TRUE_PARAMETERS, data)
         out.print(f"\nlog-likelihood at the simulation's true parameters: {truth:.4f}")
-        out_dir.mkdir(parents=True, exist_ok=True)
-        result.save(out_dir / "fit.json")
+        import json
+
+        from .outputs import write_generation
+
+        files = {"fit.json": json.dumps(result.to_dict(), indent=2)}
         if report:
-            result.report(out_dir / "report.html")
+            files["report.html"] = result.report()
+        write_generation(out_dir, files)
+        if report:
             out.print(f"report: {out_dir / 'report.html'}")
         return OK if result.converged else VERDICT
 

@@ -36,11 +36,34 @@ from . import programs
 from ._collector import collect_young_garbage, collector_paused
 
 
+#: The XLA options greyid asks for on CPUs (see the module doc).  Some are experimental: each is
+#: passed only where this jaxlib's XLA accepts it (:func:`compiler_options`).
+CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_cpu_experimental_ynn_fusion_type": ""}
+
+
 @functools.cache
 def compiler_options() -> dict:
-    if jax.default_backend() == "cpu":
-        return {"xla_cpu_use_fusion_emitters": False, "xla_cpu_experimental_ynn_fusion_type": ""}
-    return {}
+    """The options of :data:`CPU_OPTIONS` this JAX and XLA accept (none elsewhere, or on a JAX
+    whose ``jit`` takes no compiler options): an upgrade that drops or renames one compiles
+    with XLA's default for it instead of failing."""
+    if jax.default_backend() != "cpu":
+        return {}
+    return {name: value for name, value in CPU_OPTIONS.items() if accepted({name: value})}
+
+
+def accepted(options: dict) -> bool:
+    """Whether a trivial program compiles with the XLA ``options``."""
+    try:
+        jax.jit(lambda x: x + 1.0, compiler_options=options).lower(1.0).compile()
+    except Exception:  # noqa: BLE001  an unknown option, or a jit without compiler_options
+        return False
+    return True
+
+
+def jax_jit(fun, **kwargs):
+    """``jax.jit`` with greyid's compiler options, where there are any."""
+    options = compiler_options()
+    return jax.jit(fun, compiler_options=options, **kwargs) if options else jax.jit(fun, **kwargs)
 
 
 _pending_imports: set[str] = set()
@@ -89,7 +112,7 @@ class Jitted:
 
     def __init__(self, fun, key=None, **kwargs):
         functools.update_wrapper(self, fun)
-        self.top = jax.jit(fun, compiler_options=compiler_options(), **kwargs)
+        self.top = jax_jit(fun, **kwargs)
         self.nested = jax.jit(fun, **kwargs)
         self.key = key if not kwargs else None  # static arguments would need their values in the key
         self.executables: dict = {}  # see executable()
@@ -116,7 +139,7 @@ class Jitted:
             with collector_paused():
                 kept = programs.kept_lowering(self, args) if self.key is not None and programs.enabled() else None
                 if kept is None:
-                    self.executables[signature] = compile_lowered(self.top.lower(*args), compiler_options())
+                    self.executables[signature] = compile_lowered(self.top.lower(*args))
                 else:
                     self.executables[signature] = kept.runner(compile_lowered(kept.lowered))
         return self.executables[signature]

@@ -107,7 +107,7 @@ class KeptProgram(NamedTuple):
 def kept_lowering(jitted, args) -> KeptProgram | None:
     """The lowered call of ``jitted``'s program for ``args``: loaded from its kept export, or
     exported now and kept; None when the program cannot be kept (the caller then traces it)."""
-    from .compiler import compiler_options
+    from .compiler import jax_jit
 
     leaves, tree = jax.tree_util.tree_flatten(args)
     try:
@@ -121,7 +121,7 @@ def kept_lowering(jitted, args) -> KeptProgram | None:
             out_tree, blob = out_trees[-1], exported.serialize()
             write(path, pickle.dumps((out_tree, blob)))
         with lapack_needed(b"custom_call" in blob):
-            lowered = jax.jit(exported.call, compiler_options=compiler_options()).lower(*leaves)
+            lowered = jax_jit(exported.call).lower(*leaves)
     except Exception:  # noqa: BLE001  any failure: trace as without the cache
         return None
     return KeptProgram(lowered, out_tree, path)
@@ -159,9 +159,10 @@ def _install_lapack_guard() -> None:
     if ensure is None or getattr(ensure, "greyid_guard", False):
         return
 
-    def ensure_if_needed(platforms):
+    def ensure_if_needed(*args, **kwargs):  # whatever JAX's signature: passed on unchanged
         if _lapack_needed.get():
-            ensure(platforms)
+            return ensure(*args, **kwargs)
+        return None
 
     ensure_if_needed.greyid_guard = True
     _export._ensure_backends_initialized = ensure_if_needed

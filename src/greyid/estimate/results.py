@@ -498,8 +498,11 @@ class FitResult:
         }
 
     def save(self, path) -> None:
-        """Write the fit as JSON (model text, estimates, covariance, settings)."""
-        Path(path).write_text(json.dumps(self.to_dict(), indent=2))
+        """Write the fit as JSON (model text, estimates, covariance, settings), atomically: a
+        process killed meanwhile leaves the previous file whole."""
+        from ..outputs import write_atomic
+
+        write_atomic(path, json.dumps(self.to_dict(), indent=2))
 
 
 def parameter_expression(text: str, names, what: str):
@@ -521,7 +524,11 @@ def filter_settings(settings: dict) -> dict:
 
 def load_fit(path) -> FitResult:
     """Read a fit written by :meth:`FitResult.save`; its ``model`` reproduces the log-likelihood."""
+    from ..outputs import complete_generation
+
     path = Path(path)
+    if path.parent.is_dir():
+        complete_generation(path.parent)  # a run killed while moving its files into place
     if path.is_dir() or not path.is_file():
         raise ModelError(f"fit file '{path}' {'is a folder' if path.is_dir() else 'not found'}")
     try:

@@ -300,6 +300,8 @@ def html_report(fit, level: float = 0.05, steps: int = 4, n_paths: int = 100, se
 
 def write_report(fit, path, **options) -> Path:
     """Write :func:`html_report` to ``path``; returns the path."""
+    from ..outputs import write_atomic
+
     path = Path(path)
-    path.write_text(html_report(fit, **options), encoding="utf-8")
+    write_atomic(path, html_report(fit, **options))
     return path
