@@ -3,6 +3,8 @@ anything that changes the program changes its key; nothing else is ever loaded."
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -106,12 +108,78 @@ def test_python_function_models_and_switched_off_cache_keep_nothing(cache, tmp_p
     assert not programs.enabled()
 
 
-def test_an_unreadable_kept_program_is_traced_again(cache, ou_data):
+def test_an_unreadable_kept_program_is_traced_again_and_repaired(cache, ou_data):
     first = ou_model().fit(ou_data)
     for path in kept_files(cache):
         path.write_bytes(b"not a program")
     again = ou_model().fit(ou_data)
     assert again.loglik == pytest.approx(first.loglik, abs=1e-9)
+    for path in kept_files(cache):  # rewritten: readable again
+        programs.unpack(path.read_bytes())
+
+
+def test_kept_programs_are_not_pickles_and_a_changed_byte_is_caught(cache, ou_data, monkeypatch):
+    """A kept file is a JSON header line (with the program's SHA-256) and JAX's serialized program:
+    nothing executable.  One byte changed in the program (a float constant, say) is caught by the hash:
+    the file is removed and exported again, and the answer is the traced one."""
+    model = ou_model()
+    first = model.fit(ou_data)
+    files = kept_files(cache)
+    assert files
+    for path in files:
+        data = path.read_bytes()
+        header = json.loads(data.partition(b"\n")[0])
+        assert header["format"] == programs.FORMAT and len(header["sha256"]) == 64
+        assert not data.startswith(b"\x80")  # a pickle's first byte
+    values = first.values
+    reference = ou_model().loglik(values, ou_data)
+    for path in files:
+        data = bytearray(path.read_bytes())
+        start = data.index(b"\n") + 1
+        position = start + (len(data) - start) // 2
+        data[position] ^= 0x01
+        path.write_bytes(bytes(data))
+        with pytest.raises(ValueError, match="hash"):
+            programs.unpack(bytes(data))
+    exported = []
+    real_export = programs.jax.export.export
+
+    def counting(*args, **kwargs):
+        exported.append(1)
+        return real_export(*args, **kwargs)
+
+    monkeypatch.setattr(programs.jax.export, "export", counting)
+    again = ou_model().fit(ou_data)
+    assert exported, "the damaged program was exported again"
+    assert again.loglik == pytest.approx(first.loglik, abs=1e-9)
+    assert ou_model().loglik(values, ou_data) == pytest.approx(reference, abs=1e-12)
+    for path in kept_files(cache):
+        programs.unpack(path.read_bytes())
+
+
+def test_the_cache_command_shows_and_clears_the_folder(cache, ou_data, tmp_path):
+    from greyid.cli import main
+
+    ou_model().fit(ou_data)
+    usage = programs.usage()
+    assert usage["programs"][0] >= 1 and usage["programs"][1] > 0
+    assert main(["cache", "info"]) == 0
+    assert programs.clear() >= usage["programs"][0]
+    assert programs.usage()["programs"] == (0, 0) and kept_files(cache) == []
+
+
+def test_tree_structures_round_trip_and_foreign_named_tuples_are_refused():
+    from collections import namedtuple
+
+    from greyid.filters.updates import StepTerms
+
+    tree = jax.tree_util.tree_structure((StepTerms(1, 2, 3), {"a": [1, None, (2, 3)]}, 4))
+    assert programs.decode_tree(json.loads(json.dumps(programs.encode_tree(tree)))) == tree
+    Foreign = namedtuple("Foreign", "a b")
+    with pytest.raises(programs.Unkeepable):
+        programs.encode_tree(jax.tree_util.tree_structure(Foreign(1, 2)))
+    with pytest.raises(ValueError):
+        programs.decode_tree({"named": ["os", "path"], "items": []})
 
 
 def test_a_fit_does_not_depend_on_the_cache_state(cache, ou_data, monkeypatch):

@@ -8,6 +8,7 @@
     greyid identifiability MODEL [--plan CSV]         which parameters any experiment can determine
     greyid models [NAME]                               the model library, or one model's file
     greyid demo [--out DIR]                            fit the bundled model to its bundled data
+    greyid cache info | clear                          the cache of traced and compiled programs
 
 MODEL is a model file (``.toml``), a saved fit (``.json``) or a library model's
 name; DATA is a CSV file, by default the one the model file names.  Exit codes:
@@ -427,6 +428,53 @@ def demo(out_dir: Path = typer.Option(Path("greyid-demo"), "--out", help="folder
         if report:
             out.print(f"report: {out_dir / 'report.html'}")
         return OK if result.converged else VERDICT
+
+    _run(command)
+
+
+cache_app = typer.Typer(no_args_is_help=True, help="greyid's cache of traced and compiled programs.")
+app.add_typer(cache_app, name="cache")
+
+
+def _size(n: int) -> str:
+    for unit in ("B", "kB", "MB", "GB"):
+        if n < 1000 or unit == "GB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1000.0
+    return f"{n} B"
+
+
+@cache_app.command(name="info")
+def cache_info():
+    """Where greyid keeps traced programs and JAX's compiled code, and how much is there."""
+
+    def command() -> int:
+        from . import programs
+
+        usage = programs.usage()
+        if usage["folder"] is None:
+            out.print("greyid's cache is switched off (GREYID_CACHE_DIR=off)")
+            return OK
+        out.print(f"folder: {usage['folder']} (GREYID_CACHE_DIR)")
+        files, size = usage["programs"]
+        out.print(f"traced programs: {files} files, {_size(size)} (programs/)")
+        files, size = usage["compiled"]
+        out.print(f"compiled programs (JAX's persistent cache): {files} files, {_size(size)}")
+        return OK
+
+    _run(command)
+
+
+@cache_app.command(name="clear")
+def cache_clear():
+    """Remove the kept traced and compiled programs (they are made again when next needed)."""
+
+    def command() -> int:
+        from . import programs
+
+        removed = programs.clear()
+        out.print(f"removed {removed} files from {programs.usage()['folder'] or 'nothing (cache off)'}")
+        return OK
 
     _run(command)
 

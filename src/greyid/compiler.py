@@ -112,10 +112,18 @@ class Jitted:
 
     def __init__(self, fun, key=None, **kwargs):
         functools.update_wrapper(self, fun)
-        self.top = jax_jit(fun, **kwargs)
+        self.fun, self.kwargs, self._top = fun, kwargs, None
         self.nested = jax.jit(fun, **kwargs)
         self.key = key if not kwargs else None  # static arguments would need their values in the key
         self.executables: dict = {}  # see executable()
+
+    @property
+    def top(self):
+        """The jitted function with greyid's compiler options (made at first use: finding which
+        options this XLA accepts compiles a trivial program)."""
+        if self._top is None:
+            self._top = jax_jit(self.fun, **self.kwargs)
+        return self._top
 
     def __call__(self, *args, **kwargs):
         leaves = jax.tree_util.tree_leaves((args, kwargs))
