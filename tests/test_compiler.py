@@ -5,6 +5,7 @@ changing no number."""
 from __future__ import annotations
 
 import gc
+import os
 import subprocess
 import sys
 import threading
@@ -58,8 +59,11 @@ def test_imports_run_with_the_collector_paused_and_what_they_made_is_frozen():
     def record(phase, info):
         seen.append(phase)
 
-    gc.unfreeze()  # this process froze greyid's imports already
+    from greyid import _process
+
+    gc.unfreeze()
     gc.callbacks.append(record)
+    _process._owned["on"] = True  # as in greyid's own command-line process
     try:
         with imports_frozen():
             assert not gc.isenabled()
@@ -81,17 +85,32 @@ def test_imports_run_with_the_collector_paused_and_what_they_made_is_frozen():
             assert not gc.isenabled() and gc.get_freeze_count() == 0
         finally:
             gc.enable()
+        # A user's process (not greyid's command line): paused, never frozen.
+        _process._owned["on"] = False
+        with imports_frozen():
+            assert not gc.isenabled()
+        assert gc.isenabled() and gc.get_freeze_count() == 0
     finally:
+        _process._owned["on"] = False
         gc.callbacks.remove(record)
         gc.unfreeze()
 
 
-def test_a_fresh_process_freezes_the_model_modules_and_keeps_the_collector_on():
-    code = ("import gc, greyid; assert gc.get_freeze_count() == 0; import greyid.model, sys; "
-            "assert 'jax' in sys.modules and 'sympy' in sys.modules; "
-            "assert gc.isenabled() and gc.get_freeze_count() > 100_000, gc.get_freeze_count()")
-    subprocess.run([sys.executable, "-c", code], check=True)
-    off = "import gc; gc.disable(); import greyid.model; assert not gc.isenabled() and gc.get_freeze_count() == 0"
+def test_only_greyids_own_process_is_frozen_and_keeps_every_program(tmp_path):
+    """A user's script: greyid freezes none of its objects and leaves JAX's minimum compile time of the
+    persistent cache alone; greyid's command line (its own process) freezes its imports and keeps
+    every program."""
+    user = ("import gc, jax, greyid; before = jax.config.jax_persistent_cache_min_compile_time_secs; "
+            "import greyid.model, sys; assert 'jax' in sys.modules and 'sympy' in sys.modules; "
+            "assert gc.isenabled() and gc.get_freeze_count() == 0, gc.get_freeze_count(); "
+            "assert jax.config.jax_persistent_cache_min_compile_time_secs == before")
+    subprocess.run([sys.executable, "-c", user], check=True)
+    own = ("import gc; from greyid import _process; _process.take_over(); import greyid.model, jax; "
+           "assert gc.isenabled() and gc.get_freeze_count() > 100_000, gc.get_freeze_count(); "
+           "assert jax.config.jax_persistent_cache_min_compile_time_secs == 0.0")
+    subprocess.run([sys.executable, "-c", own], check=True, env=dict(os.environ, GREYID_CACHE_DIR=str(tmp_path)))
+    off = ("import gc; from greyid import _process; _process.take_over(); gc.disable(); import greyid.model; "
+           "assert not gc.isenabled() and gc.get_freeze_count() == 0")
     subprocess.run([sys.executable, "-c", off], check=True)
 
 

@@ -12,7 +12,8 @@ block, as usual.
 Importing JAX, SymPy and pandas creates about 240 000 objects that live as
 long as the process; the automatic full collections among them took 0.1 s of
 the same fit, and every later one would walk them all again.  They are imported
-with the collector paused and then frozen (:func:`imports_frozen`).
+with the collector paused, and in greyid's own command-line processes then
+frozen (:func:`imports_frozen`); a user's process keeps its collector's state.
 """
 
 from __future__ import annotations
@@ -44,19 +45,21 @@ def collector_paused():
 
 @contextlib.contextmanager
 def imports_frozen():
-    """The collector paused while the block imports modules; then every object tracked so far frozen.
+    """The collector paused while the block imports modules; in greyid's own processes
+    (:func:`greyid._process.take_over`) every object tracked so far is then frozen.
 
     ``gc.freeze`` moves the objects to a permanent generation that later
     collections skip: modules, classes and functions, which live on anyway.
-    It also takes the objects the process had before greyid's first import;
-    they are still freed by reference counting, but a reference cycle among
-    them that becomes garbage later stays in memory (``gc.unfreeze()`` hands
-    them back to the collector).  Nothing is frozen where the user had
-    switched the collector off, or inside another paused block.
+    It would also take a user's objects (a reference cycle among them that
+    became garbage later would stay in memory), so a user's process is not
+    frozen.  Nothing is frozen where the collector was switched off, or inside
+    another paused block.
     """
+    from ._process import owned
+
     with collector_paused():
         yield
-        if _paused["depth"] == 1 and _paused["was_enabled"]:
+        if _paused["depth"] == 1 and _paused["was_enabled"] and owned():
             gc.freeze()
 
 

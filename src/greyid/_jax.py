@@ -5,7 +5,8 @@ to 64-bit floats (the filters need them; this applies to every JAX user in the
 process) and turns on JAX's persistent compilation cache in
 ``$GREYID_CACHE_DIR`` (default ``~/.cache/greyid/jax``; ``off`` keeps it off,
 and with it the traced programs greyid keeps in its ``programs`` folder)
-unless a cache directory is configured already.  ``import greyid`` alone
+unless a cache directory is configured already; only greyid's own command-line
+processes also keep programs that compile in under JAX's threshold (1 s).  ``import greyid`` alone
 imports neither JAX nor SymPy, so the command line's help and version answer at
 once; the first use of a model does.
 """
@@ -13,6 +14,7 @@ once; the first use of a model does.
 import os
 
 from ._collector import imports_frozen
+from ._process import owned
 
 with imports_frozen():  # see greyid._collector
     import jax
@@ -36,9 +38,11 @@ def _enable_compilation_cache() -> None:
         return  # a read-only home: run without the cache
     if jax.config.jax_compilation_cache_dir is None:  # respect a cache the user configured
         jax.config.update("jax_compilation_cache_dir", path)
-        # Every program, however quick to compile: the report's forty small ones took
-        # 1.2 s to compile in each process (greyid demo, 11.9 → 10.7 s).
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+        if owned():
+            # In greyid's own processes every program, however quick to compile: the report's
+            # forty small ones took 1.2 s to compile in each process (greyid demo, 11.9 → 10.7 s).
+            # A user's process keeps JAX's threshold, so its own quick programs are not kept.
+            jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 
 
 _enable_compilation_cache()

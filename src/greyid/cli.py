@@ -481,6 +481,10 @@ def cache_clear():
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code (for tests and ``python -m greyid``)."""
+    if argv is None:  # the process is greyid's own: see greyid._process
+        from ._process import take_over
+
+        take_over()
     try:
         app(args=argv, prog_name="greyid")
     except SystemExit as done:
