@@ -212,3 +212,31 @@ def test_batched_starts_equal_the_same_starts_run_alone(fleet_model, houses):
     pruned = sum(s["message"].startswith("pruned") for s in together.starts)
     assert pruned >= 1
     assert f"{pruned} pruned" in together.start_spread() and "several optima" not in together.start_spread()
+
+
+def test_a_cluster_that_loses_every_worker_returns_failed_rows(fleet_model, houses):
+    """Every worker of a LocalCluster killed (no nanny brings them back): fit_many must not wait for
+    good.  The members whose chunks could not be computed come back as failed rows that say why, and
+    the call returns."""
+    import os
+    import signal
+    import time
+
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        from distributed.core import Status
+
+        for nanny in list(cluster.workers.values()):
+            nanny.status = Status.closing_gracefully  # the nanny brings no new worker: none is left
+            os.kill(nanny.process.process.pid, signal.SIGKILL)  # as a crash would end it
+        deadline = time.monotonic() + 60
+        while client.scheduler_info()["workers"] and time.monotonic() < deadline:
+            time.sleep(0.1)
+        started = time.monotonic()
+        result = greyid.fit_many(fleet_model, houses, scheduler=client, chunk_size=1, worker_timeout=3.0)
+        took = time.monotonic() - started
+    assert took < 60
+    assert len(result.failed) == len(houses)
+    assert all("no worker" in text for text in result.failed)
+    assert list(result.table.index) == list(houses)

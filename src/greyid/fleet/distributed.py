@@ -36,13 +36,35 @@ def _fit_chunk(spec_json: str, names: list, sources: list, inits: list, given: d
     return rows, [None if fit is None else fit.to_dict() for fit in fits]
 
 
-def fit_on_cluster(client, model, names: list, sources: list, inits: list, chunk_size: int, progress,
-                   given: dict) -> FleetResult:
-    """:func:`~.fit.fit_many` with ``scheduler=client`` (a ``dask.distributed.Client``)."""
+#: Seconds the cluster may have no worker at all before the chunks still to come are given up.
+NO_WORKER_TIMEOUT = 60.0
+#: Seconds between looks at the cluster while chunks are pending.
+POLL = 0.5
+
+
+def _workers(client) -> int:
     try:
-        from distributed import as_completed
+        return len(client.scheduler_info().get("workers", {}))
+    except Exception:  # noqa: BLE001  a scheduler gone: no worker either
+        return 0
+
+
+def fit_on_cluster(client, model, names: list, sources: list, inits: list, chunk_size: int, progress,
+                   given: dict, worker_timeout: float | None = None) -> FleetResult:
+    """:func:`~.fit.fit_many` with ``scheduler=client`` (a ``dask.distributed.Client``).
+
+    A chunk whose worker dies is retried by Dask (``distributed.scheduler.allowed-failures``
+    times, then it fails with ``KilledWorker``); where the cluster has had no worker at all for
+    ``worker_timeout`` seconds (default :data:`NO_WORKER_TIMEOUT`), the chunks still pending are
+    cancelled.  Either way their members come back as failed rows that say why, and the call returns.
+    """
+    try:
+        from distributed import wait
     except ImportError:  # pragma: no cover - the extra is installed in CI
         raise ImportError('scheduler= needs Dask: pip install "greyid[dask]"') from None
+    import time
+
+    worker_timeout = NO_WORKER_TIMEOUT if worker_timeout is None else float(worker_timeout)
     from ..estimate.results import fit_from_dict
 
     spec_json = json.dumps(model.to_dict())
@@ -51,14 +73,44 @@ def fit_on_cluster(client, model, names: list, sources: list, inits: list, chunk
     futures = {client.submit(_fit_chunk, spec_json, [names[i] for i in chunk], [sources[i] for i in chunk],
                              [inits[i] for i in chunk], given, pure=False): chunk for chunk in chunks}
     rows, fits = [None] * len(names), [None] * len(names)
-    with CountProgress(len(names), "fleet fit (dask)", progress) as shown:
-        for future in as_completed(list(futures)):
-            chunk = futures[future]
+
+    def finished(future):
+        """``(rows, fits)`` of a finished chunk, or failed rows that say why."""
+        chunk = futures[future]
+        try:
+            return future.result()
+        except Exception as error:  # a worker lost or a failure outside any one data set
+            kind = type(error).__name__
+            return ([dict(error=f"data set '{names[i]}': the worker failed ({kind}: {error})") for i in chunk],
+                    [None] * len(chunk))
+
+    def done_chunks():
+        """Each chunk as it finishes; the pending ones failed once no worker has been seen for long."""
+        pending, alone_since = set(futures), None
+        while pending:
             try:
-                chunk_rows, chunk_fits = future.result()
-            except Exception as error:  # a worker lost or a failure outside any one data set
-                chunk_rows = [dict(error=f"data set '{names[i]}': the worker failed ({error})") for i in chunk]
-                chunk_fits = [None] * len(chunk)
+                done, pending = wait(pending, timeout=POLL, return_when="FIRST_COMPLETED")
+            except TimeoutError:  # Dask's wait raises when nothing finished in time
+                done = set()
+            for future in done:
+                yield future, finished(future)
+            if not pending:
+                return
+            if _workers(client) > 0:
+                alone_since = None
+                continue
+            alone_since = time.monotonic() if alone_since is None else alone_since
+            if time.monotonic() - alone_since >= worker_timeout:
+                for future in pending:
+                    future.cancel()
+                    chunk = futures[future]
+                    yield future, ([dict(error=f"data set '{names[i]}': not fitted, the cluster had no worker "
+                                               f"for {worker_timeout:g} s") for i in chunk], [None] * len(chunk))
+                return
+
+    with CountProgress(len(names), "fleet fit (dask)", progress) as shown:
+        for future, (chunk_rows, chunk_fits) in done_chunks():
+            chunk = futures[future]
             for i, row, spec in zip(chunk, chunk_rows, chunk_fits):
                 rows[i] = row
                 if spec is not None:

@@ -92,8 +92,10 @@ def member_inits(init, names: list) -> list[dict | None]:
 
 
 def fit_many(model, datasets, time: str | None = None, hold: str | None = None, scheduler=None,
-             progress=False, init=None, chunk_size: int = 256, **options) -> FleetResult:
-    """Fit ``model`` to each of ``datasets``; see :func:`greyid.fit_many`."""
+             progress=False, init=None, chunk_size: int = 256, worker_timeout: float | None = None,
+             **options) -> FleetResult:
+    """Fit ``model`` to each of ``datasets``; see :func:`greyid.fit_many` (``worker_timeout``: seconds a
+    cluster may have no worker before its pending members are given up as failed rows)."""
     names, sources = named_datasets(datasets)
     if len(set(map(str, names))) != len(names):
         raise DataError("the data sets' names must be unique")
@@ -102,7 +104,7 @@ def fit_many(model, datasets, time: str | None = None, hold: str | None = None, 
         from .distributed import fit_on_cluster
 
         return fit_on_cluster(scheduler, model, names, sources, inits, chunk_size, progress,
-                              dict(time=time, hold=hold, **options))
+                              dict(time=time, hold=hold, **options), worker_timeout)
     rows, fits = fit_members(model, names, sources, inits, progress, dict(time=time, hold=hold, **options))
     return FleetResult(model, names, rows, fits)
 
