@@ -121,3 +121,23 @@ def test_simulated_data_have_white_innovations(building):
     z = res.standardized_innovations["yTi"].to_numpy()
     assert abs(z.mean()) < 0.1 and abs(z.std() - 1) < 0.08
     assert abs(np.corrcoef(z[1:], z[:-1])[0, 1]) < 0.1
+
+
+def test_a_simulation_too_large_for_memory_is_refused_before_any_work():
+    """10⁹ paths would abort the process inside XLA; greyid refuses them with the memory they need."""
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    from greyid.simulate.simulate import check_memory
+
+    with pytest.raises(greyid.ModelError, match="GB"):
+        check_memory(10**9, 10_000, 4, 1_000, 6)
+    check_memory(10, 100, 4, 100, 6)  # small: fine
+    model = Path(__file__).resolve().parents[1] / "src" / "greyid" / "datasets" / "building.toml"
+    started = time.time()
+    result = subprocess.run([sys.executable, "-m", "greyid", "simulate", str(model), "--paths", "1000000000"],
+                            capture_output=True, text=True)
+    assert result.returncode == 2 and "GB" in result.stderr and "Traceback" not in result.stderr, result.stderr
+    assert time.time() - started < 60

@@ -11,6 +11,8 @@ pieces per interval (second order, as its Kalman filter).  The initial state is 
 
 from __future__ import annotations
 
+import os
+
 from dataclasses import dataclass
 
 from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
@@ -150,6 +152,7 @@ def simulate(model, params, data_or_times, n_paths: int = 1, method: str = "eule
     else:
         fine_t, fine_u = _fine_grid(grid, substeps, hold)
         path_shape = (n_paths, len(fine_t) - 1, m)
+    check_memory(n_paths, path_shape[1], max(m, n) + 2 * n, len(series.times), 4 * structure.n_outputs + 2 * n)
     init, path_noise, z = _draws(jax.random.PRNGKey(seed), x0, P0, scale, path_shape,
                                  (n_paths, len(series.times), structure.n_outputs))
 
@@ -180,6 +183,25 @@ def simulate(model, params, data_or_times, n_paths: int = 1, method: str = "eule
         y = y_mean + scale * jnp.einsum("kij,pkj->pki", jnp.linalg.cholesky(full), z)
     return Simulation(series.times, series.inputs, np.asarray(states), np.asarray(y), series.time_name,
                       structure.input_names, structure.state_names, structure.output_names)
+
+
+def available_memory() -> int | None:
+    """Bytes of memory available now (Linux, macOS), or None where it cannot be told."""
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def check_memory(n_paths: int, steps: int, per_step: int, rows: int, per_row: int) -> None:
+    """Refuse a simulation whose arrays (float64: ``per_step`` numbers per integration step and path,
+    ``per_row`` per sampling time and path) would not fit in the memory available, before any is made."""
+    need = 8 * n_paths * (steps * per_step + rows * per_row)
+    available = available_memory()
+    if available is not None and need > 0.8 * available:
+        raise ModelError(f"{n_paths} paths of {rows} rows ({steps} integration steps each) need about "
+                         f"{need / 1e9:.3g} GB, more than the {available / 1e9:.3g} GB of memory available: "
+                         "simulate fewer paths at a time (several calls with different seeds)")
 
 
 def _no_diffusion(m: int):
