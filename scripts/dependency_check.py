@@ -26,6 +26,10 @@ def main() -> None:
     plan = pd.DataFrame({"t": np.arange(200) * 0.5, "u": np.repeat(rng.normal(size=20), 10)})
     simulated = m.simulate(dict(a=0.5, b=1.0, s=0.3, e=0.1), plan, seed=1, method="exact")
     fit = m.fit(plan.assign(y=simulated.outputs[0, :, 0]))
+    from greyid.cli import main as command_line
+
+    # The command line (typer on click) answers bad input with exit code 2.
+    assert command_line(["fit", "no-such-model.toml"]) == 2
     print(jax.__version__, jaxlib.__version__, np.__version__, pd.__version__, f"{fit.loglik:.6f}", fit.converged)
 
 

@@ -352,3 +352,138 @@ def test_setters_name_the_mistake_when_called():
     early.add_system("dx = -a*x*dt + s*dw1").add_observation("y = x", variance="r")
     with pytest.raises(ModelError, match="'w', which is not a state"):
         early.structure
+
+
+# ---------------------------------------------------------------------- files one step off the path
+def _csv(frame, **options):
+    return frame.to_csv(index=False, **options)
+
+
+def _battery_files(folder):
+    """The malformed files of the battery, written into ``folder``: name → bytes."""
+    good = data()
+    text = _csv(good)
+    lines = text.splitlines()
+    files = {
+        "latin1.toml": MODEL.replace('name = "ou"', 'name = "Zustände"').encode("latin-1"),
+        "latin1.csv": (lines[0] + ",café\n" + "\n".join(line + ",1" for line in lines[1:])).encode("latin-1"),
+        "empty.csv": b"",
+        "blank.csv": b"\n\n  \n",
+        "duplicate.csv": ("\n".join([lines[0] + ",y"] + [line + ",1.0" for line in lines[1:]])).encode(),
+        "booleans.csv": _csv(good.assign(u=[bool(i % 2) for i in range(len(good))])).encode(),
+        "columns.toml": (MODEL + '\n[data.columns]\nu = "heat"\n').encode(),
+        "negative.toml": MODEL.replace("initial_covariance = [[0.1]]", "initial_covariance = [[-0.1]]").encode(),
+        "complex.toml": MODEL.replace("s*dw1", "s*dw1 + sqrt(-1)*x*dt").encode(),
+        "divide.toml": MODEL.replace("b*u)*dt", "b*u + 1/0)*dt").encode(),
+        "pi.toml": MODEL.replace("b*u", "pi*u").replace("b = 1.0", "pi = 1.0").encode(),
+        "input.toml": MODEL.replace("b = 1.0", "b = 1.0\nu = 2.0").encode(),
+        "nostate.toml": MODEL.replace('equation = "x"', 'equation = "u"').encode(),
+    }
+    two = MODEL.replace('system = ["dx = (-a*x + b*u)*dt + s*dw1"]',
+                        'system = ["dx = (-a*x + b*u)*dt + s*dw1", "dz = (x - z)*dt"]').replace(
+        'x = "x0"', 'x = "x0"\nz = 0.0')
+    for name, matrix in (("asymmetric", "[[0.1, 0.05], [0.0, 0.1]]"), ("indefinite", "[[0.1, 0.2], [0.2, 0.1]]")):
+        files[f"{name}.toml"] = two.replace("initial_covariance = [[0.1]]", f"initial_covariance = {matrix}").encode()
+    for name, blob in files.items():
+        (folder / name).write_bytes(blob)
+    (folder / "model.toml").write_text(MODEL)
+    (folder / "data.csv").write_text(text)
+    return folder
+
+
+FILE_CASES = [
+    ("model file not UTF-8", ["fit", "{f}/latin1.toml", "{f}/data.csv"], "not UTF-8"),
+    ("data file not UTF-8", ["fit", "{f}/model.toml", "{f}/latin1.csv"], "not UTF-8"),
+    ("empty data file", ["fit", "{f}/model.toml", "{f}/empty.csv"], "is empty"),
+    ("blank data file", ["fit", "{f}/model.toml", "{f}/blank.csv"], "is empty"),
+    ("duplicate column names", ["fit", "{f}/model.toml", "{f}/duplicate.csv"], "two columns named 'y'"),
+    ("text booleans in a numeric column", ["fit", "{f}/model.toml", "{f}/booleans.csv"], "true/false"),
+    ("column mapping to a missing column", ["fit", "{f}/columns.toml", "{f}/data.csv"], "'heat'"),
+    ("negative initial variance", ["fit", "{f}/negative.toml", "{f}/data.csv"], "negative variance"),
+    ("asymmetric initial covariance", ["fit", "{f}/asymmetric.toml", "{f}/data.csv"], "not symmetric"),
+    ("indefinite initial covariance", ["fit", "{f}/indefinite.toml", "{f}/data.csv"], "positive semi-definite"),
+    ("complex-valued equation", ["fit", "{f}/complex.toml", "{f}/data.csv"], "complex-valued"),
+    ("division by zero", ["fit", "{f}/divide.toml", "{f}/data.csv"], "divides by zero"),
+    ("a parameter named pi", ["fit", "{f}/pi.toml", "{f}/data.csv"], "the constant π"),
+    ("a parameter named like an input", ["fit", "{f}/input.toml", "{f}/data.csv"], "is an input"),
+    ("an observation of no state", ["fit", "{f}/nostate.toml", "{f}/data.csv"], "depends on no state"),
+]
+
+
+@pytest.fixture(scope="module")
+def battery(tmp_path_factory):
+    return _battery_files(tmp_path_factory.mktemp("battery"))
+
+
+@pytest.mark.parametrize("args, culprit", [c[1:] for c in FILE_CASES], ids=[c[0] for c in FILE_CASES])
+def test_malformed_files_are_named(battery, args, culprit):
+    code, message = run_cli([a.format(f=battery) for a in args])
+    assert code == 2, message
+    assert culprit in message, message
+    assert "Traceback" not in message and "site-packages" not in message, message
+
+
+def test_comma_decimals_with_semicolons_read_as_numbers(battery, ou):
+    """'1,5;2,25' (a European spreadsheet's CSV): decimal commas, not text."""
+    from greyid.model.files import read_csv_file
+
+    path = battery / "comma.csv"
+    path.write_text(_csv(data(), sep=";", decimal=","))
+    frame = read_csv_file(path)
+    pd.testing.assert_frame_equal(frame, data(), check_exact=False, rtol=1e-12)
+    assert ou.loglik(ou.initial_values(), frame) == pytest.approx(ou.loglik(ou.initial_values(), data()), rel=1e-12)
+
+
+def test_timestamps_with_two_utc_offsets_are_read_as_instants(tmp_path):
+    """A daylight-saving change inside the data: +01:00 then +02:00.  The elapsed times are exact (10 min
+    steps across the change), and no pandas warning is printed."""
+    from greyid.model.files import parse_timestamps
+
+    utc = pd.date_range("2024-03-31T00:00:00Z", periods=12, freq="10min")
+    frame = pd.DataFrame({"t": [ts.isoformat() for ts in utc.tz_convert("Europe/Copenhagen")]})
+    assert frame["t"].str.endswith("+01:00").any() and frame["t"].str.endswith("+02:00").any()
+    parsed = parse_timestamps(frame, "t")
+    steps = parsed["t"].diff().dropna().dt.total_seconds().to_numpy()
+    np.testing.assert_array_equal(steps, 600.0)
+
+
+def test_a_fit_file_edited_by_hand_is_checked_against_its_schema(saved_fit, tmp_path):
+    cases = {
+        "a string for a boolean": (dict(saved_fit, converged="yes"), "'converged'"),
+        "a string for a number": (dict(saved_fit, loglik="high"), "'loglik'"),
+        "a covariance of the wrong shape": (dict(saved_fit, cov=dict(saved_fit["cov"], matrix=[1.0, 2.0])), "'cov'"),
+        "an estimate that is text": (dict(saved_fit, params=dict(saved_fit["params"], a=dict(
+            saved_fit["params"]["a"], estimate="x"))), "'estimate' of parameter 'a'"),
+        "a negative count": (dict(saved_fit, n_obs=-3), "'n_obs'"),
+    }
+    for label, (spec, culprit) in cases.items():
+        path = tmp_path / "edited.json"
+        path.write_text(json.dumps(spec))
+        with pytest.raises(ModelError, match=culprit):
+            greyid.load_fit(path)
+        code, message = run_cli(["validate", str(path)])
+        assert code == 2 and culprit in message and "Traceback" not in message, (label, message)
+
+
+def test_a_fit_whose_data_file_is_gone_says_so(saved_fit, tmp_path):
+    path = tmp_path / "fit.json"
+    path.write_text(json.dumps(dict(saved_fit, data_file=str(tmp_path / "moved.csv"))))
+    code, message = run_cli(["validate", str(path)])
+    assert code == 2 and "moved.csv" in message and "does not exist" in message, message
+
+
+def test_data_that_determine_no_parameter_get_no_finite_standard_error(ou):
+    """An input that is always 0 says nothing of its gain b: b's standard error is infinite (t = 0,
+    p = 1), not finite with p = 0."""
+    flat = data().assign(u=0.0)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fit = ou.fit(flat)
+    undetermined = {n for d in fit.ill_determined for n in d["direction"]}
+    assert undetermined
+    for name in undetermined:
+        row = fit.params.loc[name]
+        assert not np.isfinite(row["std_error"]) and not row["reliable"], fit.params
+        assert not (row["p_value"] < 0.05)

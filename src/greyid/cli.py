@@ -132,7 +132,10 @@ def load_data(model, data: Optional[Path], fit=None, time: Optional[str] = None)
 
     from .model.files import data_path, read_data
 
-    if data is None and fit is not None and fit.data_file and Path(fit.data_file).is_file():
+    if data is None and fit is not None and fit.data_file:
+        if not Path(fit.data_file).is_file():
+            raise InputProblem(f"the fit's data file '{fit.data_file}' does not exist (moved or deleted?); "
+                               "give the data after the fit file")
         data = Path(fit.data_file)
     frame = read_data(model, data, time)
     name = time or model.options.get("time", "t")
@@ -290,16 +293,16 @@ def report(fit_file: Path = typer.Argument(..., help="fit file written by 'greyi
 
 
 def _read_plan(m, path: Path):
-    import pandas as pd
-
     if path.is_dir():
         raise InputProblem(f"plan '{path}' is a folder; give a CSV file")
     if not path.is_file():
         raise InputProblem(f"plan file '{path}' not found")
+    from .model.files import read_csv_file
+
     try:
-        return pd.read_csv(path, sep=m.options.get("separator", ","))
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as problem:
-        raise InputProblem(f"plan file '{path}' is not a readable CSV file ({problem})") from None
+        return read_csv_file(path, m.options.get("separator"), m.options.get("decimal"))
+    except DataError as problem:
+        raise InputProblem(f"plan {problem}") from None
 
 
 @app.command(name="design")

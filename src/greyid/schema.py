@@ -27,8 +27,8 @@ FILTER_KEYS = ("method", "form", "substeps", "iterations", "alpha", "beta", "kap
 ESTIMATION_KEYS = ("criterion", "robust", "horizon", "starts", "seed", "maxiter", "prior_correlation", "cov_type",
                    "optimizer")
 #: Where the data live, for the command line: a CSV file (relative to the model
-#: file) and its field separator.
-FILE_KEYS = ("file", "separator")
+#: file), its field separator and its decimal mark (both detected where not given).
+FILE_KEYS = ("file", "separator", "decimal")
 ALL_KEYS = DATA_KEYS + FILE_KEYS + FILTER_KEYS + ESTIMATION_KEYS
 
 HOLDS = ("zoh", "foh")
@@ -44,7 +44,8 @@ def check_options(options: Mapping) -> dict:
             raise ModelError(f"unknown setting '{key}'; settings are {list(ALL_KEYS)}")
         if value is None:
             continue
-        if key in ("time", "file", "separator", "time_unit", "time_format", "time_zone") and not isinstance(value, str):
+        if key in ("time", "file", "separator", "decimal", "time_unit", "time_format", "time_zone") and not isinstance(
+                value, str):
             raise ModelError(f"setting '{key}' must be a string, got {value!r}")
         if key == "hold" and value not in HOLDS:
             raise ModelError(f"setting 'hold' must be 'zoh' or 'foh', got {value!r}")
@@ -183,3 +184,42 @@ def check_fit_document(spec, where: str) -> None:
     for name, entry in spec["params"].items() if isinstance(spec["params"], dict) else [("params", None)]:
         if not isinstance(entry, dict) or "estimate" not in entry:
             raise ModelError(f"{where}: parameter entry '{name}' must be a table with an 'estimate'")
+        for column in ("estimate", "std_error", "t_value", "p_value", "lower_bound", "upper_bound", "gradient"):
+            if column in entry and entry[column] is not None and not _number(entry[column]):
+                raise ModelError(f"{where}: '{column}' of parameter '{name}' must be a number, got {entry[column]!r}")
+        for column in ("fixed", "at_bound", "reliable"):
+            if column in entry and not isinstance(entry[column], bool):
+                raise ModelError(f"{where}: '{column}' of parameter '{name}' must be true or false, "
+                                 f"got {entry[column]!r}")
+    for key in ("loglik", "criterion_value"):
+        if not _number(spec[key]):
+            raise ModelError(f"{where}: '{key}' must be a number, got {spec[key]!r}")
+    for key in ("n_obs", "iterations"):
+        value = spec[key]
+        if not (isinstance(value, int) and not isinstance(value, bool) and value >= 0):
+            raise ModelError(f"{where}: '{key}' must be a whole number ≥ 0, got {value!r}")
+    if not isinstance(spec["converged"], bool):
+        raise ModelError(f"{where}: 'converged' must be true or false, got {spec['converged']!r}")
+    if not isinstance(spec["message"], str):
+        raise ModelError(f"{where}: 'message' must be text, got {spec['message']!r}")
+    if not isinstance(spec["settings"], dict):
+        raise ModelError(f"{where}: 'settings' must be a table, got {spec['settings']!r}")
+    cov = spec["cov"]
+    if not (isinstance(cov, dict) and isinstance(cov.get("names"), list) and isinstance(cov.get("matrix"), list)):
+        raise ModelError(f"{where}: 'cov' must be a table with 'names' and 'matrix'")
+    names, matrix = cov["names"], cov["matrix"]
+    if not all(isinstance(n, str) for n in names) or (isinstance(spec["params"], dict)
+                                                         and any(n not in spec["params"] for n in names)):
+        raise ModelError(f"{where}: 'cov' names {names!r}, which are not all parameters of the fit")
+    flat = [v for row in matrix for v in (row if isinstance(row, list) else [row])]
+    if len(flat) != len(names) ** 2 or not all(v is None or _number(v) for v in flat):
+        raise ModelError(f"{where}: 'cov' matrix must hold {len(names)}×{len(names)} numbers for its "
+                         f"{len(names)} names, got {len(flat)} values")
+    data_file = spec.get("data_file")
+    if data_file is not None and not isinstance(data_file, str):
+        raise ModelError(f"{where}: 'data_file' must be a path (text), got {data_file!r}")
+
+
+def _number(value) -> bool:
+    """A JSON number (NaN and infinities included, as written by Python's json)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool)

@@ -41,6 +41,12 @@ def _numeric_column(df: pd.DataFrame, name: str, role: str) -> np.ndarray:
     if name not in df.columns:
         raise DataError(f"{role} column '{name}' not found in the data; columns are {list(df.columns)}")
     col = df[name]
+    if pd.api.types.is_bool_dtype(col) or (not pd.api.types.is_numeric_dtype(col) and col.map(
+            lambda v: isinstance(v, (bool, np.bool_)) or str(v).strip().lower() in ("true", "false")).any()):
+        flags = np.flatnonzero(col.map(lambda v: isinstance(v, (bool, np.bool_))
+                                       or str(v).strip().lower() in ("true", "false")).to_numpy())
+        raise DataError(f"{role} column '{name}' holds true/false values (row {flags[0]}: {str(col.iloc[flags[0]])!r}), "
+                        "not numbers; write them as 1 and 0 if that is what they mean")
     if not (pd.api.types.is_numeric_dtype(col) and not pd.api.types.is_bool_dtype(col)):
         converted = pd.to_numeric(col, errors="coerce")
         bad = np.flatnonzero(converted.isna() & col.notna())

@@ -112,6 +112,13 @@ def build_result(model, frames, theta, problem, best, optima, settings, scores=N
     idx = np.flatnonzero(inner)
     cov[np.ix_(idx, idx)] = cov_inner
     se = np.sqrt(np.where(np.diag(cov) >= 0, np.diag(cov), np.nan))
+    # A parameter along a direction the data do not determine has no finite standard error (the
+    # pseudo-inverse leaves that direction out: its diagonal would look small, even 0): as for a
+    # Cramér–Rao bound, it is infinite (t = 0, p = 1), while fit.cov keeps what the data do
+    # determine (a combination's variance by Gauss' formula).
+    for direction in ill:
+        for name in direction["direction"]:
+            se[free_names.index(name)] = np.inf
     for j in np.flatnonzero(inner & reliable & (se > FLAT_SE * np.maximum(np.abs(theta_free), 1.0))):
         # Not singular to working precision, yet the data barely constrain it (a noise
         # intensity drifting towards −∞ with SE 7863): as unreliable as a singular direction.
@@ -120,7 +127,8 @@ def build_result(model, frames, theta, problem, best, optima, settings, scores=N
                     f"an estimate of {theta_free[j]:.4g}): the data do not determine it")
     n_obs = int(sum(int(np.sum(~np.isnan(df[list(model.output_names)].to_numpy(dtype=float)))) for df in frames))
     dof = max(n_obs - len(free), 1)  # as FitResult.df_resid
-    tval = theta_free / se
+    with np.errstate(divide="ignore", invalid="ignore"):  # a zero standard error: no test
+        tval = np.where(se > 0, theta_free / np.where(se > 0, se, 1.0), np.nan)
     pval = 2 * special.stdtr(dof, -np.abs(tval))  # two-sided Student-t p-value
     converged, message = honest_convergence(best, ill, free_names, inner, g_theta, se)
     if not converged:

@@ -66,10 +66,9 @@ def read_source(source) -> pd.DataFrame:
             raise DataError(f"data file '{path}' is a folder")
         if not path.is_file():
             raise DataError(f"data file '{path}' not found")
-        try:
-            return pd.read_csv(path)
-        except (pd.errors.ParserError, UnicodeDecodeError, pd.errors.EmptyDataError) as err:
-            raise DataError(f"data file '{path}' is not a readable CSV file ({err})") from None
+        from ..model.files import read_csv_file
+
+        return read_csv_file(path)
     raise DataError(f"a data set must be a DataFrame or a CSV file's path, not {type(source).__name__}")
 
 

@@ -16,7 +16,7 @@ import sympy as sp
 
 from ..errors import ModelError
 from .delays import find_delays
-from .equations import TIME, is_wiener_name
+from .equations import CONSTANTS, TIME, is_wiener_name
 from .structure import (LTI, InitialCovariance, Structure, classify, lambdify_model, lambdify_parameters,
                         linear_drift_function, observation_is_constant)
 
@@ -46,6 +46,12 @@ def build_structure(model) -> Structure:
     diffusion = [[sub(e.diffusion.get(w, sp.Integer(0))) for w in noise_names] for e in model._system]
     observation = [sub(o[0].rhs) for o in model._observations]
     variance = [sub(o[1]) for o in model._observations]
+    for entry, h in zip(model._observations, observation):
+        if not {s.name for s in h.free_symbols} & set(states):
+            uses = sorted(s.name for s in h.free_symbols if s.name not in inputs and s != TIME)
+            which = f" (it uses {', '.join(repr(u) for u in uses)}, not a state)" if uses else ""
+            raise ModelError(f"observation '{entry[0].text}' depends on no state{which}: it says nothing of the "
+                             f"system's dynamics; an observation must be a function of the states {states}")
 
     correlation = observation_covariance_expressions(model, outputs, variance, states)
     mean_exprs, cov = initial_state_expressions(model, states)
@@ -86,7 +92,17 @@ def build_structure(model) -> Structure:
                 ordered.append(s.name)
     unknown_declared = sorted(set(model._parameters) - set(ordered))
     if unknown_declared:
-        raise ModelError(f"parameter '{unknown_declared[0]}' is declared but does not appear in the model")
+        name = unknown_declared[0]
+        if name in CONSTANTS:
+            raise ModelError(f"parameter '{name}' is declared, but '{name}' in an equation is the constant "
+                             f"{CONSTANTS[name]}: give the parameter another name")
+        if name in inputs:
+            raise ModelError(f"parameter '{name}' is declared, but '{name}' is an input of the model: give the "
+                             "parameter another name (or remove it from the inputs)")
+        if name in states:
+            raise ModelError(f"parameter '{name}' is declared, but '{name}' is a state of the model: give the "
+                             "parameter another name")
+        raise ModelError(f"parameter '{name}' is declared but does not appear in the model")
     state_syms = [sp.Symbol(n, real=True) for n in states]
     input_syms = [sp.Symbol(n, real=True) for n in inputs] + [stand_in for _, _, stand_in in delays]
     param_syms = [sp.Symbol(n, real=True) for n in ordered]

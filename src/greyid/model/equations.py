@@ -60,6 +60,8 @@ FUNCTIONS: dict[str, object] = {
 TIME = sp.Symbol("t", real=True)
 DT = sp.Symbol("dt", real=True)
 _CONSTANTS = {"pi": sp.pi, "True": sp.true, "False": sp.false}
+#: Names that an equation reads as a constant, not as a parameter: what each means.
+CONSTANTS = {"pi": "π = 3.14159…", "True": "true", "False": "false"}
 _EQUALS = re.compile(r"(?<![<>=!])=(?!=)")
 
 
@@ -121,6 +123,11 @@ def parse_expression(text: str, where: str = "expression") -> sp.Expr:
         expr = sp.Float(expr)
     if not isinstance(expr, sp.Expr):
         raise ModelError(f"{where} '{text}' is not an arithmetic expression")
+    if expr.has(sp.zoo, sp.nan, sp.oo, -sp.oo):
+        raise ModelError(f"{where} '{text}' divides by zero or is infinite (a term such as 1/0)")
+    if expr.has(sp.I):
+        raise ModelError(f"{where} '{text}' is complex-valued (the square root or logarithm of a negative "
+                         "number?); equations must be real")
     return expr
 
 

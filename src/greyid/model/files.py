@@ -46,8 +46,10 @@ A model file holds what the Python API holds, readable at a glance::
 
 from __future__ import annotations
 
+import io
 import json
 import math
+import re
 import tomllib
 from pathlib import Path
 from typing import Mapping
@@ -175,7 +177,11 @@ def read_model(source):
         path = Path(source)
         if not path.is_file():
             raise ModelError(f"model file '{path}' not found")
-        text = path.read_text(encoding="utf-8")
+        try:
+            text = path.read_text(encoding="utf-8")
+        except UnicodeDecodeError as err:
+            raise ModelError(f"model file '{path}' is not UTF-8 text (byte 0x{err.object[err.start]:02x} at "
+                             f"position {err.start}); save it as UTF-8") from None
     elif isinstance(source, str):
         text = source
     else:
@@ -301,16 +307,62 @@ def read_data(model, path=None, time: str | None = None):
         raise DataError(f"data file '{path}' is a folder; give the CSV file inside it")
     if not path.is_file():
         raise DataError(f"data file '{path}' not found")
-    separator = model.options.get("separator")
-    try:
-        if separator is None:
-            frame = pd.read_csv(path, sep=None, engine="python")
-        else:
-            frame = pd.read_csv(path, sep=separator)
-    except (pd.errors.ParserError, UnicodeDecodeError, ValueError) as err:
-        raise DataError(f"data file '{path}' could not be read as CSV: {err}") from None
+    frame = read_csv_file(path, model.options.get("separator"), model.options.get("decimal"))
+    missing = [(name, column) for name, column in (model.options.get("columns") or {}).items()
+               if column not in frame.columns]
+    if missing:
+        name, column = missing[0]
+        raise DataError(f"[data.columns] maps '{name}' to the column '{column}', which data file '{path}' does not "
+                        f"have; its columns are {list(frame.columns)}")
     return parse_timestamps(frame, time or model.options.get("time", "t"), model.options.get("time_format"),
                             model.options.get("time_zone"), str(path))
+
+
+def read_csv_file(path, separator=None, decimal=None):
+    """A CSV file as a DataFrame, with a named error for every way it can fail to be one.
+
+    The separator is detected where not given (``,`` ``;`` tab ...).  A file that
+    is empty, not UTF-8 text, or has two columns of the same name is refused;
+    ``;``-separated numbers with decimal commas are read as such (``decimal``,
+    detected where not given).
+    """
+    import csv
+    import warnings
+
+    import pandas as pd
+
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as err:
+        raise DataError(f"data file '{path}' cannot be read ({err.strerror or err})") from None
+    if not raw.strip():
+        raise DataError(f"data file '{path}' is empty")
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as err:
+        raise DataError(f"data file '{path}' is not UTF-8 text (byte 0x{raw[err.start]:02x} at position "
+                        f"{err.start}); save it as UTF-8") from None
+    header = text.splitlines()[0]
+    if separator is None:
+        try:
+            separator = csv.Sniffer().sniff(text[:65536], delimiters=",;\t| ").delimiter
+        except csv.Error:
+            separator = ","
+    names = [n.strip().strip('"') for n in next(csv.reader([header], delimiter=separator))]
+    duplicated = sorted({n for n in names if names.count(n) > 1})
+    if duplicated:
+        raise DataError(f"data file '{path}' has two columns named '{duplicated[0]}'; rename one")
+    if decimal is None:  # "1,5;2,25": decimal commas where the separator is not a comma
+        body = text.splitlines()[1:50]
+        decimal = "," if separator != "," and any(re.search(r"\d,\d", line) for line in body) else "."
+    try:
+        with warnings.catch_warnings():  # pandas' own warnings would be printed before greyid's message
+            warnings.simplefilter("ignore")
+            frame = pd.read_csv(io.StringIO(text), sep=separator, decimal=decimal)
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, ValueError, csv.Error) as err:
+        raise DataError(f"data file '{path}' could not be read as CSV: {err}") from None
+    return frame
 
 
 def parse_timestamps(frame, time: str, time_format=None, time_zone=None, where: str = "the data"):
@@ -328,7 +380,18 @@ def parse_timestamps(frame, time: str, time_format=None, time_zone=None, where: 
     column = frame[time]
     if pd.to_numeric(column, errors="coerce").notna().all():
         return frame
-    parsed = pd.to_datetime(column, format=time_format, errors="coerce")
+    import warnings
+
+    with warnings.catch_warnings():  # pandas' own warnings would be printed before greyid's message
+        warnings.simplefilter("ignore")
+        try:
+            parsed = pd.to_datetime(column, format=time_format, errors="coerce")
+        except ValueError:
+            # Several UTC offsets (a daylight-saving change within the data): each timestamp is an
+            # exact instant, and in UTC the elapsed times across the change are right.
+            parsed = pd.to_datetime(column, format=time_format, errors="coerce", utc=True)
+        if parsed.dtype == object:  # mixed offsets parsed one by one (older pandas)
+            parsed = pd.to_datetime(column, format=time_format, errors="coerce", utc=True)
     if parsed.isna().all():
         return frame  # not timestamps at all: the numeric check names the first bad row
     bad = np.flatnonzero(parsed.isna().to_numpy())

@@ -285,6 +285,8 @@ class Model:
                 if shape not in ((n,), (n, n)):
                     raise ModelError(f"initial covariance has shape {shape if shape else 'ragged'}, but the model "
                                      f"has {n} states {states}: it must be {n}x{n} (or a vector of {n} variances)")
+        if not isinstance(covariance, str):
+            check_constant_covariance(covariance)
         self._initial_mean = dict(mean)
         self._initial_covariance = covariance
         self._initial_scale = float(scale)
@@ -563,6 +565,35 @@ class Model:
 
         data_or_times, settings = self._call_settings(data_or_times, options, ("time", "hold", "time_unit", "columns"))
         return simulate(self, params, data_or_times, n_paths=n_paths, method=method, seed=seed, **settings)
+
+
+def check_constant_covariance(covariance) -> None:
+    """An initial covariance of numbers must be one: variances ≥ 0, symmetric, positive semi-definite
+    (a matrix with expressions is checked where its parameters have values)."""
+    try:
+        M = np.asarray(covariance, dtype=np.float64)
+    except (TypeError, ValueError):
+        return  # expressions of parameters
+    if M.ndim == 1:
+        negative = np.flatnonzero(~(M >= 0))
+        if len(negative):
+            raise ModelError(f"initial variance {negative[0] + 1} is {float(M[negative[0]]):g}; a variance must be ≥ 0")
+        return
+    if M.ndim != 2 or M.shape[0] != M.shape[1] or not np.all(np.isfinite(M)):
+        raise ModelError(f"initial covariance must be a square matrix of finite numbers, got {covariance!r}")
+    scale = max(float(np.abs(M).max()), 1e-300)
+    bad = np.flatnonzero(np.diag(M) < 0)
+    if len(bad):
+        raise ModelError(f"initial covariance has the negative variance {float(M[bad[0], bad[0]]):g} on its diagonal "
+                         f"(element {bad[0] + 1}); a variance must be ≥ 0")
+    i, j = np.unravel_index(np.argmax(np.abs(M - M.T)), M.shape)
+    if abs(M[i, j] - M[j, i]) > 1e-12 * scale:
+        raise ModelError(f"initial covariance is not symmetric: element ({i + 1}, {j + 1}) is {float(M[i, j]):g} but "
+                         f"({j + 1}, {i + 1}) is {float(M[j, i]):g}")
+    lowest = float(np.linalg.eigvalsh(M).min())
+    if lowest < -1e-12 * scale:
+        raise ModelError(f"initial covariance is not positive semi-definite (an eigenvalue is {lowest:.4g}): no "
+                         "distribution has it; its correlations must lie in [-1, 1]")
 
 
 def _rectangular(value) -> bool:
