@@ -171,3 +171,21 @@ def test_a_fit_gives_the_same_answer_in_either_unit_system(models):
     np.testing.assert_allclose(a.params["estimate"], b.params["estimate"] * factors, rtol=1e-5)
     np.testing.assert_allclose(a.params["std_error"], b.params["std_error"] * factors, rtol=1e-4)
     assert a.ill_determined == b.ill_determined == []
+
+
+def test_the_design_command_on_the_si_example(plans, tmp_path, capsys):
+    """`greyid design examples/armadillo.toml PLAN`: finite bounds and exit 0 for the data's own plan;
+    a plan without heating determines less: exit 1 and the direction named, no inf bound without it."""
+    from greyid.cli import main
+
+    plan_si, _ = plans
+    good, cold = tmp_path / "plan.csv", tmp_path / "cold.csv"
+    plan_si.to_csv(good, index=False)
+    plan_si.assign(P_hea=0.0).to_csv(cold, index=False)
+    assert main(["design", str(ROOT / "examples" / "armadillo.toml"), str(good)]) == 0
+    printed = capsys.readouterr().out
+    bounds = printed[printed.index("sd bound"):printed.index("criteria")]
+    assert "inf" not in bounds and "not determined by" not in printed
+    assert main(["design", str(ROOT / "examples" / "armadillo.toml"), str(cold)]) == 1
+    printed = capsys.readouterr().out
+    assert "not determined by plan 'cold'" in printed and "inf" in printed
