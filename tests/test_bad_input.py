@@ -487,3 +487,16 @@ def test_data_that_determine_no_parameter_get_no_finite_standard_error(ou):
         row = fit.params.loc[name]
         assert not np.isfinite(row["std_error"]) and not row["reliable"], fit.params
         assert not (row["p_value"] < 0.05)
+
+
+def test_a_bad_time_deep_in_a_long_file_is_named_at_its_row(tmp_path):
+    """A long file of numeric times with one bad entry: the error names that row and that value (not a
+    row that a date parser happened to trip on)."""
+    n = 200_000
+    frame = pd.DataFrame({"t": np.arange(n) / 6.0, "u": 0.0, "y": 0.0}).astype({"t": object})
+    frame.loc[150_000, "t"] = "abc"
+    path = tmp_path / "long.csv"
+    frame.to_csv(path, index=False)
+    (tmp_path / "model.toml").write_text(MODEL)
+    code, message = run_cli(["fit", str(tmp_path / "model.toml"), str(path)])
+    assert code == 2 and "row 150000" in message and "'abc'" in message, message

@@ -378,7 +378,9 @@ def parse_timestamps(frame, time: str, time_format=None, time_zone=None, where: 
                                          or pd.api.types.is_string_dtype(frame[time])):
         return frame
     column = frame[time]
-    if pd.to_numeric(column, errors="coerce").notna().all():
+    numbers = pd.to_numeric(column, errors="coerce").notna()
+    if numbers.mean() >= 0.5:
+        # Numbers (perhaps with a bad row): read as numbers, whose check names the first bad row.
         return frame
     import warnings
 
