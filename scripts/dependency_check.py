@@ -2,8 +2,11 @@
 
 Run by ``.ci/dependency-ends`` on the lowest releases pyproject.toml admits and on the newest, whose
 answers must agree: ``python scripts/dependency_check.py`` prints one line,
-``jax jaxlib numpy pandas loglik converged``.
+``jax jaxlib numpy pandas loglik converged building-loglik``.
 """
+
+import contextlib
+import io
 
 import numpy as np
 import pandas as pd
@@ -26,11 +29,19 @@ def main() -> None:
     plan = pd.DataFrame({"t": np.arange(200) * 0.5, "u": np.repeat(rng.normal(size=20), 10)})
     simulated = m.simulate(dict(a=0.5, b=1.0, s=0.3, e=0.1), plan, seed=1, method="exact")
     fit = m.fit(plan.assign(y=simulated.outputs[0, :, 0]))
+    # The bundled building model: units (Pint), its CSV (pandas), its summary and report tables.
+    from greyid.datasets import building_model, load_building_data
+
+    building = building_model().fit(load_building_data().iloc[:300])
+    assert "kWh/K" in building.summary()
     from greyid.cli import main as command_line
 
-    # The command line (typer on click) answers bad input with exit code 2.
-    assert command_line(["fit", "no-such-model.toml"]) == 2
-    print(jax.__version__, jaxlib.__version__, np.__version__, pd.__version__, f"{fit.loglik:.6f}", fit.converged)
+    # The command line (typer on click): help, and bad input answered with exit code 2.
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+        assert command_line(["--help"]) == 0
+        assert command_line(["fit", "no-such-model.toml"]) == 2
+    print(jax.__version__, jaxlib.__version__, np.__version__, pd.__version__, f"{fit.loglik:.6f}", fit.converged,
+          f"{building.loglik:.6f}")
 
 
 if __name__ == "__main__":
