@@ -8,8 +8,7 @@ Prints, on this machine:
   in a fresh process (import + compile + fit, measured as a subprocess, with an
   empty and with a warm persistent compilation cache; median and range over
   ``--repeats`` processes) and the fit with compiled functions (seven more fits
-  in the same process, once the optimised programs that replace a first fit's
-  quick ones are ready: median and fastest).  greyid's modules are byte-compiled
+  in the same process: median and fastest).  greyid's modules are byte-compiled
   first, as ``pip install`` does: with an editable install and
   ``PYTHONDONTWRITEBYTECODE`` set (as on the development machine) every
   process would otherwise compile them again, 0.4 s (``--no-bytecode`` measures that);
