@@ -45,7 +45,8 @@ def _numeric_column(df: pd.DataFrame, name: str, role: str) -> np.ndarray:
             lambda v: isinstance(v, (bool, np.bool_)) or str(v).strip().lower() in ("true", "false")).any()):
         flags = np.flatnonzero(col.map(lambda v: isinstance(v, (bool, np.bool_))
                                        or str(v).strip().lower() in ("true", "false")).to_numpy())
-        raise DataError(f"{role} column '{name}' holds true/false values (row {flags[0]}: {str(col.iloc[flags[0]])!r}), "
+        first = str(col.iloc[flags[0]])
+        raise DataError(f"{role} column '{name}' holds true/false values (row {flags[0]}: {first!r}), "
                         "not numbers; write them as 1 and 0 if that is what they mean")
     if not (pd.api.types.is_numeric_dtype(col) and not pd.api.types.is_bool_dtype(col)):
         converted = pd.to_numeric(col, errors="coerce")

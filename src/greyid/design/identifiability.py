@@ -275,7 +275,8 @@ def identifiability(model, params=None, plan=None, seed: int = 0, free=None) -> 
         notes.append(f"not judged: {', '.join(initial_only)} (initial state only, seen in an experiment's "
                      "transient, not in G, H or Σ)")
     return Identifiability(identifiable, status, _combinations(null, names) if null.size else [],
-                           _directions(null, names), G, "transfer functions G, H and Σ of the innovations form (6.15–6.18)", notes)
+                           _directions(null, names), G,
+                           "transfer functions G, H and Σ of the innovations form (6.15–6.18)", notes)
 
 
 def _rational(value: float):

@@ -122,7 +122,8 @@ class _Problem:
             scaled = ScaledInformation.of(M, self.names)
             if scaled.singular:
                 raise ModelError(f"sinusoids on '{input}' at every candidate frequency do not determine the "
-                                 f"direction {scaled.describe()} (scaled parameters) at {_point_text(point, self.names)}:"
+                                 f"direction {scaled.describe()} (scaled parameters) at "
+                                 f"{_point_text(point, self.names)}:"
                                  " no input design can; fix those parameters or choose free=")
             self.scales.append(scaled.scale)
         self.scales = np.array(self.scales)  # (K, p)

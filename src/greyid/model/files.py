@@ -300,8 +300,6 @@ def read_data(model, path=None, time: str | None = None):
     The separator is ``[data] separator`` when given, else detected.  Column
     renaming by ``[data.columns]`` happens when the data are used.
     """
-    import pandas as pd
-
     path = data_path(model, path)
     if path.is_dir():
         raise DataError(f"data file '{path}' is a folder; give the CSV file inside it")

@@ -136,8 +136,12 @@ def _data_section(fit, frames) -> str:
 
 def _estimation_section(fit) -> str:
     s = fit.settings
-    criterion = s["criterion"].upper() + (f", robust {s['robust'][0]} (c = {s['robust'][1]:g}{', CTSM-R convention' if len(s['robust']) > 2 else ''})" if s.get("robust")
-                                          else "") + (f", {s['horizon']}-step" if s.get("horizon", 1) > 1 else "")
+    criterion = s["criterion"].upper()
+    if s.get("robust"):
+        convention = ", CTSM-R convention" if len(s["robust"]) > 2 else ""
+        criterion += f", robust {s['robust'][0]} (c = {s['robust'][1]:g}{convention})"
+    if s.get("horizon", 1) > 1:
+        criterion += f", {s['horizon']}-step"
     facts = [("criterion", criterion), ("filter", f"{s['method']} ({s['form']})"),
              ("log-likelihood", f"{fit.loglik:.6f}"), ("AIC", f"{fit.aic:.4f}"), ("BIC", f"{fit.bic:.4f}"),
              ("observations", fit.n_obs), ("free parameters", fit.n_params),
