@@ -112,13 +112,16 @@ def build_result(model, frames, theta, problem, best, optima, settings, scores=N
     idx = np.flatnonzero(inner)
     cov[np.ix_(idx, idx)] = cov_inner
     se = np.sqrt(np.where(np.diag(cov) >= 0, np.diag(cov), np.nan))
-    # A parameter along a direction the data do not determine has no finite standard error (the
+    # A parameter along a flat direction the data do not determine has no finite standard error (the
     # pseudo-inverse leaves that direction out: its diagonal would look small, even 0): as for a
     # Cramér–Rao bound, it is infinite (t = 0, p = 1), while fit.cov keeps what the data do
     # determine (a combination's variance by Gauss' formula).
     for direction in ill:
-        for name in direction["direction"]:
-            se[free_names.index(name)] = np.inf
+        # Flat (singular) directions only: along a negative curvature the fit is at no maximum,
+        # and its standard errors are unreliable rather than infinite.
+        if abs(direction["eigenvalue"]) <= ILL_DETERMINED * len(free):
+            for name in direction["direction"]:
+                se[free_names.index(name)] = np.inf
     for j in np.flatnonzero(inner & reliable & (se > FLAT_SE * np.maximum(np.abs(theta_free), 1.0))):
         # Not singular to working precision, yet the data barely constrain it (a noise
         # intensity drifting towards −∞ with SE 7863): as unreliable as a singular direction.

@@ -10,6 +10,7 @@ class (4.1.4) is found, and every part is lambdified into JAX.
 from __future__ import annotations
 
 import hashlib
+import re
 
 import numpy as np
 import sympy as sp
@@ -47,7 +48,10 @@ def build_structure(model) -> Structure:
     observation = [sub(o[0].rhs) for o in model._observations]
     variance = [sub(o[1]) for o in model._observations]
     for entry, h in zip(model._observations, observation):
-        if not {s.name for s in h.free_symbols} & set(states):
+        # 'y = a + b*u + 0*x' (a static regression, on purpose) is a + b*u to SymPy: the text still
+        # names the state, as '0*dt' does for a state without drift.
+        written = {name for name in re.findall(r"[A-Za-z_]\w*", entry[0].text.split("=", 1)[1])}
+        if not ({s.name for s in h.free_symbols} | written) & set(states):
             uses = sorted(s.name for s in h.free_symbols if s.name not in inputs and s != TIME)
             which = f" (it uses {', '.join(repr(u) for u in uses)}, not a state)" if uses else ""
             raise ModelError(f"observation '{entry[0].text}' depends on no state{which}: it says nothing of the "

@@ -110,7 +110,7 @@ def _vector_function(exprs: list[sp.Expr], args: list, shape: tuple[int, ...]) -
             picks += [(position, i, sym) for i, sym in enumerate(arg) if sym in used]
         elif arg in used:
             picks.append((position, None, arg))
-    raw = lambdify([sym for _, _, sym in picks], exprs, modules="jax")
+    raw = lambdify([sym for _, _, sym in picks], exprs, modules=[_ELEMENTWISE, "jax"])
 
     def function(*values):
         out = raw(*(values[p] if i is None else values[p][i] for p, i, _ in picks))
@@ -156,6 +156,18 @@ def observation_is_constant(observation: sp.Matrix, variances: list, states, inp
     varying = set(states) | set(inputs) | {TIME}
     c = observation.jacobian(sp.Matrix(states))
     return not any(sp.sympify(e).free_symbols & varying for e in [*c, *variances])
+
+
+def _extreme(reduce):
+    """SymPy before 1.13 prints Max(a, b) as amax((a, b), axis=0), a tuple JAX's reductions refuse."""
+    def extreme(values, axis=0):
+        return reduce(jnp.stack(jnp.broadcast_arrays(*values)), axis=axis)
+
+    return extreme
+
+
+#: Names SymPy's JAX printer may use, as functions of element-wise arguments.
+_ELEMENTWISE = {"amax": _extreme(jnp.max), "amin": _extreme(jnp.min)}
 
 
 def lambdify_model(exprs, states, inputs, parameters, shape) -> ModelFunction:
