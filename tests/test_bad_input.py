@@ -500,3 +500,19 @@ def test_a_bad_time_deep_in_a_long_file_is_named_at_its_row(tmp_path):
     (tmp_path / "model.toml").write_text(MODEL)
     code, message = run_cli(["fit", str(tmp_path / "model.toml"), str(path)])
     assert code == 2 and "row 150000" in message and "'abc'" in message, message
+
+
+def test_an_initial_covariance_of_parameters_is_checked_at_their_values():
+    """A matrix of expressions passes when the file is read; at the parameters' values it must be symmetric
+    and positive semi-definite, or the fit stops with the element named."""
+    two = MODEL.replace('system = ["dx = (-a*x + b*u)*dt + s*dw1"]',
+                        'system = ["dx = (-a*x + b*u)*dt + s*dw1", "dz = (x - z)*dt"]').replace(
+        'x = "x0"', 'x = "x0"\nz = 0.0')
+    frame = data()
+    for matrix, culprit in (('[["p", "q"], ["0", "p"]]', "not symmetric"),
+                            ('[["p", "q"], ["q", "p"]]', "positive semi-definite")):
+        text = two.replace("initial_covariance = [[0.1]]", f"initial_covariance = {matrix}").replace(
+            "x0 = 0.0", "x0 = 0.0\np = 0.1\nq = 0.5")
+        model = greyid.Model.from_toml(text)
+        with pytest.raises(ModelError, match=culprit):
+            model.loglik(model.initial_values(), frame)

@@ -162,6 +162,11 @@ def check_at_parameters(structure: Structure, theta: np.ndarray, series: Series,
             raise ModelError(f"the observation covariance is not positive definite at row {bad[0]} for the given "
                              f"parameters (smallest eigenvalue {lowest[bad[0]]:.4g})")
     P0 = np.asarray(P0)
+    if np.all(np.isfinite(P0)) and np.abs(P0 - P0.T).max(initial=0.0) > 1e-12 * max(np.abs(P0).max(initial=0.0),
+                                                                                   1e-300):
+        i, j = np.unravel_index(np.argmax(np.abs(P0 - P0.T)), P0.shape)
+        raise ModelError(f"the initial state covariance is not symmetric for the given parameters: element "
+                         f"({i + 1}, {j + 1}) is {P0[i, j]:.6g} but ({j + 1}, {i + 1}) is {P0[j, i]:.6g}")
     # Semi-definite is allowed: a state known exactly at t₀ has variance 0.
     if not np.all(np.isfinite(P0)) or np.min(np.linalg.eigvalsh(0.5 * (P0 + P0.T))) < -1e-10 * max(
             np.abs(P0).max(), 1e-300):
