@@ -28,6 +28,18 @@ RANK_TOLERANCE = 1e-10
 LOADING = 0.05
 
 
+def diagonal_scale(M: np.ndarray) -> np.ndarray:
+    """S_ii = 1/√|M_ii| (1 where M_ii is 0: such a parameter is undetermined anyway)."""
+    diagonal = np.abs(np.diag(M))
+    return np.where(diagonal > 0, 1.0 / np.sqrt(np.where(diagonal > 0, diagonal, 1.0)), 1.0)
+
+
+def loadings(vector: np.ndarray, names) -> dict:
+    """A direction as {name: loading}, largest loading +1, those under :data:`LOADING` left out."""
+    vector = vector / vector[np.argmax(np.abs(vector))]
+    return {names[i]: float(vector[i]) for i in np.argsort(-np.abs(vector)) if abs(vector[i]) > LOADING}
+
+
 @dataclass(frozen=True)
 class ScaledInformation:
     """An information matrix as its scaling S and the eigen-decomposition of S M S."""
@@ -45,8 +57,7 @@ class ScaledInformation:
         names = list(names) if names is not None else [f"p{i}" for i in range(M.shape[0])]
         if not np.all(np.isfinite(M)):
             raise ValueError("the information matrix holds non-finite values")
-        diagonal = np.diag(M)
-        scale = np.where(diagonal > 0, 1.0 / np.sqrt(np.where(diagonal > 0, diagonal, 1.0)), 1.0)
+        scale = diagonal_scale(M)
         w, V = np.linalg.eigh(scale[:, None] * M * scale[None, :])
         return cls(names, scale, w, V, float(tolerance))
 
@@ -81,12 +92,7 @@ class ScaledInformation:
 
     def directions(self) -> list[dict]:
         """Each undetermined direction as {parameter: loading}, largest loading 1, small ones left out."""
-        out = []
-        for j in np.flatnonzero(self.null_mask):
-            v = self.eigenvectors[:, j]
-            v = v / v[np.argmax(np.abs(v))]
-            out.append({self.names[i]: float(v[i]) for i in np.argsort(-np.abs(v)) if abs(v[i]) > LOADING})
-        return out
+        return [loadings(self.eigenvectors[:, j], self.names) for j in np.flatnonzero(self.null_mask)]
 
     def describe(self) -> str:
         """The undetermined directions in words, e.g. "+1.000·Cw −0.933·Ro"."""
@@ -128,8 +134,7 @@ def scaled_inverse(M, pseudo: bool = False) -> np.ndarray:
     the pseudo-inverse of the scaled matrix (relative cutoff :data:`RANK_TOLERANCE`), for a
     singular M."""
     M = np.asarray(M, dtype=np.float64)
-    diagonal = np.abs(np.diag(M))
-    scale = np.where(diagonal > 0, 1.0 / np.sqrt(np.where(diagonal > 0, diagonal, 1.0)), 1.0)
+    scale = diagonal_scale(M)
     inner = scale[:, None] * M * scale[None, :]
     inverse = np.linalg.pinv(inner, rcond=RANK_TOLERANCE, hermitian=True) if pseudo else np.linalg.inv(inner)
     return scale[:, None] * inverse * scale[None, :]

@@ -114,9 +114,9 @@ def criterion(info, name: str, params=None, interest=None, V=None, k: float = 1.
     if derived is None:
         if scaled.singular:
             return _undetermined(scaled, f"criterion {name}")
-        cov = scaled.covariance()
         if name == "D":
             return float(-scaled.logdet())
+        cov = scaled.covariance()
     else:  # quantities M may determine although it is singular (e.g. UA without Ri and Ro apart)
         J, labels, params = _derived_jacobian(names, params, derived)
         if np.any(scaled.undetermined(J)):

@@ -124,7 +124,8 @@ def _programs(structure, input_index: int, index: tuple[int, ...]):
 
 
 def _setup(model, params, input, free, several: bool = False):
-    from .information import _free_names, in_dynamics
+    from ..model.parameters import in_dynamics
+    from .information import _free_names
 
     structure = model.structure
     if not structure.is_linear or structure.kind != "lti":
@@ -138,7 +139,7 @@ def _setup(model, params, input, free, several: bool = False):
         raise ModelError(f"'{input}' is not an input of model '{model.name}' (inputs: {list(structure.input_names)})")
     # Per sample, a stationary experiment says nothing of the initial state's parameters: by default
     # they are left out (an explicit free= keeps them, and its information is singular along them).
-    names = _free_names(model, free) if free is not None else in_dynamics(model, _free_names(model, None))
+    names = _free_names(model, free) if free is not None else in_dynamics(structure, _free_names(model, None))
     all_names = list(structure.parameter_names)
     vectors = [model.parameter_vector(p) for p in (params if several else [params])]
     theta = jnp.asarray(np.array(vectors) if several else vectors[0], dtype=jnp.float64)

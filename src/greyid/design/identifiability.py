@@ -34,6 +34,7 @@ import numpy as np
 import pandas as pd
 import scipy.linalg as sl
 
+from ..scaled import ScaledInformation, loadings
 
 #: Singular values of the scaled Jacobian below this, relative to the largest, are zero.
 RANK_TOLERANCE = 1e-7
@@ -110,10 +111,15 @@ def _linear_parts(model):
     return A, B, C, D, g * g.T, sp.diag(*v)
 
 
+def _rates(A) -> np.ndarray:
+    """The system's rates: |eigenvalues of A| that are not zero (none for pure integrators)."""
+    rates = np.abs(np.linalg.eigvals(A)) if A.size and np.all(np.isfinite(A)) else np.zeros(0)
+    return rates[rates > 1e-12 * max(rates.max(initial=0.0), 1e-300)]
+
+
 def _time_scale(A) -> float:
-    """The system's own rate: the geometric mean of |eigenvalues of A| (of its entries for integrators)."""
-    rates = np.abs(np.linalg.eigvals(A))
-    rates = rates[rates > 1e-12 * max(rates.max(initial=0.0), 1e-300)]
+    """The system's own rate: the geometric mean of its rates (of A's entries for integrators)."""
+    rates = _rates(A)
     if not rates.size:
         rates = np.abs(A[A != 0]) if np.any(A != 0) else np.ones(1)
     return float(np.exp(np.mean(np.log(rates))))
@@ -122,11 +128,12 @@ def _time_scale(A) -> float:
 def _frequencies(A, draws) -> np.ndarray:
     """Complex points p spread over the system's own rates (one decade beyond each end), from the
     unit-free ``draws`` (k × 2 uniform numbers): in seconds or hours, the same points of G(p)."""
-    rates = np.abs(np.linalg.eigvals(A))
-    rates = rates[rates > 1e-12 * max(rates.max(initial=0.0), 1e-300)]
-    low, high = (np.log(rates.min()) - 2.3, np.log(rates.max()) + 2.3) if rates.size else (0.0, 0.0)
-    rate = _time_scale(A)
-    magnitudes = np.exp(low + draws[:, 0] * (high - low)) if rates.size else rate * np.exp(draws[:, 0])
+    rates = _rates(A)
+    if rates.size:
+        low, high = np.log(rates.min()) - 2.3, np.log(rates.max()) + 2.3
+        magnitudes = np.exp(low + draws[:, 0] * (high - low))
+    else:
+        magnitudes = _time_scale(A) * np.exp(draws[:, 0])
     return magnitudes * np.exp(1j * (draws[:, 1] - 0.5) * 2.0)  # right half-plane, away from the axis
 
 
@@ -170,11 +177,7 @@ def _relative_jacobian(observed, z, h: float = 1e-6) -> np.ndarray:
 def _directions(null, names) -> list[dict]:
     """Each undetermined direction (a column of ``null``, log-parameters) as {parameter: loading},
     the largest loading ±1, loadings under 0.05 left out."""
-    directions = []
-    for column in null.T:
-        column = column / column[np.argmax(np.abs(column))]
-        directions.append({names[i]: float(column[i]) for i in np.argsort(-np.abs(column)) if abs(column[i]) > 0.05})
-    return directions
+    return [loadings(column, names) for column in null.T]
 
 
 def _combinations(null, names):
@@ -214,14 +217,15 @@ def identifiability(model, params=None, plan=None, seed: int = 0, free=None) -> 
     model that is not linear time-invariant, ``plan`` (times and inputs) is the
     experiment judged; without it a generic rich plan is used (:func:`generic_plan`).
     """
-    from .information import _free_names, in_dynamics
+    from ..model.parameters import in_dynamics
+    from .information import _free_names
 
     structure = model.structure
     all_names = list(structure.parameter_names)
     # Parameters of the initial state only are seen in an experiment's transient, not in
     # the stationary G, H and Σ: they are left out of the judgement (and say so).
     judged = _free_names(model, free)
-    names = in_dynamics(model, judged)
+    names = in_dynamics(structure, judged)
     initial_only = [n for n in judged if n not in names]
     points = _points(model, params, all_names, seed)
     if structure.kind != "lti" or structure.delays:  # a delay's e^{-sτ} is not rational in s
@@ -348,8 +352,7 @@ def generic_plan(model, point, seed: int = 0) -> tuple[pd.DataFrame, str]:
     x0 = s.initial_mean(theta)
     ones = jnp.ones(s.n_inputs)
     A = np.asarray(jax.jacfwd(s.drift, argnums=0)(x0, ones, jnp.asarray(0.0), theta), dtype=float)
-    rates = np.abs(np.linalg.eigvals(A)) if A.size and np.all(np.isfinite(A)) else np.zeros(0)
-    rates = rates[rates > 1e-12 * max(rates.max(initial=0.0), 1e-300)]
+    rates = _rates(A)
     slow, fast = (rates.min(), rates.max()) if rates.size else (1.0, 1.0)
     span = 5.0 / slow
     step = max(span / (GENERIC_ROWS - 1), 0.25 / fast) if fast > slow else span / (GENERIC_ROWS - 1)
@@ -368,7 +371,6 @@ def generic_plan(model, point, seed: int = 0) -> tuple[pd.DataFrame, str]:
 def _by_information(model, names, points, plan, seed):
     """Local rank of the Fisher information of ``plan`` (or of :func:`generic_plan`) at generic points
     (models other than LTI), decided on the scaled information; combinations from its null space."""
-    from ..scaled import ScaledInformation
     from .information import fisher_information
 
     notes = ["a rank judged on one plan: another experiment may determine more"]

@@ -36,13 +36,6 @@ def _free_names(model, free):
     return list(free)
 
 
-def in_dynamics(model, names) -> list[str]:
-    """The parameters of ``names`` that enter the equations (see :func:`greyid.model.parameters.in_dynamics`)."""
-    from ..model.parameters import in_dynamics as of_structure
-
-    return of_structure(model.structure, names)
-
-
 def fisher_information(model, params, plan: pd.DataFrame, time: str = "t", hold: str = "zoh", free=None,
                        method: str | None = None, n_paths: int = 100, seed: int = 0, filter_method=None,
                        simulation: str | None = None, substeps: int = 20) -> pd.DataFrame:
@@ -116,5 +109,6 @@ def local_identifiability(info: pd.DataFrame, tolerance: float = RANK_TOLERANCE)
     """
     scaled = ScaledInformation.of(info.to_numpy(dtype=np.float64), list(info.index), tolerance)
     eigenvalues = scaled.eigenvalues[scaled.null_mask]
-    rows = [dict(eigenvalue=float(w), parameters=list(d), loadings=d) for w, d in zip(eigenvalues, scaled.directions())]
+    rows = [dict(eigenvalue=float(w), parameters=list(d), loadings=d)
+            for w, d in zip(eigenvalues, scaled.directions())]
     return pd.DataFrame(rows, columns=["eigenvalue", "parameters", "loadings"])

@@ -98,6 +98,9 @@ class SigmaWeights(NamedTuple):
     mean: jnp.ndarray
     cov: jnp.ndarray
     spread: float
+    #: A negative covariance weight (the central point's): the sigma points' joint covariance need
+    #: not be positive semi-definite, and the update's may go negative (see moment_update).
+    negative: bool = False
 
 
 def sigma_weights(n: int, alpha: float, beta: float, kappa: float) -> SigmaWeights:
@@ -107,7 +110,8 @@ def sigma_weights(n: int, alpha: float, beta: float, kappa: float) -> SigmaWeigh
     wc = wm
     wm = wm.at[0].set(lam / (n + lam))
     wc = wc.at[0].set(lam / (n + lam) + 1.0 - alpha**2 + beta)
-    return SigmaWeights(wm, wc, float(jnp.sqrt(n + lam)))
+    central = lam / (n + lam) + 1.0 - alpha**2 + beta
+    return SigmaWeights(wm, wc, float(jnp.sqrt(n + lam)), bool(central < 0 or n + lam < 0))
 
 
 def sigma_points(mean, P, weights: SigmaWeights):
@@ -126,7 +130,8 @@ def statistical_linearization(P, cross, jacobian):
     diagonal = jnp.diag(P)
     flat = diagonal <= small.PIVOT_ROUNDING * jnp.max(jnp.abs(diagonal))
     scale = jnp.where(flat, 1e-12 * jnp.max(jnp.abs(diagonal)) + 1e-300, 0.0)
-    J = jacobian()
+    # The Jacobian only where some direction is flat (a known state, a noise-free one).
+    J = jax.lax.cond(jnp.any(flat), jacobian, lambda: jnp.zeros((cross.shape[1], P.shape[0])))
     return jnp.linalg.solve(P + jnp.diag(scale), cross + scale[:, None] * J.T).T
 
 
@@ -174,10 +179,10 @@ def unscented_update(mean, cov, y, mask, u, t, theta, observation, variance, for
     noise = jnp.diag(S) if S.ndim == 1 else S
     R = dY.T @ (weights.cov[:, None] * dY) + noise
     cross = (X - mean).T @ (weights.cov[:, None] * dY)
-    return moment_update(mean, P, y, mask, y_pred, cross, R, form, noise), y_pred
+    return moment_update(mean, P, y, mask, y_pred, cross, R, form, noise, weights.negative), y_pred
 
 
-def moment_update(mean, P, y, mask, y_pred, cross, R, form, noise) -> Update:
+def moment_update(mean, P, y, mask, y_pred, cross, R, form, noise, guard: bool) -> Update:
     """The update from the first two moments of the output: ŷ, R = Cov(y) and Cov(x, y) (4.21–4.22
     with Gaussian approximations); unobserved elements are masked out.
 
@@ -186,7 +191,9 @@ def moment_update(mean, P, y, mask, y_pred, cross, R, form, noise) -> Update:
     and can fall below Cov(x, y)ᵀ P⁻¹ Cov(x, y), giving a negative variance.  Where the plain form
     is not positive semi-definite the Joseph form (I − K H) P (I − K H)ᵀ + K S Kᵀ, with
     H = Cov(x, y)ᵀ P⁻¹ and the outputs' noise S, replaces it (never negative), and the update says
-    so (``guarded``).
+    so (``guarded``).  ``guard`` says whether the approximation can go negative at all (the
+    Gaussian second-order filter and the UKF with non-negative weights cannot): the check costs
+    an eigen-decomposition per step, and is left out where it cannot act.
     """
     m = mask
     R = R * m[:, None] * m[None, :] + jnp.diag(1.0 - m)
@@ -196,6 +203,9 @@ def moment_update(mean, P, y, mask, y_pred, cross, R, form, noise) -> Update:
     gain = jax.scipy.linalg.cho_solve((chol_R, True), cross.T).T
     new_mean = mean + gain @ innovation
     new_P = symmetrize(P - gain @ R @ gain.T)
+    terms = gaussian_term(innovation, chol_R, m)
+    if not guard:
+        return Update(new_mean, from_matrix(new_P, form), innovation, R, terms)
     P = symmetrize(P)
     lowest = jnp.linalg.eigvalsh(new_P)[0]
     negative = lowest < -1e-10 * jnp.maximum(jnp.max(jnp.abs(jnp.diag(P))), 1e-300)
@@ -204,8 +214,7 @@ def moment_update(mean, P, y, mask, y_pred, cross, R, form, noise) -> Update:
     I_KH = jnp.eye(n) - gain @ H
     joseph = symmetrize(I_KH @ P @ I_KH.T + gain @ (noise * m[:, None] * m[None, :]) @ gain.T)
     new_P = jnp.where(negative, joseph, new_P)
-    return Update(new_mean, from_matrix(new_P, form), innovation, R, gaussian_term(innovation, chol_R, m),
-                  jnp.where(negative, 1.0, 0.0))
+    return Update(new_mean, from_matrix(new_P, form), innovation, R, terms, jnp.where(negative, 1.0, 0.0))
 
 
 def linearized_observation(observation: Callable, x, u, t, theta):
@@ -235,4 +244,5 @@ def second_order_update(mean, cov, y, mask, u, t, theta, observation, noise, for
         fourth = -0.25 * jnp.outer(b, b)
     S = noise if noise.ndim == 2 else jnp.diag(noise)
     R = H @ P @ H.T + S + fourth
-    return moment_update(mean, P, y, mask, y_pred, P @ H.T, R, form, S), y_pred
+    # The truncated filter's R leaves out fourth moments and can fall below H P Hᵀ + S: guarded.
+    return moment_update(mean, P, y, mask, y_pred, P @ H.T, R, form, S, guard=not gaussian), y_pred
