@@ -1,0 +1,11 @@
+"""Population (nonlinear mixed-effects) SDE models: many data sets, shared structure, individual parameters.
+
+:func:`fit_population` estimates the typical values, covariate effects and the
+random effects' covariance Ω by the Laplace approximation of the marginal
+likelihood (:mod:`.laplace`) and returns a :class:`PopulationResult`.
+"""
+
+from .fit import PopulationWarning, fit_population
+from .result import PopulationResult
+
+__all__ = ["fit_population", "PopulationResult", "PopulationWarning"]

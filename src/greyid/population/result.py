@@ -1,0 +1,206 @@
+"""The result of a population fit, in statsmodels' manner: ``params``, ``loglik``, ``aic``, ``summary()``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
+import jax
+import jax.numpy as jnp
+
+from ..scaled import ScaledInformation, scaled_inverse
+from .spec import PopulationSpec
+
+#: Two-sided 95 % intervals.
+Z95 = float(stats.norm.ppf(0.975))
+
+
+def _reporting(spec: PopulationSpec):
+    """``(ρ(φ), m)``: per reported quantity a coordinate ρ_k in which its Wald interval is taken and the
+    monotone map m_k(ρ_k) to the reported value (the bound transform of a typical value, exp for a
+    lognormal typical value or for ω, tanh for a correlation, identity for a covariate effect)."""
+    s = spec.slices
+    free_kind = spec.transform.kind
+
+    def rho(phi):
+        L = spec.cholesky(phi)
+        omega_sq = jnp.sum(L ** 2, axis=1)
+        parts = [phi[s["typical"]], phi[s["beta"]] / spec.covariate_sd[[c for _, c in spec.effects]]
+                 if spec.effects else jnp.zeros(0), 0.5 * jnp.log(omega_sq)]
+        if spec.full:
+            cov = L @ L.T
+            corr = [cov[a, b] / jnp.sqrt(omega_sq[a] * omega_sq[b]) for a, b in spec.pairs()]
+            parts.append(jnp.arctanh(jnp.stack(corr)))
+        return jnp.concatenate(parts)
+
+    def value(r):
+        from ..estimate.transforms import Transform
+
+        n = len(spec.free)
+        typical = Transform(free_kind, spec.transform.lower, spec.transform.upper).to_theta(r[:n], np)
+        typical = np.where(spec.log_scale, np.exp(np.where(spec.log_scale, r[:n], 0.0)), typical)
+        a, b = n + len(spec.effects), n + len(spec.effects) + spec.n_random
+        return np.concatenate([typical, r[n:a], np.exp(r[a:b]), np.tanh(r[b:])])
+
+    return rho, value
+
+
+class PopulationResult:
+    """Population parameters with their uncertainty, each member's random effects, and the fit's statistics.
+
+    ``params``: one row per population parameter — the typical values of the free
+    parameters (for a lognormal parameter, its median over the population; with
+    covariates, at their mean), ``beta_<parameter>_<covariate>`` (per unit of the
+    covariate, on the parameter's scale: log for lognormal), ``omega_<parameter>``
+    (the standard deviation of η; for a lognormal parameter on the log scale,
+    about its coefficient of variation) and ``corr_<a>_<b>`` — with standard
+    errors from the exact Hessian of the Laplace marginal likelihood and 95 %
+    intervals taken where each is unbounded (see :func:`_reporting`).
+    ``random_effects``: one row per member, each random parameter's value at the
+    conditional mode of η with its conditional standard error (given φ).
+    """
+
+    def __init__(self, model, spec, members, phi, hessian, modes, call, converged, message, iterations):
+        self.model, self.spec, self.call = model, spec, call
+        self.names = list(members.names)
+        self.frames = dict(zip(members.names, members.frames))
+        self.left_out = dict(members.left_out)
+        self.n_obs = int(np.sum(members.n_obs))
+        self.n_members = len(members.names)
+        self.phi = np.asarray(phi, dtype=float)
+        self.hessian = np.asarray(hessian, dtype=float)
+        self.converged, self.message, self.iterations = bool(converged), message, int(iterations)
+        self._modes = modes
+        self._members = members
+        self.loglik = float(call["loglik"])
+        self._build_params()
+        self._build_random_effects()
+
+    @classmethod
+    def from_optimum(cls, model, spec, members, optimum, modes, programs, call):
+        from .laplace import laplace_values
+
+        call = dict(call, loglik=-float(np.sum(laplace_values(modes))))
+        return cls(model, spec, members, optimum.z, optimum.hessian, modes, call, optimum.converged,
+                   optimum.message, optimum.iterations)
+
+    # ------------------------------------------------------------------ tables
+    def _build_params(self):
+        spec = self.spec
+        names = spec.phi_names()
+        information = ScaledInformation.of(self.hessian, names)
+        singular = information.singular
+        self.cov_phi = scaled_inverse(self.hessian, pseudo=bool(singular))
+        rho_of, value_of = _reporting(spec)
+        rho = np.asarray(rho_of(jnp.asarray(self.phi)))
+        J = np.asarray(jax.jacfwd(rho_of)(jnp.asarray(self.phi)))
+        cov_rho = J @ self.cov_phi @ J.T
+        se_rho = np.sqrt(np.where(np.diag(cov_rho) >= 0, np.diag(cov_rho), np.nan))
+        estimate = value_of(rho)
+        h = 1e-6 * np.maximum(np.abs(rho), 1.0)
+        slope = (value_of(rho + h) - value_of(rho - h)) / (2 * h)  # element-wise monotone maps
+        with np.errstate(invalid="ignore"):
+            lower, upper = value_of(rho - Z95 * se_rho), value_of(rho + Z95 * se_rho)
+        self.params = pd.DataFrame(dict(estimate=estimate, std_error=np.abs(slope) * se_rho,
+                                        ci_lower=np.minimum(lower, upper), ci_upper=np.maximum(lower, upper)),
+                                   index=pd.Index(names, name=None))
+        self.params["kind"] = self._kinds()
+        self.cov = pd.DataFrame((slope[:, None] * cov_rho * slope[None, :]), index=names, columns=names)
+        self.undetermined = information.directions() if singular else []
+
+    def _kinds(self) -> list[str]:
+        spec = self.spec
+        out = []
+        for i in spec.free:
+            name = spec.names[i]
+            if i in spec.random:
+                out.append(f"typical ({spec.kinds[spec.random.index(i)]})")
+            else:
+                out.append("shared")
+        out += ["covariate effect"] * len(spec.effects)
+        out += ["sd of random effect"] * spec.n_random
+        out += ["correlation"] * spec.n_correlations
+        return out
+
+    def _build_random_effects(self):
+        spec = self.spec
+        base = spec.base()
+        L = np.asarray(spec.cholesky(jnp.asarray(self.phi)))
+        rows, self.individual_params = [], []
+        for k, name in enumerate(self.names):
+            u = self._modes.u[k]
+            theta = np.asarray(spec.theta(jnp.asarray(self.phi), jnp.asarray(u), jnp.asarray(self._members.x[k]),
+                                          tuple(jnp.asarray(b) for b in base)))
+            self.individual_params.append(theta)
+            H = self._modes.hessian[k]
+            cov_eta = L @ np.linalg.inv(0.5 * (H + H.T)) @ L.T
+            eta = L @ u
+            row = {}
+            for r, i in enumerate(spec.random):
+                scale = theta[i] if spec.kinds[r] == "lognormal" else 1.0  # dθ/dη
+                row[spec.names[i]] = theta[i]
+                row[f"{spec.names[i]}_se"] = abs(scale) * np.sqrt(cov_eta[r, r])
+                row[f"eta_{spec.names[i]}"] = eta[r]
+            rows.append(row)
+        self.random_effects = pd.DataFrame(rows, index=pd.Index(self.names, name="dataset"))
+        self.individual = pd.DataFrame(np.array(self.individual_params), index=pd.Index(self.names, name="dataset"),
+                                       columns=list(spec.names))
+
+    # ------------------------------------------------------------------ statistics
+    @property
+    def n_params(self) -> int:
+        return self.spec.size
+
+    @property
+    def aic(self) -> float:
+        return -2 * self.loglik + 2 * self.n_params
+
+    @property
+    def bic(self) -> float:
+        """−2 log L + k log n with n the observed output values (as R's nlme counts them)."""
+        return -2 * self.loglik + self.n_params * np.log(self.n_obs)
+
+    @property
+    def omega(self) -> pd.DataFrame:
+        """Ω, the random effects' covariance (on each parameter's scale: log for lognormal)."""
+        L = np.asarray(self.spec.cholesky(jnp.asarray(self.phi)))
+        names = [self.spec.names[i] for i in self.spec.random]
+        return pd.DataFrame(L @ L.T, index=names, columns=names)
+
+    @property
+    def shrinkage(self) -> pd.Series:
+        """η-shrinkage per random effect, 1 − sd(η̂_i)/ω (0: the data determine each member's η; 1: none)."""
+        out = {}
+        for i in self.spec.random:
+            name = self.spec.names[i]
+            eta = self.random_effects[f"eta_{name}"].to_numpy()
+            omega = self.params.loc[f"omega_{name}", "estimate"]
+            out[name] = 1.0 - np.std(eta, ddof=1) / omega if len(eta) > 1 else np.nan
+        return pd.Series(out, name="shrinkage")
+
+    def summary(self) -> str:
+        spec = self.spec
+        lines = [f"Population fit of model {self.model.name}: {self.n_members} data sets, {self.n_obs} observations",
+                 f"log-likelihood (Laplace) {self.loglik:.6f}   AIC {self.aic:.4f}   BIC {self.bic:.4f}   "
+                 f"{self.n_params} population parameters",
+                 f"converged: {self.converged} ({self.message}), {self.iterations} iterations",
+                 "random effects: " + ", ".join(f"{spec.names[i]} {k}" for i, k in zip(spec.random, spec.kinds))
+                 + f"; Ω {'full' if spec.full else 'diagonal'}"]
+        if spec.covariates:
+            means = ", ".join(f"{c} = {m:.6g}" for c, m in zip(spec.covariates, spec.covariate_mean))
+            lines.append(f"typical values at the covariates' mean ({means})")
+        table = self.params.copy()
+        fmt = {c: (lambda v: f"{v:.6g}") for c in ("estimate", "std_error", "ci_lower", "ci_upper")}
+        lines.append(table.to_string(formatters=fmt))
+        lines.append("")
+        lines.append("shrinkage: " + ", ".join(f"{k} {v:.3f}" for k, v in self.shrinkage.items()))
+        for name, why in self.left_out.items():
+            lines.append(f"left out: data set '{name}': {why}")
+        for direction in self.undetermined:
+            lines.append(f"undetermined direction of the population parameters: {direction}")
+        return "\n".join(lines)
+
+    def __repr__(self) -> str:
+        return self.summary()

@@ -1,0 +1,251 @@
+"""Population (mixed-effects) fits: the Laplace marginal likelihood against independent references."""
+
+from __future__ import annotations
+
+import warnings
+
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+import pytest
+from scipy import optimize
+from scipy.stats import multivariate_normal
+
+import greyid
+from conftest import dense_moments, matrices_from_parameters, random_linear_model_spec, random_linear_parameters
+from greyid.population import PopulationWarning, fit_population
+from greyid.population.fit import Outer, _prepare_members
+from greyid.population import laplace
+from greyid.population.spec import make_spec
+from greyid.filters.api import filter_options
+
+
+# ---------------------------------------------------------------- exact case: an input gain
+FREE = ("b11", "c1", "s1")
+
+
+@pytest.fixture(scope="module")
+def gain_problem():
+    """A linear model whose random effect (b11, an input gain) enters the outputs linearly; six members
+    with their own inputs and lengths, simulated with b11 drawn around its typical value."""
+    rng = np.random.default_rng(12)
+    params, _ = random_linear_parameters(rng)
+    model = random_linear_model_spec()
+    model.name = "gain"
+    for name, value in params.items():
+        model.set_parameter(name, init=value, fixed=name not in FREE, lower=0 if name == "s1" else None)
+    datasets = {}
+    for k in range(6):
+        N = 25 + 3 * k
+        t = np.cumsum(rng.uniform(0.3, 1.2, N))
+        U = rng.normal(size=(N, 2))
+        member = dict(params, b11=params["b11"] + 0.6 * rng.normal())
+        frame = pd.DataFrame({"t": t, "u1": U[:, 0], "u2": U[:, 1]})
+        sim = model.simulate(member, frame, seed=k)
+        frame["y1"], frame["y2"] = sim.outputs[0, :, 0], sim.outputs[0, :, 1]
+        frame.loc[frame.index[::7], "y2"] = np.nan
+        datasets[f"unit{k}"] = frame
+    return model, params, datasets
+
+
+def dense_marginal(params, datasets, b11, c1, s1, omega):
+    """Σ_i log N(y_i; μ_i(b11), S_i + ω² g_i g_iᵀ), g_i = ∂μ_i/∂b11 (μ is linear in b11: exact)."""
+    total = 0.0
+    for frame in datasets.values():
+        t, U = frame["t"].to_numpy(), frame[["u1", "u2"]].to_numpy()
+        Y = frame[["y1", "y2"]].to_numpy().reshape(-1)
+        p = dict(params, b11=b11, c1=c1, s1=s1)
+        _, _, _, mean, cov = dense_moments(matrices_from_parameters(p), t, U, 0.0)
+        shifted = dense_moments(matrices_from_parameters(dict(p, b11=b11 + 1.0)), t, U, 0.0)[3]
+        g = shifted - mean
+        cov = cov + omega ** 2 * np.outer(g, g)
+        seen = ~np.isnan(Y)
+        total += multivariate_normal(mean[seen], cov[np.ix_(seen, seen)]).logpdf(Y[seen])
+    return total
+
+
+@pytest.fixture(scope="module")
+def gain_fit(gain_problem):
+    model, _, datasets = gain_problem
+    return fit_population(model, datasets, {"b11": "normal"})
+
+
+def test_laplace_is_exact_for_a_random_input_gain(gain_problem, gain_fit):
+    """Where η enters the outputs linearly in a linear Gaussian model the Laplace approximation is the
+    marginal likelihood: it equals the dense Gaussian with covariance S_i + ω² g_i g_iᵀ, and the
+    estimates maximise that dense likelihood."""
+    _, params, datasets = gain_problem
+    fit = gain_fit
+    assert fit.converged, fit.message
+    est = fit.params["estimate"]
+    at_estimates = dense_marginal(params, datasets, est["b11"], est["c1"], est["s1"], est["omega_b11"])
+    assert fit.loglik == pytest.approx(at_estimates, rel=1e-8)
+
+    def negative(x):
+        return -dense_marginal(params, datasets, x[0], x[1], np.exp(x[2]), np.exp(x[3]))
+
+    x0 = np.array([est["b11"], est["c1"], np.log(est["s1"]), np.log(est["omega_b11"])])
+    best = optimize.minimize(negative, x0 + 0.05, method="Nelder-Mead",
+                             options=dict(xatol=1e-9, fatol=1e-11, maxiter=4000))
+    assert -best.fun == pytest.approx(fit.loglik, abs=1e-6)
+    np.testing.assert_allclose(best.x, x0, atol=2e-4)
+
+
+def test_standard_errors_are_the_dense_likelihoods_curvature(gain_problem, gain_fit):
+    """The standard errors come from the exact Hessian of the marginal: the same as the dense
+    likelihood's by central differences (b11, c1 directly; s1 and ω through their logarithms)."""
+    _, params, datasets = gain_problem
+    est = gain_fit.params["estimate"]
+    x0 = np.array([est["b11"], est["c1"], np.log(est["s1"]), np.log(est["omega_b11"])])
+
+    def f(x):
+        return -dense_marginal(params, datasets, x[0], x[1], np.exp(x[2]), np.exp(x[3]))
+
+    h = 1e-3
+    H = np.zeros((4, 4))
+    for i in range(4):
+        for j in range(4):
+            e_i, e_j = np.eye(4)[i] * h, np.eye(4)[j] * h
+            H[i, j] = (f(x0 + e_i + e_j) - f(x0 + e_i - e_j) - f(x0 - e_i + e_j) + f(x0 - e_i - e_j)) / (4 * h * h)
+    se_log = np.sqrt(np.diag(np.linalg.inv(H)))
+    se = gain_fit.params["std_error"]
+    np.testing.assert_allclose([se["b11"], se["c1"], se["s1"] / est["s1"], se["omega_b11"] / est["omega_b11"]],
+                               se_log, rtol=2e-3)
+
+
+def test_random_effects_are_the_conditional_means(gain_problem, gain_fit):
+    """In the exact case the conditional mode of b11 is its conditional mean given the member's data,
+    E[b | y] = b + ω² gᵀ(S + ω²ggᵀ)⁻¹(y − μ), with variance ω² − ω⁴ gᵀ(S + ω²ggᵀ)⁻¹g."""
+    _, params, datasets = gain_problem
+    est = gain_fit.params["estimate"]
+    omega = est["omega_b11"]
+    for name, frame in datasets.items():
+        t, U = frame["t"].to_numpy(), frame[["u1", "u2"]].to_numpy()
+        Y = frame[["y1", "y2"]].to_numpy().reshape(-1)
+        p = dict(params, b11=est["b11"], c1=est["c1"], s1=est["s1"])
+        _, _, _, mean, cov = dense_moments(matrices_from_parameters(p), t, U, 0.0)
+        g = dense_moments(matrices_from_parameters(dict(p, b11=est["b11"] + 1.0)), t, U, 0.0)[3] - mean
+        seen = ~np.isnan(Y)
+        g, total = g[seen], cov[np.ix_(seen, seen)] + omega ** 2 * np.outer(g[seen], g[seen])
+        solved = np.linalg.solve(total, np.column_stack([Y[seen] - mean[seen], g]))
+        expected = est["b11"] + omega ** 2 * g @ solved[:, 0]
+        variance = omega ** 2 - omega ** 4 * g @ solved[:, 1]
+        row = gain_fit.random_effects.loc[name]
+        assert row["b11"] == pytest.approx(expected, rel=1e-7, abs=1e-9)
+        assert row["b11_se"] == pytest.approx(np.sqrt(variance), rel=1e-6)
+
+
+# ---------------------------------------------------------------- derivatives of the general case
+@pytest.fixture(scope="module")
+def nonlinear_problem():
+    """dx = (−a·x + b·u)dt + s·dω with a lognormal, b normal, correlated, a covariate effect on b:
+    the random effects enter the likelihood nonlinearly (a through the dynamics)."""
+    m = greyid.Model("decay")
+    m.add_system("dx = (-a*x + b*u)*dt + s*dw1")
+    m.add_inputs("u")
+    m.add_observation("y = x", variance="r")
+    m.set_initial_state(mean={"x": 0.0}, covariance=[[0.1]])
+    m.set_parameter("a", init=0.5, lower=0)
+    m.set_parameter("b", init=1.0)
+    m.set_parameter("s", init=0.3, lower=0)
+    m.set_parameter("r", init=0.05, lower=0)
+    rng = np.random.default_rng(3)
+    t = np.arange(40.0)
+    data, area = {}, []
+    for i in range(7):
+        u = np.sign(np.sin(t / 4 + i))
+        area.append(100 + 30 * i)
+        member = dict(a=0.5 * np.exp(0.3 * rng.normal()), b=1.0 + 0.004 * (area[-1] - 190) + 0.3 * rng.normal(),
+                      s=0.3, r=0.05)
+        sim = m.simulate(member, pd.DataFrame({"t": t, "u": u}), seed=i)
+        data[f"h{i}"] = pd.DataFrame({"t": t, "u": u, "y": sim.outputs[0, :, 0]})
+    covariates = pd.DataFrame({"area": area}, index=list(data))
+    spec, raw = make_spec(m, {"a": "lognormal", "b": "normal"}, covariates, {"b": ["area"]}, "full", list(data))
+    members = _prepare_members(m, list(data), list(data.values()), spec, raw, "t", "zoh", None, None)
+    programs = laplace.build(m.structure, spec, filter_options(m.structure, None))
+    return m, data, covariates, spec, Outer(programs, members, spec)
+
+
+def test_outer_gradient_and_hessian_against_central_differences(nonlinear_problem):
+    """The envelope-theorem gradient (with the mode's implicit derivative in the log-determinant) and
+    the exact Hessian equal central differences of the Laplace value, its modes solved anew."""
+    *_, spec, outer = nonlinear_problem
+    phi = spec.phi0() + np.array([0.05, -0.1, 0.02, -0.03, 0.2, 0.1, -0.2, 0.3])
+    f, g, H = outer.exact(phi)
+    assert np.isfinite(f) and f == pytest.approx(outer.value(phi)[0], rel=1e-10)
+    h = 1e-5
+    numeric = np.array([(outer.value(phi + h * e)[0] - outer.value(phi - h * e)[0]) / (2 * h)
+                        for e in np.eye(len(phi))])
+    np.testing.assert_allclose(g, numeric, rtol=1e-5, atol=1e-6 * np.abs(g).max())
+    numeric_H = np.array([(outer.exact(phi + 1e-4 * e)[1] - outer.exact(phi - 1e-4 * e)[1]) / 2e-4
+                          for e in np.eye(len(phi))])
+    np.testing.assert_allclose(H, numeric_H, rtol=1e-4, atol=1e-5 * np.abs(H).max())
+
+
+def test_parameter_map_by_hand(nonlinear_problem):
+    """θ_i from φ, u and the standardised covariate, written out: a lognormal, b normal + β·area, Ω = LLᵀ."""
+    *_, spec, _ = nonlinear_problem
+    assert spec.phi_names() == ["a", "b", "s", "r", "beta_b_area", "omega_a", "omega_b", "corr_b_a"]
+    phi = np.array([np.log(0.4), 1.2, np.log(0.3), np.log(0.05), 0.7, np.log(0.2), np.log(0.5), 0.6])
+    u, x = np.array([0.3, -1.1]), np.array([0.8])
+    theta = np.asarray(spec.theta(jnp.asarray(phi), jnp.asarray(u), jnp.asarray(x),
+                                  tuple(jnp.asarray(b) for b in spec.base())))
+    row = np.array([0.6, 1.0]) / np.hypot(0.6, 1.0)
+    L = np.array([[0.2, 0.0], [0.5 * row[0], 0.5 * row[1]]])
+    eta = L @ u
+    names = list(spec.names)
+    assert theta[names.index("a")] == pytest.approx(0.4 * np.exp(eta[0]))
+    assert theta[names.index("b")] == pytest.approx(1.2 + 0.7 * 0.8 + eta[1])
+    assert theta[names.index("r")] == pytest.approx(0.05) and theta[names.index("s")] == pytest.approx(0.3)
+
+
+def test_population_fit_recovers_a_correlated_nonlinear_population(nonlinear_problem):
+    """The fit converges; the covariate effect is reported per unit of the covariate; Ω is positive definite."""
+    m, data, covariates, *_ = nonlinear_problem
+    fit = fit_population(m, data, {"a": "lognormal", "b": "normal"}, covariates=covariates,
+                         effects={"b": "area"}, omega="full")
+    assert fit.converged, fit.message
+    beta = fit.params.loc["beta_b_area"]
+    assert beta["ci_lower"] < 0.004 < beta["ci_upper"]
+    assert np.linalg.eigvalsh(fit.omega.to_numpy()).min() > 0
+    assert -1 < fit.params.loc["corr_b_a", "estimate"] < 1
+    assert list(fit.random_effects.index) == list(data)
+    assert fit.aic == pytest.approx(-2 * fit.loglik + 2 * 8)
+
+
+# ---------------------------------------------------------------- bad input
+def test_bad_population_input_is_named(gain_problem):
+    model, _, datasets = gain_problem
+    with pytest.raises(greyid.ModelError, match="'a11', which is fixed"):
+        fit_population(model, datasets, {"a11": "normal"})
+    with pytest.raises(greyid.ModelError, match="'zz', which is not a parameter"):
+        fit_population(model, datasets, {"zz": "normal"})
+    with pytest.raises(greyid.ModelError, match="'gamma'"):
+        fit_population(model, datasets, {"b11": "gamma"})
+    with pytest.raises(greyid.ModelError, match="lognormal.*may be negative|initial value"):
+        fit_population(model, datasets, {"c1": "lognormal"})
+    covariates = pd.DataFrame({"area": np.arange(6.0)}, index=list(datasets))
+    with pytest.raises(greyid.DataError, match="no row for data set 'unit5'"):
+        fit_population(model, datasets, {"b11": "normal"}, covariates=covariates.iloc[:5], effects={"b11": "area"})
+    with pytest.raises(greyid.DataError, match="'floor' .* not a column"):
+        fit_population(model, datasets, {"b11": "normal"}, covariates=covariates, effects={"b11": ["floor"]})
+    gappy = covariates.copy()
+    gappy.loc["unit2", "area"] = np.nan
+    with pytest.raises(greyid.DataError, match="'area' is missing or not a number for data set 'unit2'"):
+        fit_population(model, datasets, {"b11": "normal"}, covariates=gappy, effects={"b11": "area"})
+    with pytest.raises(greyid.DataError, match="too few"):
+        fit_population(model, {"one": datasets["unit0"]}, {"b11": "normal"})
+    with pytest.raises(greyid.ModelError, match="omega is 'block'"):
+        fit_population(model, datasets, {"b11": "normal"}, omega="block")
+    with pytest.raises(greyid.ModelError, match="omega_init of 'b11' is -1"):
+        fit_population(model, datasets, {"b11": "normal"}, omega_init={"b11": -1.0})
+
+
+def test_a_member_that_cannot_be_fitted_is_left_out_with_a_warning(gain_problem):
+    model, _, datasets = gain_problem
+    broken = dict(datasets)
+    broken["empty"] = datasets["unit0"].assign(y1=np.nan, y2=np.nan)
+    with pytest.warns(PopulationWarning, match="data set 'empty' is left out"):
+        fit = fit_population(model, broken, {"b11": "normal"})
+    assert "empty" in fit.left_out and "empty" not in fit.random_effects.index
+    assert "left out: data set 'empty'" in fit.summary()
