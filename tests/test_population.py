@@ -12,12 +12,14 @@ from scipy import optimize
 from scipy.stats import multivariate_normal
 
 import greyid
+from test_crosscheck import shared
 from conftest import dense_moments, matrices_from_parameters, random_linear_model_spec, random_linear_parameters
 from greyid.population import PopulationWarning, fit_population
-from greyid.population.fit import Outer, _prepare_members
+from greyid.population.fit import Outer, _prepare_members, population_filter, population_programs
 from greyid.population import laplace
 from greyid.population.spec import make_spec
 from greyid.filters.api import filter_options
+from greyid.datasets.reference import theophylline_model
 
 
 # ---------------------------------------------------------------- exact case: an input gain
@@ -199,11 +201,17 @@ def test_parameter_map_by_hand(nonlinear_problem):
     assert theta[names.index("r")] == pytest.approx(0.05) and theta[names.index("s")] == pytest.approx(0.3)
 
 
-def test_population_fit_recovers_a_correlated_nonlinear_population(nonlinear_problem):
-    """The fit converges; the covariate effect is reported per unit of the covariate; Ω is positive definite."""
+@pytest.fixture(scope="module")
+def correlated_fit(nonlinear_problem):
     m, data, covariates, *_ = nonlinear_problem
-    fit = fit_population(m, data, {"a": "lognormal", "b": "normal"}, covariates=covariates,
-                         effects={"b": "area"}, omega="full")
+    return fit_population(m, data, {"a": "lognormal", "b": "normal"}, covariates=covariates,
+                          effects={"b": "area"}, omega="full")
+
+
+def test_population_fit_recovers_a_correlated_nonlinear_population(nonlinear_problem, correlated_fit):
+    """The fit converges; the covariate effect is reported per unit of the covariate; Ω is positive definite."""
+    _, data, *_ = nonlinear_problem
+    fit = correlated_fit
     assert fit.converged, fit.message
     beta = fit.params.loc["beta_b_area"]
     assert beta["ci_lower"] < 0.004 < beta["ci_upper"]
@@ -211,6 +219,38 @@ def test_population_fit_recovers_a_correlated_nonlinear_population(nonlinear_pro
     assert -1 < fit.params.loc["corr_b_a", "estimate"] < 1
     assert list(fit.random_effects.index) == list(data)
     assert fit.aic == pytest.approx(-2 * fit.loglik + 2 * 8)
+    assert fit.bic == pytest.approx(-2 * fit.loglik + 8 * np.log(7 * 40))
+
+
+def test_likelihood_ratio_with_a_variance_on_the_boundary(nonlinear_problem, correlated_fit):
+    """Adding b's random effect (its variance and correlation) is tested against ½χ²₁ + ½χ²₂."""
+    from greyid.population import likelihood_ratio
+
+    m, data, covariates, *_ = nonlinear_problem
+    restricted = fit_population(m, data, {"a": "lognormal"}, covariates=covariates, effects={"b": "area"})
+    test = likelihood_ratio(restricted, correlated_fit)
+    assert test.statistic == pytest.approx(2 * (correlated_fit.loglik - restricted.loglik))
+    assert test.df == 2 and test.variances == 1
+    from scipy.stats import chi2
+
+    assert test.p_value == pytest.approx(0.5 * chi2.sf(test.statistic, 1) + 0.5 * chi2.sf(test.statistic, 2))
+    assert "boundary" in repr(test) and "Self & Liang" in repr(test)
+    with pytest.raises(ValueError, match="must hold every population parameter"):
+        likelihood_ratio(correlated_fit, restricted)
+
+
+def test_member_is_a_fit_at_the_individual_parameters(gain_problem, gain_fit):
+    model, _, datasets = gain_problem
+    member = gain_fit.member("unit3")
+    values = gain_fit.individual.loc["unit3"].to_dict()
+    assert member.values["b11"] == pytest.approx(gain_fit.random_effects.loc["unit3", "b11"])
+    assert member.loglik == pytest.approx(model.loglik(values, datasets["unit3"]), rel=1e-12)
+    assert member.params.loc["b11", "std_error"] == gain_fit.random_effects.loc["unit3", "b11_se"]
+    assert member.params.loc["c1", "std_error"] == gain_fit.params.loc["c1", "std_error"]
+    assert len(member.residuals) == len(datasets["unit3"])
+    assert member.validate() is not None
+    with pytest.raises(KeyError, match="'nobody' is not a member"):
+        gain_fit.member("nobody")
 
 
 # ---------------------------------------------------------------- bad input
@@ -249,3 +289,48 @@ def test_a_member_that_cannot_be_fitted_is_left_out_with_a_warning(gain_problem)
         fit = fit_population(model, broken, {"b11": "normal"})
     assert "empty" in fit.left_out and "empty" not in fit.random_effects.index
     assert "left out: data set 'empty'" in fit.summary()
+
+
+# ---------------------------------------------------------------- real data: theophylline
+def closed_form_laplace(frame, lke, lka, lcl, s2, omega_ka, omega_cl):
+    """The Laplace approximation written out with the closed-form concentration (SSfol), modes by SciPy,
+    the Hessian by central differences: a reference independent of greyid's filter and derivatives."""
+    total = 0.0
+    for _, subject in frame.groupby("Subject", sort=False):
+        t, dose, y = subject["Time"].to_numpy(), subject["Dose"].to_numpy(), subject["conc"].to_numpy()
+
+        def g(u):
+            ke, ka, cl = np.exp(lke), np.exp(lka + omega_ka * u[0]), np.exp(lcl + omega_cl * u[1])
+            c = dose * ke * ka / (cl * (ka - ke)) * (np.exp(-ke * t) - np.exp(-ka * t))
+            return 0.5 * np.sum(np.log(2 * np.pi * s2) + (y - c) ** 2 / s2) + 0.5 * u @ u
+
+        u = optimize.minimize(g, np.zeros(2), method="BFGS", options=dict(gtol=1e-10)).x
+        u = optimize.minimize(g, u, method="Nelder-Mead", options=dict(xatol=1e-12, fatol=1e-14)).x
+        h, E = 1e-4, np.eye(2)
+        H = np.array([[(g(u + h * (E[i] + E[j])) - g(u + h * (E[i] - E[j])) - g(u - h * (E[i] - E[j]))
+                        + g(u - h * (E[i] + E[j]))) / (4 * h * h) for j in range(2)] for i in range(2)])
+        total += g(u) + 0.5 * np.log(np.linalg.det(H))
+    return -total
+
+
+def test_theophylline_laplace_equals_the_closed_form_reference():
+    """On the classic data set, at R nlme's ML estimates (run side by side, docs/population.md), greyid's
+    Laplace marginal equals the same approximation computed from the closed-form solution."""
+    frame = pd.read_csv(shared("theophylline/Theoph.csv"))
+    model = theophylline_model()
+    data = {str(k): g[["Time", "Dose", "conc"]].reset_index(drop=True)
+            for k, g in frame.groupby("Subject", sort=False)}
+    nlme = dict(lKe=-2.4547026, lKa=0.4657295, lCl=-3.2272222, s2=0.7092536 ** 2, omega_ka=0.643583,
+                omega_cl=0.166928)
+    spec, raw = make_spec(model, {"lKa": "normal", "lCl": "normal"}, None, None, "diagonal", list(data))
+    members = _prepare_members(model, list(data), list(data.values()), spec, raw, "Time", "zoh", None, None)
+    options = population_filter(model, spec, members, None, "Time", "zoh", None, {})
+    outer = Outer(population_programs(model.structure, spec, options), members, spec)
+    assert spec.phi_names() == ["lCl", "lKa", "lKe", "s2", "omega_lKa", "omega_lCl"]
+    phi = np.array([nlme["lCl"], nlme["lKa"], nlme["lKe"], np.log(nlme["s2"]), np.log(nlme["omega_ka"]),
+                    np.log(nlme["omega_cl"])])
+    ours = -outer.value(phi)[0]
+    reference = closed_form_laplace(frame, nlme["lKe"], nlme["lKa"], nlme["lCl"], nlme["s2"], nlme["omega_ka"],
+                                    nlme["omega_cl"])
+    outer.close()
+    assert ours == pytest.approx(reference, abs=2e-4)

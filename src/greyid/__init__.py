@@ -11,14 +11,15 @@ import sys
 from .errors import DataError, ModelError, UndeterminedWarning
 
 __version__ = "0.1.0"
-__all__ = ["Model", "FitResult", "FitWarning", "load_fit", "fit_many", "FleetResult", "ModelError", "DataError",
-           "UndeterminedWarning", "__version__"]
+__all__ = ["Model", "FitResult", "FitWarning", "load_fit", "fit_many", "FleetResult", "fit_population",
+           "PopulationResult", "ModelError", "DataError", "UndeterminedWarning", "__version__"]
 
 if "jax" in sys.modules:  # JAX is in use already: make it 64-bit now, as before any work
     from . import _jax  # noqa: F401
 
 _LAZY = {"Model": "model", "FitResult": "estimate", "FitWarning": "estimate", "load_fit": "estimate",
-         "fit_many": "fleet", "FleetResult": "fleet"}
+         "fit_many": "fleet", "FleetResult": "fleet", "fit_population": "population",
+         "PopulationResult": "population"}
 
 
 def __getattr__(name):

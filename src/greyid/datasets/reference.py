@@ -40,3 +40,21 @@ def ornstein_2d_model() -> Model:
                            logsy1=-2.0, logsy2=-2.0).items():
         m.set_parameter(name, init=init, lower=-10.0, upper=10.0)
     return m
+
+
+def theophylline_model(process_noise: float = 1e-4) -> Model:
+    """One compartment with first-order absorption and elimination (Pinheiro & Bates 2000, section 6.4;
+    R's ``SSfol``) as an SDE: C' = Dose·ka·ke/Cl·e^{−ka t} − ke·C, C(0) = 0, parameters on the log scale
+    (lKe, lKa, lCl) as nlme estimates them, residual variance s2, and a small fixed process noise
+    ``sig`` so that the SDE's solution is the ODE's (the data: ../shared/data/theophylline)."""
+    m = Model("theophylline")
+    m.add_system("dC = (Dose*exp(lKa + lKe - lCl - exp(lKa)*t) - exp(lKe)*C)*dt + sig*dw1")
+    m.add_inputs("Dose")
+    m.add_observation("conc = C", variance="s2")
+    m.set_initial_state(mean={"C": 0.0}, covariance=[[0.0]])
+    m.set_parameter("lKe", init=-2.5)
+    m.set_parameter("lKa", init=0.5)
+    m.set_parameter("lCl", init=-3.0)
+    m.set_parameter("s2", init=0.5, lower=0)
+    m.set_parameter("sig", init=process_noise, fixed=True)
+    return m

@@ -6,6 +6,6 @@ likelihood (:mod:`.laplace`) and returns a :class:`PopulationResult`.
 """
 
 from .fit import PopulationWarning, fit_population
-from .result import PopulationResult
+from .result import LikelihoodRatio, PopulationResult, likelihood_ratio
 
-__all__ = ["fit_population", "PopulationResult", "PopulationWarning"]
+__all__ = ["fit_population", "PopulationResult", "PopulationWarning", "likelihood_ratio", "LikelihoodRatio"]

@@ -15,7 +15,7 @@ from that exact Hessian.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
 import jax
@@ -26,7 +26,8 @@ from ..data.prepare import as_frames
 from ..errors import DataError, ModelError
 from ..estimate.batch import pad_series
 from ..estimate.estimation import check_observed
-from ..estimate.optimize import EXACT, SCORING, VALUE, Search, run_alone, settle
+from ..estimate.objective import worker_count
+from ..estimate.optimize import EXACT, GRADIENT, VALUE, NotFiniteError, Search, run_alone
 from ..filters.accuracy import needs_substeps
 from ..filters.api import accurate_options, check_at_parameters, filter_options, prepare_datasets
 from ..fleet.fit import named_datasets, read_source
@@ -95,16 +96,16 @@ def _prepare_members(model, names, sources, spec: PopulationSpec, raw_covariates
 class Outer:
     """The outer criterion Σ_i ℓ_i(φ) with its derivatives; keeps the members' modes for warm starts."""
 
-    def __init__(self, programs: laplace.LaplacePrograms, members: Members, spec: PopulationSpec):
-        q = spec.n_random
-        self.programs, self.members = programs, members
-        self.base = tuple(jax.device_put(np.asarray(a, dtype=float)) for a in spec.base())
-        self.x = jax.device_put(members.x)
-        self.u = np.zeros((len(members.names), q))
+    def __init__(self, programs: laplace.LaplacePrograms, members: Members, spec: PopulationSpec,
+                 workers: int | None = None):
+        self.members = members
+        self.programs = laplace.MemberPrograms(programs, members.x, spec.base(), members.data,
+                                               worker_count() if workers is None else workers)
+        self.u = np.zeros((len(members.names), spec.n_random))
         self.evaluations = 0
 
     def modes(self, phi) -> laplace.Modes:
-        modes = laplace.conditional_modes(self.programs, phi, self.u, self.x, self.base, self.members.data)
+        modes = laplace.conditional_modes(self.programs, phi, self.u)
         if modes.finite.all():
             self.u = modes.u  # warm start for the next evaluation
         self.evaluations += 1
@@ -118,10 +119,16 @@ class Outer:
         if not modes.finite.all():
             n = len(phi)
             return np.full(len(modes.u), np.inf), np.full((len(modes.u), n), np.nan), modes
-        values, gradients = self.programs.gradient(jax.numpy.asarray(phi), modes.u, self.x, self.base, self.members.data)
+        values, gradients = self.programs.gradient(phi, modes.u)
         return np.asarray(values), np.asarray(gradients), modes
 
+    def value_and_gradient(self, phi):
+        values, gradients, _ = self.member_gradients(phi)
+        return float(np.sum(values)), gradients.sum(axis=0)
+
     def scoring(self, phi):
+        """(Σℓ_i, Σ∇ℓ_i, Σ∇ℓ_i∇ℓ_iᵀ): the members' outer-product information, positive semi-definite
+        and about the Hessian near the optimum where the members are many and the model right."""
         values, gradients, _ = self.member_gradients(phi)
         return float(np.sum(values)), gradients.sum(axis=0), gradients.T @ gradients
 
@@ -130,14 +137,92 @@ class Outer:
         if not np.all(np.isfinite(values)):
             n = len(phi)
             return np.inf, np.full(n, np.nan), np.full((n, n), np.nan)
-        hessians = np.asarray(self.programs.hessian(jax.numpy.asarray(phi), modes.u, self.x, self.base, self.members.data))
-        H = hessians.sum(axis=0)
+        H = np.asarray(self.programs.hessian(phi, modes.u)).sum(axis=0)
         return float(np.sum(values)), gradients.sum(axis=0), 0.5 * (H + H.T)
+
+    def close(self):
+        self.programs.close()
+
+
+def population_filter(model, spec: PopulationSpec, members: Members, method, time, hold, time_unit, options):
+    """The filter's settings: as given, with as many sub-steps as accuracy needs at the start (chosen on the
+    first member, as model.fit chooses them, see greyid.filters.accuracy) where none are given."""
+    structure = model.structure
+    settings = {k: v for k, v in options.items() if v is not None}
+    if settings.get("substeps") is None and needs_substeps(structure):
+        first = prepare_datasets(structure, spec.theta0, members.frames[0], time, hold, time_unit, check=False)
+        settings.pop("substeps", None)
+        return accurate_options(structure, spec.theta0, first, method, **settings)[0]
+    return filter_options(structure, method, **settings)
+
+
+def population_programs(structure, spec: PopulationSpec, options) -> laplace.LaplacePrograms:
+    """The compiled programs of this population problem, built once per model structure."""
+    key = ("population", options, spec.key())
+    if key not in structure.cache:
+        structure.cache[key] = laplace.build(structure, spec, options)
+    return structure.cache[key]
+
+
+#: Data sets fitted together (their parameters shared) for the population search's start.
+POOLED_MEMBERS = 8
+
+
+def _pooled_start(model, names, sources, init, settings) -> dict | None:
+    """The free parameters' estimates from a fit to the first few data sets together, or ``init``
+    where that fit fails (the population search then starts from the initial values)."""
+    frames = []
+    for source in sources:
+        try:
+            frames.append(rename_columns(read_source(source), settings.get("columns")))
+        except (DataError, ModelError):
+            continue
+        if len(frames) == POOLED_MEMBERS:
+            break
+    settings = {k: v for k, v in settings.items() if v is not None and k != "columns"}
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            fit = model.fit(frames, init=init, **settings)
+    except (DataError, ModelError):
+        return init
+    free = [n for n in model.parameter_names if not fit.params.loc[n, "fixed"]]
+    values = dict(init or {})
+    for name in free:  # where the pooled fit ends at a bound or fails, the initial value stays
+        value, row = float(fit.params.loc[name, "estimate"]), fit.params.loc[name]
+        inside = np.isfinite(value) and not row["at_bound"]
+        inside &= (pd.isna(row["lower_bound"]) or value > row["lower_bound"])
+        inside &= (pd.isna(row["upper_bound"]) or value < row["upper_bound"])
+        if inside:
+            values[name] = value
+    return values
+
+
+def _search(outer: Outer, phi0: np.ndarray, maxiter: int):
+    """The maximum of Σ_i ℓ_i: quasi-Newton (BFGS) steps on exact gradients, from the members'
+    outer-product information at the start, in greyid's trust region; then the exact Hessian, and
+    Newton steps on it until the Newton decrement vanishes (usually none: the BFGS optimum is the
+    optimum to the criterion's precision).  The exact Hessian costs about forty gradients (100
+    houses: 20 s against 0.6 s), so the search takes it only at the end."""
+    try:
+        _, gradients, _ = outer.member_gradients(phi0)
+        if not np.all(np.isfinite(gradients)):
+            raise NotFiniteError("not finite")
+        first = Search(phi0, maxiter, hessian=gradients.T @ gradients)
+        optimum = run_alone(first, {GRADIENT: outer.value_and_gradient})
+    except NotFiniteError:
+        raise ModelError("the Laplace marginal likelihood is not finite at the initial values (a member's "
+                         "filter fails there): give other initial values (init=...) or omega_init") from None
+    final = Search(optimum.z, max(maxiter - optimum.iterations, 1), scoring=False, value=True)
+    polished = run_alone(final, {EXACT: outer.exact, VALUE: outer.value})
+    return replace(polished, iterations=optimum.iterations + polished.iterations,
+                   evaluations=optimum.evaluations + polished.evaluations)
 
 
 def fit_population(model, datasets, random, covariates: pd.DataFrame | None = None, effects=None,
                    omega: str = "diagonal", time: str | None = None, hold: str | None = None,
-                   method: str | None = None, init=None, omega_init=None, maxiter: int = 200,
+                   method: str | None = None, init=None, omega_init=None, start: str = "pooled",
+                   maxiter: int = 200,
                    progress=False, **options):
     """Fit a population (nonlinear mixed-effects) SDE model to many data sets; a :class:`PopulationResult`.
 
@@ -151,6 +236,12 @@ def fit_population(model, datasets, random, covariates: pd.DataFrame | None = No
     without a random effect are shared by all members.  The marginal likelihood is
     the Laplace approximation over each member's η (exact where η enters the
     outputs linearly in a linear Gaussian model); see :mod:`greyid.population`.
+
+    The search starts from the typical values of a fit of the model to the first
+    :data:`POOLED_MEMBERS` data sets together (``start="pooled"``; from ``init`` or
+    the model's initial values where that fit fails) or, with ``start="init"``,
+    from the initial values themselves; ω starts at ``omega_init`` (default 0.3 on
+    the log scale, 30 % of the typical value on the natural scale).
     """
     from .result import PopulationResult
 
@@ -166,30 +257,28 @@ def fit_population(model, datasets, random, covariates: pd.DataFrame | None = No
     time = time or settings.get("time") or "t"
     hold = hold or settings.get("hold") or "zoh"
     method = method or settings.get("method")
+    columns = columns or settings.get("columns")
+    make_spec(model, random, covariates, effects, omega, names, init, omega_init)  # bad input named first
+    if start == "pooled":
+        init = _pooled_start(model, names, sources, init, dict(time=time, hold=hold, method=method,
+                                                               time_unit=time_unit, columns=columns, **options))
+    elif start != "init":
+        raise ModelError(f"start is '{start}'; use 'pooled' (a fit to a few members' data together) or 'init' "
+                         "(the model's initial values)")
     spec, raw = make_spec(model, random, covariates, effects, omega, names, init, omega_init)
-    members = _prepare_members(model, names, sources, spec, raw, time, hold, time_unit,
-                               columns or settings.get("columns"))
+    members = _prepare_members(model, names, sources, spec, raw, time, hold, time_unit, columns)
     structure = model.structure
-    filter_settings = {k: v for k, v in options.items() if v is not None}
-    if filter_settings.get("substeps") is None and needs_substeps(structure):
-        first = prepare_datasets(structure, spec.theta0, members.frames[0], time, hold, time_unit, check=False)
-        filter_settings.pop("substeps", None)
-        fo, _ = accurate_options(structure, spec.theta0, first, method, **filter_settings)
-    else:
-        fo = filter_options(structure, method, **filter_settings)
-    key = ("population", fo, spec.key())
-    if key not in structure.cache:
-        structure.cache[key] = laplace.build(structure, spec, fo)
-    programs = structure.cache[key]
-    outer = Outer(programs, members, spec)
+    fo = population_filter(model, spec, members, method, time, hold, time_unit, options)
+    outer = Outer(population_programs(structure, spec, fo), members, spec)
     phi0 = spec.phi0()
-    search = Search(phi0, maxiter, scoring=True, value=True)
-    evaluate = {VALUE: outer.value, SCORING: outer.scoring, EXACT: outer.exact}
-    optimum = run_alone(search, {k: (lambda f: (lambda z: f(z)))(f) for k, f in evaluate.items()})
-    modes = outer.modes(optimum.z)
+    try:
+        optimum = _search(outer, phi0, maxiter)
+        modes = outer.modes(optimum.z)
+    finally:
+        outer.close()
     call = dict(time=time, hold=hold, method=fo.method, form=fo.form, substeps=fo.substeps,
                 iterations=fo.iterations, time_unit=time_unit, omega=omega)
-    return PopulationResult.from_optimum(model, spec, members, optimum, modes, programs, call)
+    return PopulationResult.from_optimum(model, spec, members, optimum, modes, call)
 
 
-__all__ = ["fit_population", "PopulationWarning", "settle"]
+__all__ = ["fit_population", "PopulationWarning"]

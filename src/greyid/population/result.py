@@ -79,7 +79,7 @@ class PopulationResult:
         self._build_random_effects()
 
     @classmethod
-    def from_optimum(cls, model, spec, members, optimum, modes, programs, call):
+    def from_optimum(cls, model, spec, members, optimum, modes, call):
         from .laplace import laplace_values
 
         call = dict(call, loglik=-float(np.sum(laplace_values(modes))))
@@ -180,6 +180,59 @@ class PopulationResult:
             out[name] = 1.0 - np.std(eta, ddof=1) / omega if len(eta) > 1 else np.nan
         return pd.Series(out, name="shrinkage")
 
+    def member(self, name):
+        """That member's :class:`~greyid.estimate.FitResult` at its individual parameters: the random
+        parameters at their conditional modes (standard errors conditional on the population parameters),
+        the others at the population estimates (their population standard errors); residual tests,
+        predictions and plots work on it as on any fit.  Its ``loglik`` is the member's own
+        log-likelihood at these parameters."""
+        from ..estimate.results import FitResult
+
+        if name not in self.frames:
+            known = ", ".join(map(str, self.names[:10]))
+            why = f" (left out: {self.left_out[name]})" if name in self.left_out else ""
+            raise KeyError(f"'{name}' is not a member of this population fit{why}; members: {known}"
+                           + (" ..." if len(self.names) > 10 else ""))
+        spec, k = self.spec, self.names.index(name)
+        theta = self.individual.loc[name].to_numpy(dtype=float)
+        frames = self.frames[name]
+        settings = dict(self.call)
+        settings.pop("loglik", None)
+        rule = {kk: settings[kk] for kk in ("time", "hold", "method", "form", "substeps", "iterations")}
+        if settings.get("time_unit"):
+            rule["time_unit"] = settings["time_unit"]
+        values = dict(zip(spec.names, theta))
+        loglik = self.model.loglik(values, frames[0], **rule)
+        declared = self.model.parameters
+        rows, free_names = [], []
+        for i, pname in enumerate(spec.names):
+            p = declared.get(pname)
+            free = i in spec.free
+            if i in spec.random:
+                se = float(self.random_effects.loc[name, f"{pname}_se"])
+            elif free and pname in self.params.index:
+                se = float(self.params.loc[pname, "std_error"])
+            else:
+                se = np.nan
+            if free:
+                free_names.append(pname)
+            rows.append(dict(name=pname, estimate=theta[i], std_error=se, t_value=np.nan, p_value=np.nan,
+                             lower_bound=None if p is None else p.lower, upper_bound=None if p is None else p.upper,
+                             fixed=not free, at_bound=False, reliable=True, gradient=np.nan))
+        params = pd.DataFrame(rows).set_index("name")
+        params.index.name = None
+        for col in ("lower_bound", "upper_bound"):
+            params[col] = params[col].astype(float)
+        se = params.loc[free_names, "std_error"].to_numpy(dtype=float)
+        cov = pd.DataFrame(np.diag(se ** 2), index=free_names, columns=free_names)
+        settings.update(criterion="ml", robust=None, horizon=1, starts=1, optimizer="population", prior=None,
+                        cov_type="hessian", substep_note=None, substeps_accurate=None, start_labels=[])
+        n_obs = int(self._members.n_obs[k])
+        return FitResult(model=self.model, params=params, cov=cov, loglik=float(loglik), criterion_value=float(loglik),
+                         n_obs=n_obs, converged=self.converged,
+                         message=f"member '{name}' of a population fit ({self.message})",
+                         iterations=self.iterations, settings=settings, data=frames)
+
     def summary(self) -> str:
         spec = self.spec
         lines = [f"Population fit of model {self.model.name}: {self.n_members} data sets, {self.n_obs} observations",
@@ -204,3 +257,47 @@ class PopulationResult:
 
     def __repr__(self) -> str:
         return self.summary()
+
+
+class LikelihoodRatio:
+    """A likelihood-ratio test between nested population models (:func:`likelihood_ratio`)."""
+
+    def __init__(self, statistic, df, p_value, variances, note):
+        self.statistic, self.df, self.p_value, self.variances, self.note = statistic, df, p_value, variances, note
+
+    def __repr__(self) -> str:
+        return (f"likelihood ratio {self.statistic:.4f} on {self.df} parameter(s), p = {self.p_value:.4g}"
+                + (f"\n{self.note}" if self.note else ""))
+
+
+def likelihood_ratio(restricted: PopulationResult, general: PopulationResult) -> LikelihoodRatio:
+    """Test ``restricted`` against ``general`` (which adds random effects, correlations or covariate
+    effects to it), both fitted to the same data sets.
+
+    LR = 2(ℓ_general − ℓ_restricted).  Where the general model adds k variances (random effects) that
+    the restricted one holds at 0 — a value on the boundary of their range — LR is not χ²_df but the
+    mixture Σ_j C(k, j)/2^k χ²_{df−k+j} (Self & Liang 1987; for one variance ½χ²_{df−1} + ½χ²_df); the
+    p-value says which it used.
+    """
+    from scipy.special import comb
+
+    small, large = restricted.spec.phi_names(), general.spec.phi_names()
+    extra = [n for n in large if n not in small]
+    if [n for n in small if n not in large] or not extra:
+        raise ValueError("the general model must hold every population parameter of the restricted one and more "
+                         f"(restricted: {small}; general: {large})")
+    if restricted.names != general.names or restricted.n_obs != general.n_obs:
+        raise ValueError("the two population models were not fitted to the same data sets")
+    statistic = max(2.0 * (general.loglik - restricted.loglik), 0.0)
+    df = len(extra)
+    k = sum(1 for n in extra if n.startswith("omega_"))
+    if k == 0:
+        return LikelihoodRatio(statistic, df, float(stats.chi2.sf(statistic, df)), 0, "")
+    p = 0.0
+    for j in range(k + 1):
+        degrees = df - k + j
+        tail = (1.0 if statistic <= 0 else 0.0) if degrees == 0 else float(stats.chi2.sf(statistic, degrees))
+        p += comb(k, j) / 2 ** k * tail
+    note = (f"{k} variance(s) tested at 0, on the boundary of their range: p from the mixture "
+            f"{' + '.join(f'{comb(k, j) / 2 ** k:g}·χ²_{df - k + j}' for j in range(k + 1))} (Self & Liang 1987)")
+    return LikelihoodRatio(statistic, df, p, k, note)
