@@ -239,6 +239,7 @@ class PopulationResult:
                  f"log-likelihood (Laplace) {self.loglik:.6f}   AIC {self.aic:.4f}   BIC {self.bic:.4f}   "
                  f"{self.n_params} population parameters",
                  f"converged: {self.converged} ({self.message}), {self.iterations} iterations",
+                 f"filter: {self.call['method']}, {self.call['substeps']} sub-step(s) per sampling interval",
                  "random effects: " + ", ".join(f"{spec.names[i]} {k}" for i, k in zip(spec.random, spec.kinds))
                  + f"; Ω {'full' if spec.full else 'diagonal'}"]
         if spec.covariates:
