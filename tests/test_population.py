@@ -334,3 +334,26 @@ def test_theophylline_laplace_equals_the_closed_form_reference():
                                     nlme["omega_cl"])
     outer.close()
     assert ours == pytest.approx(reference, abs=2e-4)
+
+
+def test_saved_fit_loads_with_the_same_tables(gain_problem, gain_fit, tmp_path):
+    """save/load keeps the estimates, standard errors, random effects and the summary; member() needs
+    the data back where they were DataFrames, and says so; a damaged file is named."""
+    from greyid.population import load_population
+
+    model, _, datasets = gain_problem
+    path = tmp_path / "population.json"
+    gain_fit.save(path)
+    loaded = load_population(path)
+    pd.testing.assert_frame_equal(loaded.params, gain_fit.params)
+    pd.testing.assert_frame_equal(loaded.random_effects, gain_fit.random_effects)
+    assert loaded.loglik == gain_fit.loglik and loaded.summary() == gain_fit.summary()
+    with pytest.raises(KeyError, match="not in the saved fit"):
+        loaded.member("unit2")
+    again = load_population(path, data=datasets)
+    assert again.member("unit2").loglik == pytest.approx(gain_fit.member("unit2").loglik, rel=1e-12)
+    path.write_text('{"format": "greyid population fit", "version": 1}')
+    with pytest.raises(greyid.DataError, match="damaged population fit file"):
+        load_population(path)
+    with pytest.raises(greyid.DataError, match="not found"):
+        load_population(tmp_path / "missing.json")

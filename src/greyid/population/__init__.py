@@ -7,5 +7,7 @@ likelihood (:mod:`.laplace`) and returns a :class:`PopulationResult`.
 
 from .fit import PopulationWarning, fit_population
 from .result import LikelihoodRatio, PopulationResult, likelihood_ratio
+from .saved import load_population
 
-__all__ = ["fit_population", "PopulationResult", "PopulationWarning", "likelihood_ratio", "LikelihoodRatio"]
+__all__ = ["fit_population", "PopulationResult", "PopulationWarning", "likelihood_ratio", "LikelihoodRatio",
+           "load_population"]

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
 import jax
@@ -278,7 +279,10 @@ def fit_population(model, datasets, random, covariates: pd.DataFrame | None = No
         outer.close()
     call = dict(time=time, hold=hold, method=fo.method, form=fo.form, substeps=fo.substeps,
                 iterations=fo.iterations, time_unit=time_unit, omega=omega)
-    return PopulationResult.from_optimum(model, spec, members, optimum, modes, call)
+    result = PopulationResult.from_optimum(model, spec, members, optimum, modes, call)
+    result.sources = {n: str(src) for n, src in zip(names, sources) if isinstance(src, (str, Path))
+                      and n in result.frames}
+    return result
 
 
 __all__ = ["fit_population", "PopulationWarning"]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pandas as pd
 from scipy import stats
@@ -66,6 +68,7 @@ class PopulationResult:
         self.model, self.spec, self.call = model, spec, call
         self.names = list(members.names)
         self.frames = dict(zip(members.names, members.frames))
+        self.sources = {}  # name -> CSV path, for the members read from files
         self.left_out = dict(members.left_out)
         self.n_obs = int(np.sum(members.n_obs))
         self.n_members = len(members.names)
@@ -196,6 +199,13 @@ class PopulationResult:
         spec, k = self.spec, self.names.index(name)
         theta = self.individual.loc[name].to_numpy(dtype=float)
         frames = self.frames[name]
+        if frames is None and name in self.sources:
+            from ..fleet.fit import read_source
+
+            frames = self.frames[name] = [read_source(self.sources[name])]
+        if frames is None:
+            raise KeyError(f"the data of member '{name}' are not in the saved fit; "
+                           "load_population(path, data={name: DataFrame, ...}) gives them")
         settings = dict(self.call)
         settings.pop("loglik", None)
         rule = {kk: settings[kk] for kk in ("time", "hold", "method", "form", "substeps", "iterations")}
@@ -232,6 +242,13 @@ class PopulationResult:
                          n_obs=n_obs, converged=self.converged,
                          message=f"member '{name}' of a population fit ({self.message})",
                          iterations=self.iterations, settings=settings, data=frames)
+
+    def save(self, path) -> None:
+        """Write the fit as JSON (see :mod:`.saved`), atomically."""
+        from ..outputs import write_atomic
+        from .saved import population_to_dict
+
+        write_atomic(path, json.dumps(population_to_dict(self), indent=1))
 
     def summary(self) -> str:
         spec = self.spec
