@@ -357,3 +357,37 @@ def test_saved_fit_loads_with_the_same_tables(gain_problem, gain_fit, tmp_path):
         load_population(path)
     with pytest.raises(greyid.DataError, match="not found"):
         load_population(tmp_path / "missing.json")
+
+
+def test_command_line_population(nonlinear_problem, tmp_path, capsys):
+    """`greyid population MODEL FOLDER --random ... --covariates ... --effect ...`: the summary, the files
+    of --out; bad input exits 2 with the problem named."""
+    from greyid.cli import main
+
+    m, data, covariates, *_ = nonlinear_problem
+    model_file = tmp_path / "decay.toml"
+    model_file.write_text(m.to_toml())
+    folder = tmp_path / "houses"
+    folder.mkdir()
+    for name, frame in data.items():
+        frame.to_csv(folder / f"{name}.csv", index=False)
+    table = tmp_path / "covariates.csv"
+    covariates.rename_axis("house").to_csv(table)
+    out = tmp_path / "out"
+    code = main(["population", str(model_file), str(folder), "--random", "a:lognormal", "--covariates", str(table),
+                 "--effect", "b:area", "--out", str(out), "-q"])
+    printed = capsys.readouterr().out
+    assert code == 0 and "omega_a" in printed and "beta_b_area" in printed
+    assert {p.name for p in out.iterdir()} >= {"population.json", "summary.txt", "parameters.csv",
+                                                "random_effects.csv"}
+    from greyid.population import load_population
+
+    loaded = load_population(out / "population.json")
+    assert loaded.member("h3").n_obs == 40  # the members' CSV paths are kept
+    assert main(["population", str(model_file), str(folder), "--random", "a:gamma", "-q"]) == 2
+    assert "'gamma'" in capsys.readouterr().err
+    assert main(["population", str(model_file), str(tmp_path / "none"), "--random", "a:lognormal", "-q"]) == 2
+    assert "not found" in capsys.readouterr().err
+    assert main(["population", str(model_file), str(folder), "--random", "a:lognormal", "--effect", "b:area",
+                 "-q"]) == 2
+    assert "--effect needs --covariates" in capsys.readouterr().err

@@ -219,6 +219,104 @@ def fit(model: str = typer.Argument(..., help="model file (.toml) or library mod
     _run(command)
 
 
+def _pairs(values: list[str], option: str, what: str) -> dict:
+    """``NAME:VALUE`` options as a mapping (several values of one name gathered in a list for effects)."""
+    out: dict = {}
+    for text in values:
+        name, sep, value = text.partition(":")
+        if not sep or not name or not value:
+            raise InputProblem(f"{option} '{text}': write {what}")
+        out.setdefault(name, []).append(value)
+    return out
+
+
+def _population_data(paths: list[Path]) -> dict:
+    """Name → CSV path: each file given, and each CSV file of each folder given (named by the file's stem)."""
+    files: dict = {}
+    for path in paths:
+        if path.is_dir():
+            found = sorted(path.glob("*.csv"))
+            if not found:
+                raise InputProblem(f"data folder '{path}' holds no .csv file")
+            members = found
+        elif path.is_file():
+            members = [path]
+        else:
+            raise InputProblem(f"data file or folder '{path}' not found")
+        for file in members:
+            if file.stem in files:
+                raise InputProblem(f"two data files are named '{file.stem}' ({files[file.stem]} and {file}); "
+                                   "the members' names must be unique")
+            files[file.stem] = file
+    return files
+
+
+@app.command(name="population")
+def population_command(
+        model: str = typer.Argument(..., help="model file (.toml) or library model name"),
+        data: list[Path] = typer.Argument(..., help="a folder of CSV files (a data set each) or several CSV files"),
+        random: list[str] = typer.Option(..., "--random", help="PARAMETER:normal or PARAMETER:lognormal (repeat)"),
+        covariates: Optional[Path] = typer.Option(None, help="CSV with a row per data set (first column: the "
+                                                              "data sets' names, i.e. the files' stems)"),
+        effect: list[str] = typer.Option([], "--effect", help="PARAMETER:COVARIATE, a covariate effect (repeat)"),
+        omega: str = typer.Option("diagonal", help="diagonal or full (correlated random effects)"),
+        method: Optional[str] = typer.Option(None, help="filter: kalman, ekf, iekf, ekf2, ukf, gaussian2, truncated2"),
+        hold: Optional[str] = typer.Option(None, help="input hold between samples: zoh or foh"),
+        time_column: Optional[str] = typer.Option(None, "--time", help="name of the time column"),
+        out_dir: Optional[Path] = typer.Option(None, "--out", help="folder for population.json, summary.txt, "
+                                                                   "parameters.csv, random_effects.csv"),
+        quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress output")):
+    """Fit a population (mixed-effects) model to many data sets and print its summary (docs/population.md)."""
+
+    def command() -> int:
+        if out_dir is not None:
+            check_output_folder(out_dir)
+        files = _population_data(data)
+        kinds = {name: values[-1] for name, values in _pairs(random, "--random", "PARAMETER:normal or "
+                                                              "PARAMETER:lognormal").items()}
+        effects = _pairs(effect, "--effect", "PARAMETER:COVARIATE")
+        table = None
+        if covariates is not None:
+            from .model.files import read_csv_file
+
+            if not covariates.is_file():
+                raise InputProblem(f"covariates file '{covariates}' not found")
+            table = read_csv_file(covariates)
+            table = table.set_index(table.columns[0])
+            table.index = table.index.map(str)
+        elif effects:
+            raise InputProblem("--effect needs --covariates FILE.csv")
+        m, _ = load_model_or_fit(model)
+        if not quiet:
+            err.print(f"fitting the population of '{m.name}' to {len(files)} data sets")
+        started = time.perf_counter()
+        import warnings
+
+        from .population import PopulationWarning, fit_population
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", PopulationWarning)  # the summary lists the members left out
+            result = fit_population(m, files, kinds, covariates=table, effects=effects or None, omega=omega,
+                                    time=time_column, hold=hold, method=method)
+        if not quiet:
+            err.print(f"fitted in {time.perf_counter() - started:.2f} s")
+        out.print(result.summary())
+        if out_dir is not None:
+            import json
+
+            from .outputs import write_generation
+            from .population.saved import population_to_dict
+
+            files_out = {"population.json": json.dumps(population_to_dict(result), indent=1),
+                         "summary.txt": result.summary() + "\n", "parameters.csv": result.params.to_csv(),
+                         "random_effects.csv": result.random_effects.to_csv()}
+            write_generation(out_dir, files_out)
+            err.print(f"wrote {', '.join(files_out)} to {out_dir}")
+        return OK if result.converged else VERDICT
+
+    _run(command)
+
+
 @app.command()
 def simulate(model: str = typer.Argument(..., help="model file, fit file (.json) or library model name"),
              data: Optional[Path] = typer.Argument(None, help="CSV with the time column and the inputs"),
