@@ -391,3 +391,14 @@ def test_command_line_population(nonlinear_problem, tmp_path, capsys):
     assert main(["population", str(model_file), str(folder), "--random", "a:lognormal", "--effect", "b:area",
                  "-q"]) == 2
     assert "--effect needs --covariates" in capsys.readouterr().err
+    # The same settings from the model file's [population] table (covariates relative to the file).
+    m.set_population(random={"a": "lognormal"}, effects={"b": ["area"]}, covariates="covariates.csv")
+    with_table = tmp_path / "decay_population.toml"
+    with_table.write_text(m.to_toml())
+    assert "[population]" in with_table.read_text()
+    code = main(["population", str(with_table), str(folder), "--out", str(tmp_path / "again"), "-q"])
+    assert code == 0
+    first = pd.read_csv(out / "parameters.csv", index_col=0)
+    again = pd.read_csv(tmp_path / "again" / "parameters.csv", index_col=0)
+    np.testing.assert_allclose(again["estimate"], first["estimate"], rtol=1e-10)
+    m.population.clear()

@@ -255,11 +255,13 @@ def _population_data(paths: list[Path]) -> dict:
 def population_command(
         model: str = typer.Argument(..., help="model file (.toml) or library model name"),
         data: list[Path] = typer.Argument(..., help="a folder of CSV files (a data set each) or several CSV files"),
-        random: list[str] = typer.Option(..., "--random", help="PARAMETER:normal or PARAMETER:lognormal (repeat)"),
+        random: list[str] = typer.Option([], "--random", help="PARAMETER:normal or PARAMETER:lognormal (repeat; "
+                                                              "default: the model file's [population] random)"),
         covariates: Optional[Path] = typer.Option(None, help="CSV with a row per data set (first column: the "
                                                               "data sets' names, i.e. the files' stems)"),
         effect: list[str] = typer.Option([], "--effect", help="PARAMETER:COVARIATE, a covariate effect (repeat)"),
-        omega: str = typer.Option("diagonal", help="diagonal or full (correlated random effects)"),
+        omega: Optional[str] = typer.Option(None, help="diagonal or full (correlated random effects; default: "
+                                                       "the model file's, else diagonal)"),
         method: Optional[str] = typer.Option(None, help="filter: kalman, ekf, iekf, ekf2, ukf, gaussian2, truncated2"),
         hold: Optional[str] = typer.Option(None, help="input hold between samples: zoh or foh"),
         time_column: Optional[str] = typer.Option(None, "--time", help="name of the time column"),
@@ -275,18 +277,15 @@ def population_command(
         kinds = {name: values[-1] for name, values in _pairs(random, "--random", "PARAMETER:normal or "
                                                               "PARAMETER:lognormal").items()}
         effects = _pairs(effect, "--effect", "PARAMETER:COVARIATE")
+        m, _ = load_model_or_fit(model)
         table = None
         if covariates is not None:
-            from .model.files import read_csv_file
+            from .population.fit import read_covariates
 
-            if not covariates.is_file():
-                raise InputProblem(f"covariates file '{covariates}' not found")
-            table = read_csv_file(covariates)
-            table = table.set_index(table.columns[0])
-            table.index = table.index.map(str)
-        elif effects:
-            raise InputProblem("--effect needs --covariates FILE.csv")
-        m, _ = load_model_or_fit(model)
+            table = read_covariates(covariates)
+        elif effects and not m.population.get("covariates"):
+            raise InputProblem("--effect needs --covariates FILE.csv (or covariates = \"...\" in the model "
+                               "file's [population])")
         if not quiet:
             err.print(f"fitting the population of '{m.name}' to {len(files)} data sets")
         started = time.perf_counter()
@@ -296,7 +295,7 @@ def population_command(
 
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", PopulationWarning)  # the summary lists the members left out
-            result = fit_population(m, files, kinds, covariates=table, effects=effects or None, omega=omega,
+            result = fit_population(m, files, kinds or None, covariates=table, effects=effects or None, omega=omega,
                                     time=time_column, hold=hold, method=method)
         if not quiet:
             err.print(f"fitted in {time.perf_counter() - started:.2f} s")

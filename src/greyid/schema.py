@@ -105,6 +105,7 @@ MODEL_SECTIONS = {
     "data": DATA_KEYS + FILE_KEYS,
     "filter": FILTER_KEYS,
     "estimation": ESTIMATION_KEYS,
+    "population": ("random", "effects", "omega", "covariates", "omega_init"),
 }
 PARAMETER_KEYS = ("init", "lower", "upper", "fixed", "prior")
 OBSERVATION_KEYS = ("equation", "variance")

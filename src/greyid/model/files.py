@@ -104,6 +104,7 @@ def model_to_dict(model) -> dict:
         "derived": model.derived,
         "units": model.units,
         "options": options,
+        "population": dict(model.population),
     }
 
 
@@ -133,6 +134,8 @@ def model_from_dict(spec: Mapping, cls=None):
     if spec.get("units"):
         m.set_units(spec["units"])
     m.set_options(**spec.get("options", {}))
+    if spec.get("population"):
+        m.set_population(**spec["population"])
     return m
 
 
@@ -164,6 +167,7 @@ def spec_from_toml(document: Mapping) -> dict:
         "units": dict(document.get("units", {})),
         "observation_covariance": model.get("observation_covariance"),
         "options": options,
+        "population": dict(document.get("population", {})),
     }
 
 
@@ -259,6 +263,8 @@ def model_to_toml(model) -> str:
         lines += ["", "[derived]"] + [f"{_key(k)} = {_value(v)}" for k, v in spec["derived"].items()]
     if spec.get("units"):
         lines += ["", "[units]"] + [f"{_key(k)} = {_value(v)}" for k, v in spec["units"].items()]
+    if spec.get("population"):
+        lines += ["", "[population]"] + [f"{_key(k)} = {_value(v)}" for k, v in spec["population"].items()]
     options = spec["options"]
     for section in ("data", "filter", "estimation"):
         keys = MODEL_SECTIONS[section]

@@ -57,6 +57,7 @@ class Model:
         self._units: dict[str, str] = {}
         self.nested_start = None  # rule for starting from a smaller model's fit (set_nested_start)
         self.source = None  # the model file this model was read from, if any
+        self.population: dict = {}  # fit_population's defaults (set_population, a model file's [population])
 
     # ------------------------------------------------------------------ building
     def _changed(self) -> None:
@@ -195,6 +196,23 @@ class Model:
             raise ModelError(f"derived quantity name {name!r} must be a non-empty string")
         parse_expression(expression, f"derived quantity '{name}'")
         self._derived[name] = expression
+        return self
+
+    def set_population(self, random=None, effects=None, omega=None, covariates=None, omega_init=None) -> "Model":
+        """Defaults of :func:`greyid.fit_population` for this model (a model file's ``[population]``):
+        ``random`` {parameter: "normal" | "lognormal"}, ``effects`` {parameter: [covariate, ...]},
+        ``omega`` "diagonal" | "full", ``covariates`` a CSV file with a row per data set (first
+        column: the data sets' names; relative to the model file), ``omega_init`` {parameter: sd}."""
+        from ..errors import ModelError
+
+        given = dict(random=random, effects=effects, omega=omega, covariates=covariates, omega_init=omega_init)
+        checks = dict(random=Mapping, effects=Mapping, omega=str, covariates=str, omega_init=Mapping)
+        for key, value in given.items():
+            if value is not None and not isinstance(value, checks[key]):
+                kind = "a table" if checks[key] is Mapping else "a string"
+                raise ModelError(f"[population] {key} must be {kind}, got {value!r}")
+        self.population.update({k: (dict(v) if isinstance(v, Mapping) else v) for k, v in given.items()
+                                if v is not None})
         return self
 
     def set_units(self, units: Mapping[str, str]) -> "Model":

@@ -165,6 +165,19 @@ def population_programs(structure, spec: PopulationSpec, options) -> laplace.Lap
     return structure.cache[key]
 
 
+def read_covariates(path) -> pd.DataFrame:
+    """A covariates CSV file: a row per data set, its first column the data sets' names."""
+    from ..model.files import read_csv_file
+
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"covariates file '{path}' not found")
+    table = read_csv_file(path)
+    table = table.set_index(table.columns[0])
+    table.index = table.index.map(str)
+    return table
+
+
 #: Data sets fitted together (their parameters shared) for the population search's start.
 POOLED_MEMBERS = 8
 
@@ -220,8 +233,8 @@ def _search(outer: Outer, phi0: np.ndarray, maxiter: int):
                    evaluations=optimum.evaluations + polished.evaluations)
 
 
-def fit_population(model, datasets, random, covariates: pd.DataFrame | None = None, effects=None,
-                   omega: str = "diagonal", time: str | None = None, hold: str | None = None,
+def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None = None, effects=None,
+                   omega: str | None = None, time: str | None = None, hold: str | None = None,
                    method: str | None = None, init=None, omega_init=None, start: str = "pooled",
                    maxiter: int = 200,
                    progress=False, **options):
@@ -237,6 +250,9 @@ def fit_population(model, datasets, random, covariates: pd.DataFrame | None = No
     without a random effect are shared by all members.  The marginal likelihood is
     the Laplace approximation over each member's η (exact where η enters the
     outputs linearly in a linear Gaussian model); see :mod:`greyid.population`.
+    ``random``, ``effects``, ``omega``, ``covariates`` (a CSV file's path) and
+    ``omega_init`` not given are the model's (:meth:`~greyid.Model.set_population`,
+    a model file's ``[population]`` table).
 
     The search starts from the typical values of a fit of the model to the first
     :data:`POOLED_MEMBERS` data sets together (``start="pooled"``; from ``init`` or
@@ -249,6 +265,20 @@ def fit_population(model, datasets, random, covariates: pd.DataFrame | None = No
     names, sources = named_datasets(datasets)
     if len(set(map(str, names))) != len(names):
         raise DataError("the data sets' names must be unique")
+    defaults = getattr(model, "population", {}) or {}
+    random = defaults.get("random") if random is None else random
+    if random is None:
+        raise ModelError("no random effects: give random={'parameter': 'normal' or 'lognormal', ...} or a "
+                         "[population] table with random = { ... } in the model file")
+    effects = defaults.get("effects") if effects is None else effects
+    omega = defaults.get("omega", "diagonal") if omega is None else omega
+    omega_init = defaults.get("omega_init") if omega_init is None else omega_init
+    if covariates is None and defaults.get("covariates"):
+        covariates = defaults["covariates"]
+        if getattr(model, "source", None) is not None and not Path(covariates).is_absolute():
+            covariates = Path(model.source).parent / covariates
+    if isinstance(covariates, (str, Path)):
+        covariates = read_covariates(covariates)
     unknown = set(options) - set(FILTER_OPTIONS) - {"time_unit", "columns"}
     if unknown:
         raise ModelError(f"fit_population does not take '{sorted(unknown)[0]}'; it takes time, hold, method, init, "
