@@ -402,3 +402,17 @@ def test_command_line_population(nonlinear_problem, tmp_path, capsys):
     again = pd.read_csv(tmp_path / "again" / "parameters.csv", index_col=0)
     np.testing.assert_allclose(again["estimate"], first["estimate"], rtol=1e-10)
     m.population.clear()
+
+
+def test_predict_a_new_data_set_with_the_population_as_prior(gain_problem, gain_fit):
+    """A data set given anew gets the conditional mode and SE its member has in the fit (same φ, same data),
+    and a FitResult that predicts."""
+    _, _, datasets = gain_problem
+    new = gain_fit.predict(datasets["unit2"], name="again")
+    row = gain_fit.random_effects.loc["unit2"]
+    assert new.values["b11"] == pytest.approx(row["b11"], rel=1e-9, abs=1e-12)
+    assert new.params.loc["b11", "std_error"] == pytest.approx(row["b11_se"], rel=1e-9)
+    assert new.loglik == pytest.approx(gain_fit.member("unit2").loglik, rel=1e-10)
+    assert len(new.predict()) == len(datasets["unit2"])
+    with pytest.raises(greyid.DataError, match="cannot be used"):
+        gain_fit.predict(datasets["unit2"].drop(columns="u1"))

@@ -59,7 +59,9 @@ class Members:
 
 
 def _prepare_members(model, names, sources, spec: PopulationSpec, raw_covariates, time, hold, time_unit,
-                     columns) -> Members:
+                     columns, minimum: int | None = None) -> Members:
+    """The data sets checked and stacked; at least ``minimum`` must remain (default: more than the random
+    effects, as a population fit needs)."""
     structure = model.structure
     kept, frames, inputs, rows, n_obs, left_out = [], [], [], [], [], {}
     for k, (name, source) in enumerate(zip(names, sources)):
@@ -80,10 +82,12 @@ def _prepare_members(model, names, sources, spec: PopulationSpec, raw_covariates
         inputs.append(prepared[0][1])
         rows.append(raw_covariates[k])
         n_obs.append(int(np.sum(~np.isnan(prepared[0][0].outputs))))
+    if minimum is not None and len(kept) < minimum:
+        raise DataError(f"the data set cannot be used: {next(iter(left_out.values()))}")
     for name, why in left_out.items():
         warnings.warn(f"data set '{name}' is left out of the population fit: {why}", PopulationWarning,
                       stacklevel=3)
-    if len(kept) <= max(spec.n_random, 1):
+    if minimum is None and len(kept) <= max(spec.n_random, 1):
         raise DataError(f"{len(kept)} data set(s) can be fitted, too few for a population with {spec.n_random} "
                         "random effect(s): a population fit needs more data sets than random effects")
     length = max(len(np.asarray(s.t)) for s in inputs)

@@ -196,8 +196,7 @@ class PopulationResult:
             why = f" (left out: {self.left_out[name]})" if name in self.left_out else ""
             raise KeyError(f"'{name}' is not a member of this population fit{why}; members: {known}"
                            + (" ..." if len(self.names) > 10 else ""))
-        spec, k = self.spec, self.names.index(name)
-        theta = self.individual.loc[name].to_numpy(dtype=float)
+        k = self.names.index(name)
         frames = self.frames[name]
         if frames is None and name in self.sources:
             from ..fleet.fit import read_source
@@ -206,6 +205,17 @@ class PopulationResult:
         if frames is None:
             raise KeyError(f"the data of member '{name}' are not in the saved fit; "
                            "load_population(path, data={name: DataFrame, ...}) gives them")
+        theta = self.individual.loc[name].to_numpy(dtype=float)
+        se = {self.spec.names[i]: float(self.random_effects.loc[name, f"{self.spec.names[i]}_se"])
+              for i in self.spec.random}
+        return self._fit_at(name, theta, se, frames, int(self._members.n_obs[k]), "member")
+
+    def _fit_at(self, name, theta, random_se: dict, frames, n_obs: int, what: str):
+        """A FitResult at individual parameters θ: random parameters with their conditional SEs, the
+        other free ones with their population SEs."""
+        from ..estimate.results import FitResult
+
+        spec = self.spec
         settings = dict(self.call)
         settings.pop("loglik", None)
         rule = {kk: settings[kk] for kk in ("time", "hold", "method", "form", "substeps", "iterations")}
@@ -218,8 +228,8 @@ class PopulationResult:
         for i, pname in enumerate(spec.names):
             p = declared.get(pname)
             free = i in spec.free
-            if i in spec.random:
-                se = float(self.random_effects.loc[name, f"{pname}_se"])
+            if pname in random_se:
+                se = random_se[pname]
             elif free and pname in self.params.index:
                 se = float(self.params.loc[pname, "std_error"])
             else:
@@ -237,11 +247,54 @@ class PopulationResult:
         cov = pd.DataFrame(np.diag(se ** 2), index=free_names, columns=free_names)
         settings.update(criterion="ml", robust=None, horizon=1, starts=1, optimizer="population", prior=None,
                         cov_type="hessian", substep_note=None, substeps_accurate=None, start_labels=[])
-        n_obs = int(self._members.n_obs[k])
         return FitResult(model=self.model, params=params, cov=cov, loglik=float(loglik), criterion_value=float(loglik),
                          n_obs=n_obs, converged=self.converged,
-                         message=f"member '{name}' of a population fit ({self.message})",
+                         message=f"{what} '{name}' of a population fit ({self.message})",
                          iterations=self.iterations, settings=settings, data=frames)
+
+    def predict(self, new_data, covariates=None, name: str = "new"):
+        """A data set not in the fit, with the population as its prior: its random effects' conditional
+        mode given its data and the population estimates (MAP), as a FitResult at its parameters
+        (``.predict()``, ``.residuals``, ``.validate()`` on it).  ``covariates``: a mapping or one-row
+        table of the covariates the population's effects use."""
+        from ..estimate.transforms import Transform  # noqa: F401  (spec's transforms)
+        from .fit import _prepare_members, population_programs
+        from .laplace import MemberPrograms, conditional_modes
+        from ..filters.api import filter_options
+
+        spec = self.spec
+        if spec.covariates:
+            if covariates is None:
+                raise ValueError(f"the population has covariate effects; give covariates= with "
+                                 f"{', '.join(spec.covariates)}")
+            row = covariates if isinstance(covariates, pd.DataFrame) else pd.DataFrame([dict(covariates)])
+            missing = [c for c in spec.covariates if c not in row.columns]
+            if missing:
+                raise ValueError(f"covariates= lacks '{missing[0]}'")
+            raw = row[list(spec.covariates)].to_numpy(dtype=float)[:1]
+        else:
+            raw = np.zeros((1, 0))
+        settings = self.call
+        members = _prepare_members(self.model, [name], [new_data], spec, raw, settings["time"], settings["hold"],
+                                   settings.get("time_unit"), None, minimum=1)
+        options = filter_options(self.model.structure, settings["method"], form=settings["form"],
+                                 substeps=settings["substeps"], iterations=settings["iterations"])
+        programs = MemberPrograms(population_programs(self.model.structure, spec, options), members.x,
+                                  spec.base(), members.data, 1)
+        try:
+            modes = conditional_modes(programs, self.phi, np.zeros((1, spec.n_random)))
+        finally:
+            programs.close()
+        u = modes.u[0]
+        theta = np.asarray(spec.theta(jnp.asarray(self.phi), jnp.asarray(u), jnp.asarray(members.x[0]),
+                                      tuple(jnp.asarray(b) for b in spec.base())))
+        L = np.asarray(spec.cholesky(jnp.asarray(self.phi)))
+        cov_eta = L @ np.linalg.inv(0.5 * (modes.hessian[0] + modes.hessian[0].T)) @ L.T
+        random_se = {}
+        for r, i in enumerate(spec.random):
+            scale = theta[i] if spec.kinds[r] == "lognormal" else 1.0
+            random_se[spec.names[i]] = float(abs(scale) * np.sqrt(cov_eta[r, r]))
+        return self._fit_at(name, theta, random_se, members.frames[0], int(members.n_obs[0]), "new data set")
 
     def save(self, path) -> None:
         """Write the fit as JSON (see :mod:`.saved`), atomically."""
