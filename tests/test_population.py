@@ -416,3 +416,16 @@ def test_predict_a_new_data_set_with_the_population_as_prior(gain_problem, gain_
     assert len(new.predict()) == len(datasets["unit2"])
     with pytest.raises(greyid.DataError, match="cannot be used"):
         gain_fit.predict(datasets["unit2"].drop(columns="u1"))
+
+
+def test_population_on_a_dask_cluster_equals_the_local_fit(gain_problem, gain_fit, capsys):
+    """Chunks of members on a LocalCluster of two worker processes: the same estimates and loglik."""
+    distributed = pytest.importorskip("distributed")
+    model, _, datasets = gain_problem
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        fit = fit_population(model, datasets, {"b11": "normal"}, scheduler=client, progress=True)
+    assert fit.loglik == pytest.approx(gain_fit.loglik, rel=1e-10)
+    np.testing.assert_allclose(fit.params["estimate"], gain_fit.params["estimate"], rtol=1e-7)
+    np.testing.assert_allclose(fit.params["std_error"], gain_fit.params["std_error"], rtol=1e-6)
+    assert "population step 1: log-likelihood" in capsys.readouterr().err

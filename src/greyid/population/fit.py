@@ -14,6 +14,7 @@ from that exact Hessian.
 
 from __future__ import annotations
 
+import functools
 import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -99,32 +100,44 @@ def _prepare_members(model, names, sources, spec: PopulationSpec, raw_covariates
 
 
 class Outer:
-    """The outer criterion Σ_i ℓ_i(φ) with its derivatives; keeps the members' modes for warm starts."""
+    """The outer criterion Σ_i ℓ_i(φ) with its derivatives; keeps the members' modes for warm starts.
 
-    def __init__(self, programs: laplace.LaplacePrograms, members: Members, spec: PopulationSpec,
-                 workers: int | None = None):
+    Evaluations run here (the members split over the cores) or, with ``evaluator`` (a
+    :class:`~.distributed.ClusterEvaluator`), by chunks of members on a Dask cluster.
+    """
+
+    def __init__(self, programs: laplace.LaplacePrograms | None, members: Members, spec: PopulationSpec,
+                 workers: int | None = None, evaluator=None):
+        from .distributed import evaluate
+
         self.members = members
-        self.programs = laplace.MemberPrograms(programs, members.x, spec.base(), members.data,
-                                               worker_count() if workers is None else workers)
         self.u = np.zeros((len(members.names), spec.n_random))
         self.evaluations = 0
+        self.programs = None
+        if evaluator is None:
+            self.programs = laplace.MemberPrograms(programs, members.x, spec.base(), members.data,
+                                                   worker_count() if workers is None else workers)
+            evaluator = functools.partial(evaluate, self.programs)
+        self.evaluator = evaluator
 
-    def modes(self, phi) -> laplace.Modes:
-        modes = laplace.conditional_modes(self.programs, phi, self.u)
+    def _evaluate(self, phi, kind: str):
+        modes, values, gradients, hessians = self.evaluator(np.asarray(phi, dtype=float), self.u, kind)
         if modes.finite.all():
             self.u = modes.u  # warm start for the next evaluation
         self.evaluations += 1
-        return modes
+        return modes, values, gradients, hessians
+
+    def modes(self, phi) -> laplace.Modes:
+        return self._evaluate(phi, "value")[0]
 
     def value(self, phi):
-        return (float(np.sum(laplace.laplace_values(self.modes(phi)))),)
+        return (float(np.sum(self._evaluate(phi, "value")[1])),)
 
-    def member_gradients(self, phi, modes=None):
-        modes = self.modes(phi) if modes is None else modes
-        if not modes.finite.all():
+    def member_gradients(self, phi):
+        modes, values, gradients, _ = self._evaluate(phi, "gradient")
+        if gradients is None:
             n = len(phi)
             return np.full(len(modes.u), np.inf), np.full((len(modes.u), n), np.nan), modes
-        values, gradients = self.programs.gradient(phi, modes.u)
         return np.asarray(values), np.asarray(gradients), modes
 
     def value_and_gradient(self, phi):
@@ -138,15 +151,16 @@ class Outer:
         return float(np.sum(values)), gradients.sum(axis=0), gradients.T @ gradients
 
     def exact(self, phi):
-        values, gradients, modes = self.member_gradients(phi)
-        if not np.all(np.isfinite(values)):
+        _, values, gradients, hessians = self._evaluate(phi, "exact")
+        if hessians is None or not np.all(np.isfinite(values)):
             n = len(phi)
             return np.inf, np.full(n, np.nan), np.full((n, n), np.nan)
-        H = np.asarray(self.programs.hessian(phi, modes.u)).sum(axis=0)
-        return float(np.sum(values)), gradients.sum(axis=0), 0.5 * (H + H.T)
+        H = np.asarray(hessians).sum(axis=0)
+        return float(np.sum(values)), np.asarray(gradients).sum(axis=0), 0.5 * (H + H.T)
 
     def close(self):
-        self.programs.close()
+        if self.programs is not None:
+            self.programs.close()
 
 
 def population_filter(model, spec: PopulationSpec, members: Members, method, time, hold, time_unit, options):
@@ -216,7 +230,20 @@ def _pooled_start(model, names, sources, init, settings) -> dict | None:
     return values
 
 
-def _search(outer: Outer, phi0: np.ndarray, maxiter: int):
+def _progress_report(progress):
+    """Search reports printed to standard error (one line per accepted outer step) when ``progress``."""
+    if not progress:
+        return lambda iteration, stage, f, g: None
+    import sys
+
+    def report(iteration, stage, f, g):
+        print(f"population step {iteration}: log-likelihood {-f:.6f}, largest gradient {np.max(np.abs(g)):.3g}",
+              file=sys.stderr, flush=True)
+
+    return report
+
+
+def _search(outer: Outer, phi0: np.ndarray, maxiter: int, progress=False):
     """The maximum of Σ_i ℓ_i: quasi-Newton (BFGS) steps on exact gradients, from the members'
     outer-product information at the start, in greyid's trust region; then the exact Hessian, and
     Newton steps on it until the Newton decrement vanishes (usually none: the BFGS optimum is the
@@ -226,12 +253,13 @@ def _search(outer: Outer, phi0: np.ndarray, maxiter: int):
         _, gradients, _ = outer.member_gradients(phi0)
         if not np.all(np.isfinite(gradients)):
             raise NotFiniteError("not finite")
-        first = Search(phi0, maxiter, hessian=gradients.T @ gradients)
+        first = Search(phi0, maxiter, _progress_report(progress), hessian=gradients.T @ gradients)
         optimum = run_alone(first, {GRADIENT: outer.value_and_gradient})
     except NotFiniteError:
         raise ModelError("the Laplace marginal likelihood is not finite at the initial values (a member's "
                          "filter fails there): give other initial values (init=...) or omega_init") from None
-    final = Search(optimum.z, max(maxiter - optimum.iterations, 1), scoring=False, value=True)
+    final = Search(optimum.z, max(maxiter - optimum.iterations, 1), _progress_report(progress), scoring=False,
+                   value=True)
     polished = run_alone(final, {EXACT: outer.exact, VALUE: outer.value})
     return replace(polished, iterations=optimum.iterations + polished.iterations,
                    evaluations=optimum.evaluations + polished.evaluations)
@@ -240,8 +268,8 @@ def _search(outer: Outer, phi0: np.ndarray, maxiter: int):
 def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None = None, effects=None,
                    omega: str | None = None, time: str | None = None, hold: str | None = None,
                    method: str | None = None, init=None, omega_init=None, start: str = "pooled",
-                   maxiter: int = 200,
-                   progress=False, **options):
+                   maxiter: int = 200, scheduler=None, chunk_size: int | None = None,
+                   worker_timeout: float | None = None, progress=False, **options):
     """Fit a population (nonlinear mixed-effects) SDE model to many data sets; a :class:`PopulationResult`.
 
     ``datasets``: a mapping name → DataFrame or CSV path (or a list, named 0..n−1),
@@ -257,6 +285,10 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
     ``random``, ``effects``, ``omega``, ``covariates`` (a CSV file's path) and
     ``omega_init`` not given are the model's (:meth:`~greyid.Model.set_population`,
     a model file's ``[population]`` table).
+    ``scheduler=`` a ``dask.distributed.Client``: the members' inner optimisations run
+    by chunks (``chunk_size``, default one per worker) on the cluster, the outer
+    search here; ``worker_timeout`` (default 60 s): how long the cluster may have no
+    worker before the fit stops with an error.
 
     The search starts from the typical values of a fit of the model to the first
     :data:`POOLED_MEMBERS` data sets together (``start="pooled"``; from ``init`` or
@@ -304,10 +336,17 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
     members = _prepare_members(model, names, sources, spec, raw, time, hold, time_unit, columns)
     structure = model.structure
     fo = population_filter(model, spec, members, method, time, hold, time_unit, options)
-    outer = Outer(population_programs(structure, spec, fo), members, spec)
+    if scheduler is not None:
+        from .distributed import ClusterEvaluator
+
+        evaluator = ClusterEvaluator(scheduler, model, spec, fo, members, chunk_size,
+                                     60.0 if worker_timeout is None else worker_timeout)
+        outer = Outer(None, members, spec, evaluator=evaluator)
+    else:
+        outer = Outer(population_programs(structure, spec, fo), members, spec)
     phi0 = spec.phi0()
     try:
-        optimum = _search(outer, phi0, maxiter)
+        optimum = _search(outer, phi0, maxiter, progress)
         modes = outer.modes(optimum.z)
     finally:
         outer.close()

@@ -1,0 +1,131 @@
+"""A population fit on a Dask cluster: the members' inner optimisations by chunks on the workers.
+
+Each chunk of members — their stacked data and covariates, with the model as its
+dictionary form, the population's layout and the filter's settings — is sent to
+the cluster once (``client.scatter``); every outer evaluation then submits, per
+chunk, the population parameters φ and the chunk's warm-start modes, and the
+worker returns the chunk's conditional modes, Laplace values and (as asked)
+gradients and Hessians.  The worker builds the model and compiles the programs
+once (kept for later chunks and evaluations); the outer search stays on the
+client.  Dask retries a chunk whose worker died; where the cluster has had no
+worker at all for ``worker_timeout`` seconds the fit stops with an error that
+says so instead of waiting.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+
+from ..errors import ModelError
+from . import laplace
+
+#: Seconds between looks at the cluster while chunks are pending.
+POLL = 0.5
+
+
+#: On a worker: the programs of each (model, population layout, filter settings) seen, compiled once.
+_PROGRAMS: dict = {}
+
+
+def _worker_programs(spec_json: str, spec, options):
+    from ..model import Model
+    from .fit import population_programs
+
+    key = (spec_json, spec.key(), options)
+    if key not in _PROGRAMS:
+        model = Model.from_dict(json.loads(spec_json))
+        _PROGRAMS[key] = population_programs(model.structure, spec, options)
+    return _PROGRAMS[key]
+
+
+def _evaluate_chunk(payload, phi, u0, kind: str):
+    """On a worker: ``(u, values, hessians_u, gradients, outer_hessians)`` of one chunk (None where not asked)."""
+    spec_json, spec, options, x, data = payload
+    programs = laplace.MemberPrograms(_worker_programs(spec_json, spec, options), x, spec.base(), data, 1)
+    try:
+        return evaluate(programs, phi, u0, kind)
+    finally:
+        programs.close()
+
+
+def evaluate(programs, phi, u0, kind: str):
+    """The modes at φ and what ``kind`` ("value", "gradient", "exact") asks of them, for one set of members."""
+    modes = laplace.conditional_modes(programs, phi, u0)
+    values, gradients, hessians = laplace.laplace_values(modes), None, None
+    if kind != "value" and modes.finite.all():
+        values, gradients = map(np.asarray, programs.gradient(phi, modes.u))
+        if kind == "exact":
+            hessians = np.asarray(programs.hessian(phi, modes.u))
+    return modes, values, gradients, hessians
+
+
+class ClusterEvaluator:
+    """:func:`evaluate` over chunks of members on a Dask cluster."""
+
+    def __init__(self, client, model, spec, options, members, chunk_size: int | None, worker_timeout: float):
+        try:
+            from distributed import wait  # noqa: F401
+        except ImportError:  # pragma: no cover - the extra is installed in CI
+            raise ImportError('scheduler= needs Dask: pip install "greyid[dask]"') from None
+        import jax
+
+        self.client, self.worker_timeout = client, float(worker_timeout)
+        n = len(members.names)
+        workers = max(1, len(client.scheduler_info().get("workers", {})))
+        size = max(1, int(chunk_size) if chunk_size else -(-n // workers))
+        spec_json = json.dumps(model.to_dict())
+        host = jax.device_get(members.data)
+        self.chunks = []
+        for start in range(0, n, size):
+            index = np.arange(start, min(start + size, n))
+            part = jax.tree_util.tree_map(lambda leaf: np.asarray(leaf)[index], host)
+            payload = (spec_json, spec, options, members.x[index], part)
+            self.chunks.append((index, client.scatter(payload, direct=False)))
+
+    def _wait(self, futures):
+        from distributed import wait
+
+        alone_since = None
+        pending = set(futures)
+        while pending:
+            try:
+                _, pending = wait(pending, timeout=POLL, return_when="ALL_COMPLETED")
+            except TimeoutError:
+                pass
+            if not pending:
+                break
+            try:
+                alive = len(self.client.scheduler_info().get("workers", {}))
+            except Exception:  # noqa: BLE001  a scheduler gone: no worker either
+                alive = 0
+            if alive:
+                alone_since = None
+                continue
+            alone_since = time.monotonic() if alone_since is None else alone_since
+            if time.monotonic() - alone_since >= self.worker_timeout:
+                for future in pending:
+                    future.cancel()
+                raise ModelError(f"the population fit stopped: the cluster had no worker for "
+                                 f"{self.worker_timeout:g} s")
+        try:
+            return [future.result() for future in futures]
+        except Exception as error:  # a chunk that failed on every try (KilledWorker ...)
+            raise ModelError(f"the population fit stopped: a chunk of members failed on the cluster "
+                             f"({type(error).__name__}: {error})") from None
+
+    def __call__(self, phi, u0, kind: str):
+        phi = np.asarray(phi, dtype=float)
+        futures = [self.client.submit(_evaluate_chunk, payload, phi, u0[index], kind, pure=False)
+                   for index, payload in self.chunks]
+        parts = self._wait(futures)
+        modes = laplace.Modes(*(np.concatenate([p[0][k] for p in parts]) for k in range(5)))
+        values = np.concatenate([p[1] for p in parts])
+        gradients = None if any(p[2] is None for p in parts) else np.concatenate([p[2] for p in parts])
+        hessians = None if any(p[3] is None for p in parts) else np.concatenate([p[3] for p in parts])
+        return modes, values, gradients, hessians
+
+    def close(self):
+        pass
