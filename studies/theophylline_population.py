@@ -53,8 +53,6 @@ def main():
     args = parser.parse_args()
     import greyid
     from greyid.datasets.reference import theophylline_model
-    from greyid.filters.api import filter_options
-    from greyid.population import laplace
     from greyid.population.fit import Outer, _prepare_members, population_filter, population_programs
     from greyid.population.spec import make_spec
 

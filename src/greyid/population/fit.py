@@ -7,9 +7,9 @@ member's inner problem (the conditional modes of its random effects, all
 members at once by vectorised programs, warm-started from the previous modes)
 and evaluates Σ_i ℓ_i(φ) with exact derivatives (:mod:`.laplace`).  The outer
 search is greyid's trust-region search (:mod:`greyid.estimate.optimize`):
-steps on the members' outer-product information Σ_i ∇ℓ_i∇ℓ_iᵀ far from the
-optimum, Newton steps on the exact Hessian near it; the standard errors come
-from that exact Hessian.
+BFGS steps on the exact gradient from the members' outer-product information
+Σ_i ∇ℓ_i∇ℓ_iᵀ, then Newton steps on the exact Hessian at the end (see
+:func:`_search`); the standard errors come from that exact Hessian.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from ..estimate.optimize import EXACT, GRADIENT, VALUE, NotFiniteError, Search, 
 from ..filters.accuracy import needs_substeps
 from ..filters.api import accurate_options, check_at_parameters, filter_options, prepare_datasets
 from ..fleet.fit import named_datasets, read_source
-from ..model.options import rename_columns
+from ..model.options import FILTER_KEYS, rename_columns
 from . import laplace
 from .spec import PopulationSpec, make_spec
 
@@ -42,8 +42,8 @@ class PopulationWarning(UserWarning):
     """A member left out of a population fit, or a fit that did not converge."""
 
 
-#: Settings of the data and the filter a population fit takes, as model.fit does.
-FILTER_OPTIONS = ("form", "substeps", "iterations", "alpha", "beta", "kappa")
+#: The filter's settings a population fit takes besides ``method``, as model.fit does.
+FILTER_OPTIONS = tuple(k for k in FILTER_KEYS if k != "method")
 
 
 @dataclass
@@ -143,12 +143,6 @@ class Outer:
     def value_and_gradient(self, phi):
         values, gradients, _ = self.member_gradients(phi)
         return float(np.sum(values)), gradients.sum(axis=0)
-
-    def scoring(self, phi):
-        """(Σℓ_i, Σ∇ℓ_i, Σ∇ℓ_i∇ℓ_iᵀ): the members' outer-product information, positive semi-definite
-        and about the Hessian near the optimum where the members are many and the model right."""
-        values, gradients, _ = self.member_gradients(phi)
-        return float(np.sum(values)), gradients.sum(axis=0), gradients.T @ gradients
 
     def exact(self, phi):
         _, values, gradients, hessians = self._evaluate(phi, "exact")

@@ -137,6 +137,32 @@ class Modes(NamedTuple):
     finite: np.ndarray  # per member: g and its derivatives finite at the mode
 
 
+def _finite(value, gradient, hessian) -> np.ndarray:
+    """Per member: g_i and its derivatives finite."""
+    return np.isfinite(value) & np.all(np.isfinite(gradient), axis=1) & np.all(np.isfinite(hessian), axis=(1, 2))
+
+
+def _newton_steps(gradient, hessian, members) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(steps, decrements, positive)`` of ``members``: Newton steps on the Hessian made positive definite
+    by flipping and flooring its eigenvalues, their decrements gᵀH⁻¹g, and where H was positive definite
+    already (there the step is the plain Newton step)."""
+    steps, decrements = np.zeros_like(gradient), np.zeros(len(gradient))
+    positive = np.zeros(len(gradient), dtype=bool)
+    for i in members:
+        w, V = np.linalg.eigh(0.5 * (hessian[i] + hessian[i].T))
+        positive[i] = w.min() > 0
+        w = np.maximum(np.abs(w), 1e-8 * max(np.abs(w).max(), 1.0))
+        a = V.T @ gradient[i]
+        steps[i] = -V @ (a / w)
+        decrements[i] = float(np.sum(a ** 2 / w))
+    return steps, decrements, positive
+
+
+def _where(mask, new: tuple, old: tuple) -> tuple:
+    """Per member, ``new``'s arrays where ``mask`` holds, ``old``'s elsewhere."""
+    return tuple(np.where(mask.reshape((-1,) + (1,) * (b.ndim - 1)), a, b) for a, b in zip(new, old))
+
+
 def conditional_modes(programs, phi, u0) -> Modes:
     """Each member's û_i = argmin g_i: damped Newton steps on all members at once, each member stopping
     at its own convergence; a non-PD Hessian is made PD by flipping and flooring its eigenvalues.
@@ -144,23 +170,15 @@ def conditional_modes(programs, phi, u0) -> Modes:
     ``programs`` has ``inner(u, φ)`` and ``value(u, φ)`` over all members (:class:`MemberPrograms`)."""
     u = np.array(u0, dtype=float)
     value, gradient, hessian = map(np.asarray, programs.inner(u, phi))
-    finite = np.isfinite(value) & np.all(np.isfinite(gradient), axis=1) & np.all(np.isfinite(hessian), axis=(1, 2))
+    finite = _finite(value, gradient, hessian)
     if not finite.all():  # a start from the previous modes may be far off: from u = 0 instead
         u[~finite] = 0.0
         value, gradient, hessian = map(np.asarray, programs.inner(u, phi))
-        finite = (np.isfinite(value) & np.all(np.isfinite(gradient), axis=1)
-                  & np.all(np.isfinite(hessian), axis=(1, 2)))
+        finite = _finite(value, gradient, hessian)
     converged = ~finite
-    n, q = u.shape
+    n = len(u)
     for _ in range(MODE_MAXITER):
-        step = np.zeros_like(u)
-        decrement = np.zeros(n)
-        for i in np.flatnonzero(~converged):
-            w, V = np.linalg.eigh(0.5 * (hessian[i] + hessian[i].T))
-            w = np.maximum(np.abs(w), 1e-8 * max(np.abs(w).max(), 1.0))
-            a = V.T @ gradient[i]
-            step[i] = -V @ (a / w)
-            decrement[i] = float(np.sum(a ** 2 / w))
+        step, decrement, _ = _newton_steps(gradient, hessian, np.flatnonzero(~converged))
         converged |= decrement <= MODE_TOLERANCE * np.maximum(1.0, np.abs(value))
         active = ~converged
         if not active.any():
@@ -187,28 +205,20 @@ def conditional_modes(programs, phi, u0) -> Modes:
             converged |= ~accepted  # no decrease even along a tiny step: at the mode to rounding
             u[accepted & far] = trial[accepted & far]
         new = tuple(map(np.asarray, programs.inner(u, phi)))
-        fine = (np.isfinite(new[0]) & np.all(np.isfinite(new[1]), axis=1)
-                & np.all(np.isfinite(new[2]), axis=(1, 2)))
+        fine = _finite(*new)
         u[~fine] = previous[~fine]  # a step into a non-finite region: back, and stop there
         converged |= ~fine
-        value, gradient, hessian = (np.where(fine.reshape((-1,) + (1,) * (a.ndim - 1)), b, a)
-                                    for a, b in zip((value, gradient, hessian), new))
-    # One more full Newton step: the decrement test above stops at |û error| ~ 1e-6·ω, which
-    # quadratic convergence squares away (kept where the value does not rise beyond rounding).
-    polished = u.copy()
-    for i in range(n):
-        if np.all(np.isfinite(hessian[i])) and np.all(np.isfinite(gradient[i])):
-            w, V = np.linalg.eigh(0.5 * (hessian[i] + hessian[i].T))
-            if w.min() > 0:
-                polished[i] = u[i] - V @ ((V.T @ gradient[i]) / w)
+        value, gradient, hessian = _where(fine, new, (value, gradient, hessian))
+    # One more full Newton step where H is positive definite: the decrement test above stops at
+    # |û error| ~ 1e-6·ω, which quadratic convergence squares away (kept where the value does not
+    # rise beyond rounding).
+    step, _, positive = _newton_steps(gradient, hessian, np.flatnonzero(_finite(value, gradient, hessian)))
+    polished = u + np.where(positive[:, None], step, 0.0)
     new = tuple(map(np.asarray, programs.inner(polished, phi)))
     better = np.isfinite(new[0]) & (new[0] <= value + 1e-12 * np.maximum(1.0, np.abs(value)))
     u[better] = polished[better]
-    value, gradient, hessian = (np.where(better.reshape((-1,) + (1,) * (a.ndim - 1)), b, a)
-                                for a, b in zip((value, gradient, hessian), new))
-    finite = (np.isfinite(value) & np.all(np.isfinite(gradient), axis=1)
-              & np.all(np.isfinite(hessian), axis=(1, 2)))
-    return Modes(u, value, hessian, converged, finite)
+    value, gradient, hessian = _where(better, new, (value, gradient, hessian))
+    return Modes(u, value, hessian, converged, _finite(value, gradient, hessian))
 
 
 def laplace_values(modes: Modes) -> np.ndarray:

@@ -117,7 +117,6 @@ class PopulationResult:
         spec = self.spec
         out = []
         for i in spec.free:
-            name = spec.names[i]
             if i in spec.random:
                 out.append(f"typical ({spec.kinds[spec.random.index(i)]})")
             else:
@@ -189,7 +188,6 @@ class PopulationResult:
         the others at the population estimates (their population standard errors); residual tests,
         predictions and plots work on it as on any fit.  Its ``loglik`` is the member's own
         log-likelihood at these parameters."""
-        from ..estimate.results import FitResult
 
         if name not in self.frames:
             known = ", ".join(map(str, self.names[:10]))
@@ -213,16 +211,12 @@ class PopulationResult:
     def _fit_at(self, name, theta, random_se: dict, frames, n_obs: int, what: str):
         """A FitResult at individual parameters θ: random parameters with their conditional SEs, the
         other free ones with their population SEs."""
-        from ..estimate.results import FitResult
+        from ..estimate.results import FitResult, filter_settings
 
         spec = self.spec
         settings = dict(self.call)
         settings.pop("loglik", None)
-        rule = {kk: settings[kk] for kk in ("time", "hold", "method", "form", "substeps", "iterations")}
-        if settings.get("time_unit"):
-            rule["time_unit"] = settings["time_unit"]
-        values = dict(zip(spec.names, theta))
-        loglik = self.model.loglik(values, frames[0], **rule)
+        loglik = self.model.loglik(dict(zip(spec.names, theta)), frames[0], **filter_settings(settings))
         declared = self.model.parameters
         rows, free_names = [], []
         for i, pname in enumerate(spec.names):
@@ -257,7 +251,6 @@ class PopulationResult:
         mode given its data and the population estimates (MAP), as a FitResult at its parameters
         (``.predict()``, ``.residuals``, ``.validate()`` on it).  ``covariates``: a mapping or one-row
         table of the covariates the population's effects use."""
-        from ..estimate.transforms import Transform  # noqa: F401  (spec's transforms)
         from .fit import _prepare_members, population_programs
         from .laplace import MemberPrograms, conditional_modes
         from ..filters.api import filter_options
