@@ -374,11 +374,12 @@ def test_command_line_population(nonlinear_problem, tmp_path, capsys):
     covariates.rename_axis("house").to_csv(table)
     out = tmp_path / "out"
     code = main(["population", str(model_file), str(folder), "--random", "a:lognormal", "--covariates", str(table),
-                 "--effect", "b:area", "--out", str(out), "-q"])
+                 "--effect", "b:area", "--out", str(out), "--report", "-q"])
     printed = capsys.readouterr().out
     assert code == 0 and "omega_a" in printed and "beta_b_area" in printed
     assert {p.name for p in out.iterdir()} >= {"population.json", "summary.txt", "parameters.csv",
-                                                "random_effects.csv"}
+                                                "random_effects.csv", "report.html"}
+    assert '<section id="members">' in (out / "report.html").read_text(encoding="utf-8")
     from greyid.population import load_population
 
     loaded = load_population(out / "population.json")
@@ -390,6 +391,8 @@ def test_command_line_population(nonlinear_problem, tmp_path, capsys):
     assert main(["population", str(model_file), str(folder), "--random", "a:lognormal", "--effect", "b:area",
                  "-q"]) == 2
     assert "--effect needs --covariates" in capsys.readouterr().err
+    assert main(["population", str(model_file), str(folder), "--random", "a:lognormal", "--report", "-q"]) == 2
+    assert "--report needs --out" in capsys.readouterr().err
     # The same settings from the model file's [population] table (covariates relative to the file).
     m.set_population(random={"a": "lognormal"}, effects={"b": ["area"]}, covariates="covariates.csv")
     with_table = tmp_path / "decay_population.toml"
@@ -428,3 +431,39 @@ def test_population_on_a_dask_cluster_equals_the_local_fit(gain_problem, gain_fi
     np.testing.assert_allclose(fit.params["estimate"], gain_fit.params["estimate"], rtol=1e-7)
     np.testing.assert_allclose(fit.params["std_error"], gain_fit.params["std_error"], rtol=1e-6)
     assert "population step 1: log-likelihood" in capsys.readouterr().err
+
+
+def test_population_report(nonlinear_problem, correlated_fit, tmp_path):
+    """The report holds every section; its tables are the fit's (Ω, β, random effects); the members' test
+    table holds each member's own residual tests; it survives save/load with the data given back."""
+    import re
+
+    from greyid.population import load_population
+    from greyid.report.population import POPULATION_SECTIONS, _covariate_table, member_tests
+
+    _, data, covariates, *_ = nonlinear_problem
+    fit = correlated_fit
+    path = tmp_path / "report.html"
+    text = fit.report(path, level=0.05)
+    assert path.read_text(encoding="utf-8") == text
+    for sid in POPULATION_SECTIONS:
+        assert f'<section id="{sid}">' in text
+    assert text.count("<img") == 2  # η against covariates, Q-Q plot
+    assert f"{fit.params.loc['omega_a', 'estimate']:.4g}" in text
+    assert f"{fit.params.loc['beta_b_area', 'estimate']:.5g}" in text
+    assert "corr_b_a" in text and "b_i = b + β_area·(area − mean area) + η_b,i" in text
+    tests = member_tests(fit)
+    assert list(tests.index) == list(data)
+    own = fit.member("h2").validate().tests
+    np.testing.assert_allclose(tests.loc["h2", list(own["test"])].to_numpy(dtype=float),
+                               own["p_value"].to_numpy(dtype=float), rtol=1e-12)
+    assert (tests["rejects"] == (tests.drop(columns="rejects") < 0.05).sum(axis=1)).all()
+    rows = re.findall(r'<tr><td class="name">(h\d)</td>', text)
+    assert rows[-len(data):] == list(data)
+    # The covariates table is kept (columns the model does not use included) and saved.
+    assert list(_covariate_table(fit).columns) == ["area"]
+    fit.save(tmp_path / "population.json")
+    loaded = load_population(tmp_path / "population.json", data=data)
+    pd.testing.assert_frame_equal(loaded.covariates, fit.covariates, check_dtype=False)
+    again = loaded.report(members=False)
+    assert '<section id="members">' not in again and '<section id="omega">' in again

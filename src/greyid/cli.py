@@ -267,10 +267,14 @@ def population_command(
         time_column: Optional[str] = typer.Option(None, "--time", help="name of the time column"),
         out_dir: Optional[Path] = typer.Option(None, "--out", help="folder for population.json, summary.txt, "
                                                                    "parameters.csv, random_effects.csv"),
+        report: bool = typer.Option(False, "--report", help="also write report.html (the population report) "
+                                                            "into --out"),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress output")):
     """Fit a population (mixed-effects) model to many data sets and print its summary (docs/population.md)."""
 
     def command() -> int:
+        if report and out_dir is None:
+            raise InputProblem("--report needs --out DIR to write the report into")
         if out_dir is not None:
             check_output_folder(out_dir)
         files = _population_data(data)
@@ -309,6 +313,8 @@ def population_command(
             files_out = {"population.json": json.dumps(population_to_dict(result), indent=1),
                          "summary.txt": result.summary() + "\n", "parameters.csv": result.params.to_csv(),
                          "random_effects.csv": result.random_effects.to_csv()}
+            if report:
+                files_out["report.html"] = result.report()
             write_generation(out_dir, files_out)
             err.print(f"wrote {', '.join(files_out)} to {out_dir}")
         return OK if result.converged else VERDICT

@@ -347,6 +347,10 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
     call = dict(time=time, hold=hold, method=fo.method, form=fo.form, substeps=fo.substeps,
                 iterations=fo.iterations, time_unit=time_unit, omega=omega)
     result = PopulationResult.from_optimum(model, spec, members, optimum, modes, call)
+    if covariates is not None:
+        kept = {str(n) for n in result.names}
+        result.covariates = covariates.loc[[n for n in covariates.index if str(n) in kept]].copy()
+        result.covariates.index = result.covariates.index.map(str)
     result.sources = {n: str(src) for n, src in zip(names, sources) if isinstance(src, (str, Path))
                       and n in result.frames}
     return result

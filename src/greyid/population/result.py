@@ -69,6 +69,7 @@ class PopulationResult:
         self.names = list(members.names)
         self.frames = dict(zip(members.names, members.frames))
         self.sources = {}  # name -> CSV path, for the members read from files
+        self.covariates = None  # the covariates table given to the fit, its members' rows
         self.left_out = dict(members.left_out)
         self.n_obs = int(np.sum(members.n_obs))
         self.n_members = len(members.names)
@@ -288,6 +289,17 @@ class PopulationResult:
             scale = theta[i] if spec.kinds[r] == "lognormal" else 1.0
             random_se[spec.names[i]] = float(abs(scale) * np.sqrt(cov_eta[r, r]))
         return self._fit_at(name, theta, random_se, members.frames[0], int(members.n_obs[0]), "new data set")
+
+    def report(self, path=None, level: float = 0.05, title: str | None = None, members: bool = True) -> str:
+        """The self-contained HTML report of this population fit (:mod:`greyid.report.population`); written
+        atomically to ``path`` when given.  ``members=False`` leaves out the members' residual tests."""
+        from ..outputs import write_atomic
+        from ..report.population import population_report
+
+        text = population_report(self, level=level, title=title, members=members)
+        if path is not None:
+            write_atomic(path, text)
+        return text
 
     def save(self, path) -> None:
         """Write the fit as JSON (see :mod:`.saved`), atomically."""

@@ -13,6 +13,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 
 from ..errors import DataError
 from ..estimate.transforms import Transform
@@ -39,7 +40,8 @@ def population_to_dict(result) -> dict:
                      sources=[result.sources.get(n) for n in result.names]),
         modes=dict(u=modes.u.tolist(), value=modes.value.tolist(), hessian=modes.hessian.tolist()),
         phi=result.phi.tolist(), hessian=result.hessian.tolist(), call=result.call,
-        converged=result.converged, message=result.message, iterations=result.iterations)
+        converged=result.converged, message=result.message, iterations=result.iterations,
+        covariates=None if result.covariates is None else json.loads(result.covariates.to_json(orient="split")))
 
 
 def load_population(path, data=None):
@@ -85,6 +87,10 @@ def load_population(path, data=None):
     except (KeyError, TypeError, ValueError) as error:
         raise DataError(f"'{path}' is a damaged population fit file ({type(error).__name__}: {error})") from None
     result.sources = {n: src for n, src in zip(names, m.get("sources", [None] * len(names))) if src}
+    if saved.get("covariates") is not None:
+        table = saved["covariates"]
+        result.covariates = pd.DataFrame(table["data"], index=[str(i) for i in table["index"]],
+                                         columns=table["columns"])
     result.frames = {n: None for n in names}
     for name in names:
         if data is not None and name in data:

@@ -280,7 +280,6 @@ def html_report(fit, level: float = 0.05, steps: int = 4, n_paths: int = 100, se
     """The report of ``fit`` as one HTML document (a string); see the module docstring."""
     if fit.attach_stored_data() is None:
         raise ModelError("this fit carries no data (it was loaded from a file); attach it with fit.with_data(data)")
-    from .. import __version__
 
     # The profile intervals are refits, mostly compiled code that leaves the interpreter free:
     # they run in a thread of their own while the figures are drawn.
@@ -288,16 +287,23 @@ def html_report(fit, level: float = 0.05, steps: int = 4, n_paths: int = 100, se
         intervals = pool.submit(_profile_intervals, fit) if profile else None
         validation = fit.validate(level=level)
         title = title or f"greyid report: {fit.model.name}"
-        stamp = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
         later = [_section("correlation", "Correlation of the estimates", _correlation_table(fit.corr)),
                  _derived_section(fit), _identifiability_section(fit),
                  *_validation_sections(fit, validation, steps, n_paths, seed)]
         sections = [_model_section(fit), _data_section(fit, fit.data), _estimation_section(fit),
                     _parameters_section(fit, None if intervals is None else intervals.result()), *later]
-    nav = "".join(f'<a href="#{sid}">{sid}</a>' for sid in SECTIONS)
+    return page(title, SECTIONS, sections)
+
+
+def page(title: str, ids, sections: list[str], css: str = "") -> str:
+    """One HTML document: the title, greyid's version and the time, links to the sections ``ids``."""
+    from .. import __version__
+
+    stamp = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
+    nav = "".join(f'<a href="#{sid}">{sid}</a>' for sid in ids)
     return (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
             f'<meta name="viewport" content="width=device-width, initial-scale=1">'
-            f"<title>{_esc(title)}</title><style>{_CSS}</style></head><body>"
+            f"<title>{_esc(title)}</title><style>{_CSS}{css}</style></head><body>"
             f"<h1>{_esc(title)}</h1><p class='subtitle'>greyid {__version__}, {stamp}</p>"
             f"<nav>{nav}</nav>\n" + "\n".join(sections) + "\n</body></html>\n")
 
