@@ -8,13 +8,16 @@ of 20 % in Ro and 30 % in Cw (one house per seed).  For each size it fits the
 population with ``Ro`` and ``Cw`` lognormal and prints the time of
 ``greyid.fit_population`` on the first call (compiling its programs, on an empty
 program store in a fresh process) and on a second call, with the estimates
-beside the true spread.  ``--scheduler local`` runs the members' inner
+beside the true spread, the peak memory of Python objects in the call and the
+process's peak resident memory so far (run one size per process to compare
+sizes).  ``--scheduler local`` runs the members' inner
 optimisations on a Dask LocalCluster with two workers.
 """
 
 from __future__ import annotations
 
 import argparse
+import resource
 import time
 import tracemalloc
 from pathlib import Path
@@ -69,8 +72,10 @@ def main():
             seconds = time.perf_counter() - start
             peak = tracemalloc.get_traced_memory()[1] / 2 ** 20
             tracemalloc.stop()
+            rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
             print(f"{size} houses, {attempt} call: {seconds:.1f} s, {fit.iterations} iterations, "
-                  f"converged {fit.converged}, peak Python memory {peak:.0f} MiB")
+                  f"converged {fit.converged}, peak Python memory {peak:.0f} MiB, peak resident memory of "
+                  f"the process so far {rss:.0f} MiB")
         omega = {name: round(float(fit.params.loc[f"omega_{name}", "estimate"]), 3) for name in SPREAD}
         print(f"  omega {omega} (simulated {SPREAD}); loglik {fit.loglik:.3f}")
 

@@ -280,6 +280,29 @@ def test_bad_population_input_is_named(gain_problem):
         fit_population(model, datasets, {"b11": "normal"}, omega_init={"b11": -1.0})
 
 
+def test_a_full_omega_start_is_checked_and_used(nonlinear_problem):
+    """omega_init as Ω itself: not positive definite, not symmetric, mislabelled or correlated under a
+    diagonal Ω are named; a valid one is φ's start (Ω from φ0 equals it)."""
+    m, data, *_ = nonlinear_problem
+    names = list(data)
+    labels = ["a", "b"]
+    given = pd.DataFrame([[0.09, 0.06], [0.06, 0.25]], index=labels, columns=labels)
+    spec, _ = make_spec(m, {"a": "lognormal", "b": "normal"}, None, None, "full", names, omega_init=given)
+    L = np.asarray(spec.cholesky(spec.phi0()))
+    np.testing.assert_allclose(L @ L.T, given.to_numpy(), rtol=1e-12)
+    bad = pd.DataFrame([[0.09, 0.2], [0.2, 0.25]], index=labels, columns=labels)
+    with pytest.raises(greyid.ModelError, match="not positive definite"):
+        make_spec(m, {"a": "lognormal", "b": "normal"}, None, None, "full", names, omega_init=bad)
+    with pytest.raises(greyid.ModelError, match="not a symmetric"):
+        make_spec(m, {"a": "lognormal", "b": "normal"}, None, None, "full", names,
+                  omega_init=pd.DataFrame([[0.09, 0.0], [0.06, 0.25]], index=labels, columns=labels))
+    with pytest.raises(greyid.ModelError, match="rows and columns named"):
+        make_spec(m, {"a": "lognormal", "b": "normal"}, None, None, "full", names,
+                  omega_init=given.rename(index={"a": "x"}))
+    with pytest.raises(greyid.ModelError, match="use omega='full'"):
+        make_spec(m, {"a": "lognormal", "b": "normal"}, None, None, "diagonal", names, omega_init=given)
+
+
 def test_a_member_that_cannot_be_fitted_is_left_out_with_a_warning(gain_problem):
     model, _, datasets = gain_problem
     broken = dict(datasets)
@@ -467,3 +490,35 @@ def test_population_report(nonlinear_problem, correlated_fit, tmp_path):
     pd.testing.assert_frame_equal(loaded.covariates, fit.covariates, check_dtype=False)
     again = loaded.report(members=False)
     assert '<section id="members">' not in again and '<section id="omega">' in again
+
+
+def test_a_lost_worker_loses_no_chunk(gain_problem):
+    """A worker killed after the chunks were scattered: its chunk is sent again and the evaluation equals
+    the in-process one."""
+    import os
+    import signal
+
+    distributed = pytest.importorskip("distributed")
+    from greyid.filters.api import filter_options
+    from greyid.population.distributed import ClusterEvaluator, evaluate
+
+    model, _, datasets = gain_problem
+    names = list(datasets)
+    spec, raw = make_spec(model, {"b11": "normal"}, None, None, "diagonal", names)
+    members = _prepare_members(model, names, list(datasets.values()), spec, raw, "t", "zoh", None, None)
+    options = filter_options(model.structure, None)
+    local = laplace.MemberPrograms(laplace.build(model.structure, spec, options), members.x, spec.base(),
+                                   members.data, 1)
+    phi, u0 = spec.phi0(), np.zeros((len(names), 1))
+    expected = evaluate(local, phi, u0, "gradient")
+    local.close()
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        evaluator = ClusterEvaluator(client, model, spec, options, members, None, 60.0)
+        holders = client.who_has([future for _, future in evaluator.chunks])
+        victim = next(iter(holders.values()))[0]
+        pid = client.run(os.getpid, workers=[victim])[victim]
+        os.kill(pid, signal.SIGKILL)  # the nanny starts a fresh worker, without the chunk's data
+        _, values, gradients, _ = evaluator(phi, u0, "gradient")
+    np.testing.assert_allclose(values, laplace.laplace_values(expected[0]), rtol=1e-12)
+    np.testing.assert_allclose(gradients, expected[2], rtol=1e-10)

@@ -7,15 +7,19 @@ chunk, the population parameters φ and the chunk's warm-start modes, and the
 worker returns the chunk's conditional modes, Laplace values and (as asked)
 gradients and Hessians.  The worker builds the model and compiles the programs
 once (kept for later chunks and evaluations); the outer search stays on the
-client.  Dask retries a chunk whose worker died; where the cluster has had no
+client.  Dask retries a chunk whose worker died; a chunk that fails anyway (its
+scattered data were lost with the worker) is scattered again from the client's
+copy and run again, up to :data:`RESENDS` times; where the cluster has had no
 worker at all for ``worker_timeout`` seconds the fit stops with an error that
 says so instead of waiting.
 """
 
 from __future__ import annotations
 
+import asyncio
 import json
 import time
+from concurrent.futures import CancelledError
 
 import numpy as np
 
@@ -24,6 +28,8 @@ from . import laplace
 
 #: Seconds between looks at the cluster while chunks are pending.
 POLL = 0.5
+#: Times a failed chunk is sent again (with its data) before the fit stops.
+RESENDS = 2
 
 
 #: On a worker: the programs of each (model, population layout, filter settings) seen, compiled once.
@@ -78,12 +84,12 @@ class ClusterEvaluator:
         size = max(1, int(chunk_size) if chunk_size else -(-n // workers))
         spec_json = json.dumps(model.to_dict())
         host = jax.device_get(members.data)
-        self.chunks = []
+        self.chunks, self.payloads = [], []
         for start in range(0, n, size):
             index = np.arange(start, min(start + size, n))
-            part = jax.tree_util.tree_map(lambda leaf: np.asarray(leaf)[index], host)
-            payload = (spec_json, spec, options, members.x[index], part)
-            self.chunks.append((index, client.scatter(payload, direct=False)))
+            part = jax.tree_util.tree_map(lambda leaf, index=index: np.asarray(leaf)[index], host)
+            self.payloads.append((spec_json, spec, options, members.x[index], part))
+            self.chunks.append((index, client.scatter(self.payloads[-1], direct=False)))
 
     def _wait(self, futures):
         from distributed import wait
@@ -95,6 +101,8 @@ class ClusterEvaluator:
                 _, pending = wait(pending, timeout=POLL, return_when="ALL_COMPLETED")
             except TimeoutError:
                 pass
+            except (CancelledError, asyncio.CancelledError):  # a chunk lost with its data: done, resent
+                pending = {future for future in pending if not future.done()}
             if not pending:
                 break
             try:
@@ -110,17 +118,32 @@ class ClusterEvaluator:
                     future.cancel()
                 raise ModelError(f"the population fit stopped: the cluster had no worker for "
                                  f"{self.worker_timeout:g} s")
-        try:
-            return [future.result() for future in futures]
-        except Exception as error:  # a chunk that failed on every try (KilledWorker ...)
-            raise ModelError(f"the population fit stopped: a chunk of members failed on the cluster "
-                             f"({type(error).__name__}: {error})") from None
 
     def __call__(self, phi, u0, kind: str):
         phi = np.asarray(phi, dtype=float)
-        futures = [self.client.submit(_evaluate_chunk, payload, phi, u0[index], kind, pure=False)
-                   for index, payload in self.chunks]
-        parts = self._wait(futures)
+
+        def submit(k):
+            index, payload = self.chunks[k]
+            return self.client.submit(_evaluate_chunk, payload, phi, u0[index], kind, pure=False)
+
+        futures = [submit(k) for k in range(len(self.chunks))]
+        for attempt in range(RESENDS + 1):
+            self._wait(futures)
+            failed = [k for k, future in enumerate(futures) if future.status != "finished"]
+            if not failed:
+                break
+            if attempt == RESENDS:
+                future = futures[failed[0]]
+                why = (f"{type(future.exception()).__name__}: {future.exception()}" if future.status == "error"
+                       else future.status)
+                raise ModelError(f"the population fit stopped: a chunk of members failed on the cluster "
+                                 f"{RESENDS + 1} times ({why})")
+            # A chunk whose worker was lost took its scattered data with it (Dask cannot recompute
+            # scattered data): the chunk is sent again from the client's copy and run again.
+            for k in failed:
+                self.chunks[k] = (self.chunks[k][0], self.client.scatter(self.payloads[k], direct=False))
+                futures[k] = submit(k)
+        parts = [future.result() for future in futures]
         modes = laplace.Modes(*(np.concatenate([p[0][k] for p in parts]) for k in range(5)))
         values = np.concatenate([p[1] for p in parts])
         gradients = None if any(p[2] is None for p in parts) else np.concatenate([p[2] for p in parts])

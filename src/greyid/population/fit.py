@@ -287,7 +287,8 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
     The search starts from the typical values of a fit of the model to the first
     :data:`POOLED_MEMBERS` data sets together (``start="pooled"``; from ``init`` or
     the model's initial values where that fit fails) or, with ``start="init"``,
-    from the initial values themselves; ω starts at ``omega_init`` (default 0.3 on
+    from the initial values themselves; ω starts at ``omega_init`` ({parameter: standard deviation}, or Ω
+    itself as a square DataFrame labelled by the random parameters, positive definite; default 0.3 on
     the log scale, 30 % of the typical value on the natural scale).
     """
     from .result import PopulationResult

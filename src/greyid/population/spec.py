@@ -81,6 +81,7 @@ class PopulationSpec:
     covariate_sd: np.ndarray
     full: bool  # Ω with correlations
     omega0: np.ndarray  # starting standard deviations of η
+    correlation0: np.ndarray | None = None  # starting correlation elements of C (full Ω), pairs' order
 
     # ------------------------------------------------------------------ layout
     @property
@@ -118,12 +119,13 @@ class PopulationSpec:
         return [(a, b) for a in range(self.n_random) for b in range(a)]
 
     def phi0(self) -> np.ndarray:
-        """φ at the model's initial values, no covariate effect, ω at ``omega0``, no correlation."""
+        """φ at the model's initial values, no covariate effect, ω at ``omega0``, the correlations at
+        ``correlation0`` (none where not given)."""
         theta_free = self.theta0[list(self.free)]
         typical = np.where(self.log_scale, np.log(np.where(self.log_scale, theta_free, 1.0)),
                            self.transform.to_z(theta_free))
-        return np.concatenate([typical, np.zeros(len(self.effects)), np.log(self.omega0),
-                               np.zeros(self.n_correlations)])
+        correlation = np.zeros(self.n_correlations) if self.correlation0 is None else self.correlation0
+        return np.concatenate([typical, np.zeros(len(self.effects)), np.log(self.omega0), correlation])
 
     # ------------------------------------------------------------------ maps
     def cholesky(self, phi, xp=jnp):
@@ -247,7 +249,7 @@ def make_spec(model, random, covariates, effects, omega, names_of_datasets, init
             raise DataError(f"covariate '{constant[0]}' has the same value for every data set; its effect cannot "
                             "be estimated")
 
-    omega_init = dict(omega_init or {})
+    omega_init, correlation0 = _omega_start(omega_init, random_names, omega == "full")
     unknown = [n for n in omega_init if n not in random_names]
     if unknown:
         raise ModelError(f"omega_init given for '{unknown[0]}', which has no random effect")
@@ -265,5 +267,37 @@ def make_spec(model, random, covariates, effects, omega, names_of_datasets, init
         omega0.append(value)
     spec = PopulationSpec(tuple(names), parameters.theta0.copy(), tuple(free), tuple(log_scale), transform,
                           tuple(names.index(n) for n in random_names), tuple(kinds), tuple(columns),
-                          tuple(pairs), mean, sd, omega == "full", np.array(omega0))
+                          tuple(pairs), mean, sd, omega == "full", np.array(omega0), correlation0)
     return spec, raw
+
+
+def _omega_start(omega_init, random_names: list[str], full: bool) -> tuple[dict, np.ndarray | None]:
+    """``omega_init`` as (standard deviations by name, C's starting elements or None): a mapping of
+    standard deviations, or Ω itself as a square DataFrame labelled by the random parameters."""
+    if not isinstance(omega_init, pd.DataFrame):
+        return dict(omega_init or {}), None
+    labels = [str(c) for c in omega_init.columns]
+    if [str(i) for i in omega_init.index] != labels or sorted(labels) != sorted(random_names):
+        raise ModelError(f"omega_init as a matrix must be square with rows and columns named by the random "
+                         f"effects' parameters ({', '.join(random_names)}); it has rows "
+                         f"{list(omega_init.index)} and columns {list(omega_init.columns)}")
+    try:
+        matrix = omega_init.loc[random_names, random_names].to_numpy(dtype=float)
+    except (TypeError, ValueError):
+        raise ModelError("omega_init holds a value that is not a number") from None
+    if not np.all(np.isfinite(matrix)) or not np.allclose(matrix, matrix.T, rtol=1e-10, atol=0.0):
+        raise ModelError("omega_init is not a symmetric matrix of numbers; Ω is a covariance matrix")
+    eigenvalues = np.linalg.eigvalsh(matrix)
+    if not eigenvalues.min() > 0:
+        raise ModelError(f"omega_init is not positive definite (smallest eigenvalue {eigenvalues.min():.6g}); "
+                         "Ω is the covariance of the random effects")
+    sd = np.sqrt(np.diag(matrix))
+    correlation = matrix / np.outer(sd, sd)
+    if not full:
+        if np.any(np.abs(correlation - np.eye(len(sd))) > 1e-12):
+            raise ModelError("omega_init has correlations but omega is 'diagonal'; use omega='full'")
+        return dict(zip(random_names, sd)), None
+    L = np.linalg.cholesky(correlation)
+    q = len(sd)
+    elements = np.array([L[a, b] / L[a, a] for a in range(q) for b in range(a)])  # C's rows, normalised
+    return dict(zip(random_names, sd)), elements
