@@ -72,7 +72,7 @@ def fit_case(case: str, data: Path, repeats: int) -> None:
     runs = {"cold cache": [], "warm cache": []}
     for _ in range(repeats):
         env = dict(os.environ, GREYID_CACHE_DIR=tempfile.mkdtemp(prefix="greyid-bench-cache-"))
-        for label, results in runs.items():
+        for results in runs.values():
             start = time.perf_counter()
             out = subprocess.run([sys.executable, "-c", FIT_SCRIPT, case, str(data)], env=env, check=True,
                                  capture_output=True, text=True).stdout.split()

@@ -1,6 +1,7 @@
 """Fits of long series: time, iterations and peak memory against the number of samples.
 
-    python benchmarks/length.py [--lengths 1000,10000,100000] [--model logistic|testcell] [--optimizer auto|scoring|newton]
+    python benchmarks/length.py [--lengths 1000,10000,100000] [--model logistic|testcell]
+        [--optimizer auto|scoring|newton]
 
 Each fit runs in a fresh process (so its peak resident memory is its own):
 simulate the series, then fit it.  ``logistic`` is the library's logistic

@@ -121,7 +121,8 @@ def two_stage_rows(model, data, covariates) -> list[dict]:
                               ("omega_C", logs["C"] - logs["C"].mean(), n - 1)):
         ss = float(np.sum(np.square(residuals)))
         rows.append(dict(method="two-stage", quantity=q, estimate=np.sqrt(ss / dof),
-                         lower=np.sqrt(ss / stats.chi2.ppf(0.975, dof)), upper=np.sqrt(ss / stats.chi2.ppf(0.025, dof))))
+                         lower=np.sqrt(ss / stats.chi2.ppf(0.975, dof)),
+                         upper=np.sqrt(ss / stats.chi2.ppf(0.025, dof))))
     mean_c = logs["C"].mean()
     half = stats.t.ppf(0.975, n - 1) * logs["C"].std(ddof=1) / np.sqrt(n)
     rows.append(dict(method="two-stage", quantity="C", estimate=np.exp(mean_c), lower=np.exp(mean_c - half),

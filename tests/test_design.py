@@ -392,7 +392,8 @@ def test_sampling_table_aliases_and_joint_design(test_cell):
     free = ["Hi", "Hm", "Ci", "Cm"]
     tau = 4.0
     alias = design.aliased([2.0], tau)[0]
-    assert 0 <= alias <= np.pi / tau and alias == pytest.approx(abs((2.0 + np.pi / tau) % (2 * np.pi / tau) - np.pi / tau))
+    folded = abs((2.0 + np.pi / tau) % (2 * np.pi / tau) - np.pi / tau)
+    assert 0 <= alias <= np.pi / tau and alias == pytest.approx(folded)
     high = design.sampling_table(model, params, "Qh", [tau], frequencies=[2.0], power=100.0, free=free)
     low = design.sampling_table(model, params, "Qh", [tau], frequencies=[alias], power=100.0, free=free)
     assert high["D_per_sample"].iloc[0] == pytest.approx(low["D_per_sample"].iloc[0], rel=1e-9)

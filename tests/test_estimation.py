@@ -49,7 +49,8 @@ def test_fit_recovers_parameters_and_reports(ou):
     assert fit.n_params == 5 and fit.n_obs == 300
     assert fit.aic == pytest.approx(-2 * fit.loglik + 10)
     assert fit.bic == pytest.approx(-2 * fit.loglik + 5 * np.log(300))
-    assert list(fit.params.columns[:7]) == ["estimate", "std_error", "t_value", "p_value", "lower_bound", "upper_bound", "fixed"]
+    assert list(fit.params.columns[:7]) == ["estimate", "std_error", "t_value", "p_value", "lower_bound",
+                                            "upper_bound", "fixed"]
     np.testing.assert_allclose(np.diag(fit.corr), 1.0)
     text = fit.summary()
     assert "log-likelihood" in text and "x0" in text and "AIC" in text
@@ -356,6 +357,25 @@ def test_bound_transforms_agree_in_numpy_and_jax():
     t = Transform.from_bounds([None, 0.0, None, -25.0], [None, None, 3.0, 5.0])
     for z in (np.array([-1.3, 0.4, 2.0, -0.7]), np.array([40.0, -40.0, 30.0, -800.0])):
         np.testing.assert_allclose(t.to_theta(z, np), np.asarray(t.to_theta(jnp.asarray(z))), rtol=1e-15)
+
+
+def test_bound_transform_derivative_far_out_gives_no_warning():
+    """dθ/dz far beyond a bound is 0 or the derivative's limit, computed without an overflow or ∞·0 warning
+    (a fit that pushes a parameter to its bound printed NumPy's RuntimeWarning)."""
+    import warnings
+
+    from greyid.estimate.transforms import Transform
+
+    t = Transform.from_bounds([None, 0.0, None, -25.0], [None, None, 3.0, 5.0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        far = t.derivative(np.array([5.0, -800.0, -800.0, -800.0]))
+        near = t.derivative(np.array([0.3, 0.3, 0.3, 0.3]))
+    np.testing.assert_allclose(far, [1.0, 0.0, 0.0, 0.0], atol=1e-300)
+    h = 1e-6
+    z = np.full(4, 0.3)
+    central = (t.to_theta(z + h, np) - t.to_theta(z - h, np)) / (2 * h)
+    np.testing.assert_allclose(near, central, rtol=1e-8)
 
 
 def test_a_doubly_bounded_parameter_run_off_to_its_bound_is_at_the_bound():

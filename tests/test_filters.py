@@ -213,7 +213,8 @@ def test_loglik_gradient_matches_finite_differences(building):
     theta = jnp.asarray(model.parameter_vector(params))
     for method in ("kalman", "ekf"):
         run = compiled_filter(s, filter_options(s, method), keep_outputs=False)
-        f = lambda th: run(th, inputs)[0].loglik.sum()
+        def f(th):
+            return run(th, inputs)[0].loglik.sum()
         g = np.asarray(jax.grad(f)(theta))
         eps = 1e-6 * np.maximum(np.abs(np.asarray(theta)), 1.0)
         fd = np.array([(f(theta.at[i].add(eps[i])) - f(theta.at[i].add(-eps[i]))) / (2 * eps[i])
@@ -245,5 +246,6 @@ def test_smoothers_of_nonlinear_filters_beat_their_filters(method):
     truth = sim.states[0, :, 0]
     smoothed = gbm.smooth(p, df, method=method)
     filtered = gbm.filter(p, df, method=method)
-    rmse = lambda x: np.sqrt(np.mean((np.log(x) - np.log(truth)) ** 2))
+    def rmse(x):
+        return np.sqrt(np.mean((np.log(x) - np.log(truth)) ** 2))
     assert rmse(smoothed.smoothed["X"].to_numpy()) < 0.9 * rmse(filtered.filtered["X"].to_numpy())

@@ -101,7 +101,8 @@ def test_k_step_sandwich_is_calibrated():
         se_sandwich.append(fit.bse)
         se_hessian.append(m.fit(data, horizon=4, cov_type="hessian", init=fit.values).bse)
     spread = pd.DataFrame(estimates).std()
-    rms = lambda se: np.sqrt((pd.DataFrame(se) ** 2).mean())
+    def rms(se):
+        return np.sqrt((pd.DataFrame(se) ** 2).mean())
     for name in ("a", "b"):
         assert 0.7 < spread[name] / rms(se_sandwich)[name] < 1.3, name
         assert spread[name] / rms(se_hessian)[name] > 1.2, name

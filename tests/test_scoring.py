@@ -142,8 +142,9 @@ def test_scoring_hands_over_and_reports_the_exact_hessian():
 
 def test_a_crawl_along_a_flat_ridge_stops_as_stalled():
     """f = z₁² − 1e-4·z₂ (z₂ a log coordinate, so steps of at most MAX_STEP): no minimum, each
-    step gains a little along a direction of zero curvature. The search stops as stalled (not converged) within a few dozen steps, with the
-    well-determined coordinate at its optimum up to less than the stall threshold."""
+    step gains a little along a direction of zero curvature. The search stops as stalled (not
+    converged) within a few dozen steps, with the well-determined coordinate at its optimum up to
+    less than the stall threshold."""
     def evaluate(z):
         return z[0] ** 2 - 1e-4 * z[1], np.array([2 * z[0], -1e-4]), np.diag([2.0, 0.0])
 

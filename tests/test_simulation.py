@@ -39,7 +39,8 @@ def errors(model, method, calculus, exact, paths=4000, fine=2**9, levels=(3, 4, 
         hs.append(T / steps)
         strong.append(np.mean(np.abs(x - x_exact)))
         weak.append(abs(np.mean(x - x_exact)))
-    slope = lambda e: np.polyfit(np.log(hs), np.log(e), 1)[0]
+    def slope(e):
+        return np.polyfit(np.log(hs), np.log(e), 1)[0]
     return slope(strong), slope(weak), strong, weak
 
 

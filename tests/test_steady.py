@@ -85,8 +85,10 @@ def test_linear_recursion_is_the_loop(rows):
         return jnp.sum(weights * recursion(F * (1 + a[0]) + a[1], v * a[2] + a[0], start * a[1]) ** 2)
 
     a = jnp.asarray([0.1, 0.05, 1.2])
-    fast = lambda a: summary(lambda *p: steady.linear_recursion(steady.recursion(p[0]), *p[1:]), a)
-    slow = lambda a: summary(loop_recursion, a)
+    def fast(a):
+        return summary(lambda *p: steady.linear_recursion(steady.recursion(p[0]), *p[1:]), a)
+    def slow(a):
+        return summary(loop_recursion, a)
     np.testing.assert_allclose(jax.jacfwd(fast)(a), jax.jacfwd(slow)(a), rtol=1e-10)
     np.testing.assert_allclose(jax.jacfwd(jax.jacfwd(fast))(a), jax.jacfwd(jax.jacfwd(slow))(a), rtol=1e-9)
 

@@ -38,7 +38,8 @@ def reference_loglik(p, df, foh):
     for i in range(len(t)):
         if i > 0:
             a, b = t[i - 1], t[i]
-            held = lambda v: u[i - 1] + foh * (u[i] - u[i - 1]) * (v - a) / (b - a)
+            def held(v):
+                return u[i - 1] + foh * (u[i] - u[i - 1]) * (v - a) / (b - a)
             c = quad(lambda v: np.exp(-decay(p, v, b)) * held(v), a, b, epsabs=1e-13, epsrel=1e-13)[0]
             lam = quad(lambda v: np.exp(-2 * decay(p, v, b)) * p["s"] ** 2, a, b, epsabs=1e-13, epsrel=1e-13)[0]
             x, P = np.exp(-decay(p, a, b)) * x + c, np.exp(-2 * decay(p, a, b)) * P + lam

@@ -220,3 +220,19 @@ def test_simulation_bands_with_parameter_uncertainty_are_wider(ou_fit):
     np.testing.assert_allclose(line.get_ydata(), with_parameters["y"])
     with pytest.raises(greyid.ModelError, match="no <output>_lower"):
         uncertainty.plot_intervals(fit.predict())
+
+
+def test_plot_profile_returns_the_figure_of_the_profile(ou_fit):
+    """plot_profile draws the profile's deviance and the χ² threshold and returns the Figure, as the other
+    plot methods do; on a given Axes it draws there (and returns that Axes' Figure)."""
+    from matplotlib.figure import Figure
+
+    _, _, fit = ou_fit
+    figure = fit.plot_profile("a", n=5)
+    assert isinstance(figure, Figure)
+    ax = figure.axes[0]
+    table = fit.profile("a", n=5)
+    np.testing.assert_allclose(ax.lines[0].get_ydata(), table["deviance"], rtol=1e-8)
+    assert any(np.allclose(line.get_ydata(), THRESHOLD) for line in ax.lines)
+    given = Figure().subplots()
+    assert fit.plot_profile("a", ax=given, n=5) is given.figure

@@ -29,11 +29,15 @@ POINT_KWH = {n: v / FACTOR[n] for n, v in POINT_SI.items()}
 
 def kwh_model():
     text = (ROOT / "examples" / "armadillo.toml").read_text(encoding="utf-8")
-    text = text.replace("Ro = { init = 0.01, lower = 0.0001, upper = 1.0 }", "Ro = { init = 10.0, lower = 0.1, upper = 1000.0 }")
-    text = text.replace("Ri = { init = 0.005, lower = 0.0001, upper = 1.0 }", "Ri = { init = 5.0, lower = 0.1, upper = 1000.0 }")
-    text = text.replace("Cw = { init = 1e7, lower = 1e5, upper = 1e9 }", "Cw = { init = 2.78, lower = 0.0278, upper = 278.0 }")
-    text = text.replace("Ci = { init = 1e6, lower = 1e4, upper = 1e8 }", "Ci = { init = 0.278, lower = 0.00278, upper = 27.8 }")
-    text = text.replace("sigw = { init = 0.001, lower = 1e-6, upper = 1.0 }", "sigw = { init = 0.06, lower = 6e-5, upper = 60.0 }")
+    kwh_lines = {  # the same bounds and initial values in K/kW and kWh/K
+        "Ro = { init = 0.01, lower = 0.0001, upper = 1.0 }": "Ro = { init = 10.0, lower = 0.1, upper = 1000.0 }",
+        "Ri = { init = 0.005, lower = 0.0001, upper = 1.0 }": "Ri = { init = 5.0, lower = 0.1, upper = 1000.0 }",
+        "Cw = { init = 1e7, lower = 1e5, upper = 1e9 }": "Cw = { init = 2.78, lower = 0.0278, upper = 278.0 }",
+        "Ci = { init = 1e6, lower = 1e4, upper = 1e8 }": "Ci = { init = 0.278, lower = 0.00278, upper = 27.8 }",
+        "sigw = { init = 0.001, lower = 1e-6, upper = 1.0 }": "sigw = { init = 0.06, lower = 6e-5, upper = 60.0 }",
+    }
+    for si, kwh in kwh_lines.items():
+        text = text.replace(si, kwh)
     assert text.count("init = ") == 7 and "1e7" not in text
     return read_model(text)
 

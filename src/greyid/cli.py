@@ -163,7 +163,7 @@ def _run(command) -> None:
 
             err.print(traceback.format_exc())
         err.print(f"[bold red]error:[/] {escape(str(problem))}", markup=True)
-        raise typer.Exit(BAD_INPUT)
+        raise typer.Exit(BAD_INPUT) from None
     raise typer.Exit(code)
 
 
@@ -334,6 +334,9 @@ def simulate(model: str = typer.Argument(..., help="model file, fit file (.json)
     """Simulate MODEL (at a fit's estimates, or the model file's initial values) on DATA's times and inputs."""
 
     def command() -> int:
+        if deterministic and paths > 1:
+            raise InputProblem(f"--deterministic has no noise: --paths {paths} would write {paths} copies of "
+                               "one path; leave --paths out")
         if out_file is not None:
             check_output_file(out_file)
         m, saved = load_model_or_fit(model)
@@ -357,6 +360,8 @@ def simulate(model: str = typer.Argument(..., help="model file, fit file (.json)
 def _fit_with_data(fit_file: Path, data: Optional[Path]):
     from . import load_fit
 
+    if not fit_file.exists():
+        raise InputProblem(f"fit file '{fit_file}' not found")
     if fit_file.suffix != ".json" or not fit_file.is_file():
         raise InputProblem(f"'{fit_file}' is not a fit file; write one with 'greyid fit MODEL DATA --out DIR'")
     saved = load_fit(fit_file)

@@ -26,5 +26,6 @@ from .sampling import aliased, sampling_table
 
 __all__ = ["fisher_information", "local_identifiability", "cramer_rao_bound", "criterion", "CRITERIA",
            "average_criterion", "minimax_criterion", "with_prior", "compare_inputs", "frequency_information",
-           "frequency_information_grid", "frequency_information_points", "optimal_multisine", "MultisineDesign", "sampling_table", "aliased",
+           "frequency_information_grid", "frequency_information_points", "optimal_multisine", "MultisineDesign",
+           "sampling_table", "aliased",
            "identifiability", "Identifiability"]

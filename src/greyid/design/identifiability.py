@@ -246,7 +246,7 @@ def identifiability(model, params=None, plan=None, seed: int = 0, free=None) -> 
         rate = _time_scale(at[0])
         at_p = _frequencies(at[0], draws)
 
-        def observed(log_free):
+        def observed(log_free, values=values, at_p=at_p, rate=rate):
             v = values.copy()
             v[free_index] = np.exp(log_free)
             return _observables(*[np.asarray(M, dtype=float) for M in numeric(*v)], at_p, rate)

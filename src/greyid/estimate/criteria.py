@@ -80,7 +80,8 @@ def scale_consistency(robust) -> float:
     kind, c = robust[:2]
     if kind == "huber":
         return float(special.erf(c / np.sqrt(2.0)))  # 2Φ(c) − 1
-    integrand = lambda z: z**2 * (1 - (z / c) ** 2) ** 2 * stats.norm.pdf(z)
+    def integrand(z):
+        return z**2 * (1 - (z / c) ** 2) ** 2 * stats.norm.pdf(z)
     return float(2 * integrate.quad(integrand, 0.0, c, epsabs=1e-13)[0])
 
 

@@ -70,7 +70,7 @@ def _compiled(structure, options, index: tuple[int, ...]):
         hessian = hessian_rows(total, forward_hessian(options.method, len(index)))
         eye = jnp.eye(len(index))
         structure.cache[key] = tuple(
-            structure_program(structure, (*key, name), lambda: fun) for name, fun in (
+            structure_program(structure, (*key, name), lambda fun=fun: fun) for name, fun in (
                 ("value_and_grad", forward_value_and_grad(total)),
                 ("hessian", lambda sub, base, data: hessian(sub, eye, base, data)[2]),
                 ("step_scores", jax.jacfwd(step_logliks)), ("fisher", fisher)))

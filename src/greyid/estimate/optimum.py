@@ -152,7 +152,8 @@ def build_result(model, frames, theta, problem, best, optima, settings, scores=N
                              reliable=bool(reliable[j] and not at_bound[j]), gradient=-g_theta[j]))
         else:
             rows.append(dict(name=name, estimate=theta[i], std_error=np.nan, t_value=np.nan, p_value=np.nan,
-                             lower_bound=lower, upper_bound=upper, fixed=True, at_bound=False, reliable=True, gradient=np.nan))
+                             lower_bound=lower, upper_bound=upper, fixed=True, at_bound=False, reliable=True,
+                             gradient=np.nan))
     params = pd.DataFrame(rows).set_index("name")
     params.index.name = None
     for col in ("lower_bound", "upper_bound"):

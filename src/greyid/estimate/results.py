@@ -151,7 +151,8 @@ class FitResult:
         return sample(self, draws=draws, chains=chains, seed=seed, warmup=warmup, target_accept=target_accept)
 
     def plot_profile(self, name: str, ax=None, **options):
-        """Plot :meth:`profile` of ``name`` (deviance, χ² threshold, Wald parabola); returns the axes."""
+        """Plot :meth:`profile` of ``name`` (deviance, χ² threshold, Wald parabola); returns the Figure
+        (drawn on ``ax`` where given)."""
         from ..uncertainty.profile import plot_profile
 
         table = self.profile(name, **options)
@@ -202,7 +203,8 @@ class FitResult:
         tail = (1 - level) / 2
         lines.append(f"{'':12s} {'estimate':>13s} {'std_error':>11s} {'t_value':>9s} {'p_value':>9s} "
                      f"{f'[{tail:.3g}':>11s} {f'{1 - tail:.3g}]':>11s}")
-        fmt = lambda v, w, p: f"{v:{w}.{p}g}" if v is not None and np.isfinite(v) else " " * (w - 1) + "-"
+        def fmt(v, w, p):
+            return f"{v:{w}.{p}g}" if v is not None and np.isfinite(v) else " " * (w - 1) + "-"
         intervals = self.conf_int(level)
         tested = self.tests_against_zero
         for name, row in self.params.iterrows():

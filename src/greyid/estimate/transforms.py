@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
 import jax.numpy as jnp
 import numpy as np
+from scipy import special
 
 NONE, LOWER, UPPER, BOTH = 0, 1, 2, 3
 #: |z| of a doubly bounded parameter within 1e-12 of its span from a bound (to_z's clip).
@@ -58,8 +59,8 @@ class Transform:
     def derivative(self, z) -> np.ndarray:
         """dθ/dz at z."""
         z = np.asarray(z, dtype=np.float64)
-        width = self.upper - self.lower
-        s = 1.0 / (1.0 + np.exp(-z))
+        width = np.where(self.kind == BOTH, self.upper - self.lower, 1.0)  # not ∞·0 where a bound is missing
+        s = special.expit(z)  # 1/(1 + e^−z) without overflow (and its warning) for z far below 0
         e = np.exp(np.clip(z, -700, 700))
         return np.select([self.kind == NONE, self.kind == LOWER, self.kind == UPPER], [np.ones_like(z), e, -e],
                          width * s * (1 - s))

@@ -163,7 +163,7 @@ def fit_members(model, names: list, sources: list, inits: list, progress, given:
                 for i, (best, all_optima, labels) in zip(chunk, optima):
                     results[i] = _result(model, structure, problem, args, members[i], best, all_optima, labels,
                                          s, robust, cov_type, prior, filter_settings)
-        for i, m in enumerate(members):
+        for m in members:
             if "error" in m:
                 shown.advance()
     rows, fits = [], []

@@ -64,7 +64,7 @@ class FleetResult:
             q = estimates.quantile([0.0, 0.25, 0.5, 0.75, 1.0]).T
             q.columns = ["min", "25%", "median", "75%", "max"]
             lines.append(q.to_string(float_format=lambda v: f"{v:.5g}"))
-        for name, error in self.failed.items():
+        for _name, error in self.failed.items():
             lines.append(f"  {error}")
         return "\n".join(lines)
 

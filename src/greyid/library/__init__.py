@@ -65,7 +65,7 @@ def rc_network(states: Iterable[str] = ()) -> Model:
     if "Tm" in extra:
         flows.append("(Tm - Ti)/(Rim*Ci)")
     m.add_system(f"dTi = ({' + '.join(flows)})*dt + exp(pTi)*dw1")
-    bounds = {"Ci": (0.1, 1e-3, 50), "Aw": (1.0, -5, 50), "pTi": (-2, -20, 5), "Ti0": (21, 10, 35)}
+    bounds = {"Ci": (0.1, 1e-3, 50), "Aw": (1.0, 0, 50), "pTi": (-2, -20, 5), "Ti0": (21, 10, 35)}
     if "Te" in extra:
         m.add_system("dTe = ((Ti - Te)/(Rie*Ce) + (Ta - Te)/(Rea*Ce))*dt + exp(pTe)*dw2")
         bounds.update(Rie=(1.0, 1e-3, 100), Rea=(4.0, 1e-3, 100), Ce=(2.0, 1e-3, 100), pTe=(-2, -20, 5),

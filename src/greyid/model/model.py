@@ -411,7 +411,8 @@ class Model:
             if new == expr:
                 return new
             expr = new
-        raise ModelError("algebraic equations refer to each other in a cycle: " + ", ".join(a.text for a in self._algebraics))
+        raise ModelError("algebraic equations refer to each other in a cycle: "
+                         + ", ".join(a.text for a in self._algebraics))
 
     def _build(self) -> Structure:
         if self._functions is not None:

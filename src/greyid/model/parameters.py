@@ -93,8 +93,8 @@ def log_parametrised(structure) -> set[str]:
         symbol = next(s for e in occurs for s in e.free_symbols if s.name == name)
         dummy = sp.Dummy()
         # Every occurrence inside exp(p): replacing exp(p) by a dummy removes p altogether.
-        if all(symbol not in e.replace(lambda x: isinstance(x, sp.exp) and x.args[0] == symbol,
-                                       lambda x: dummy).free_symbols for e in occurs):
+        if all(symbol not in e.replace(lambda x, symbol=symbol: isinstance(x, sp.exp) and x.args[0] == symbol,
+                                       lambda x, dummy=dummy: dummy).free_symbols for e in occurs):
             out.add(name)
     return out
 

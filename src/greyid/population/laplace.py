@@ -254,6 +254,31 @@ def laplace_values(modes: Modes) -> np.ndarray:
     return out
 
 
+#: Members per call of the outer Hessian program.
+HESSIAN_MEMBERS = 128
+
+
+def _cut(x, data, count: int) -> list[tuple]:
+    """The members cut into ``count`` chunks of equal size, the last padded with copies of its first
+    member: ``(index, padded index, x, data)`` per chunk, on the device."""
+    n = int(np.shape(x)[0])
+    size = -(-n // max(1, min(count, n)))
+    parts = []
+    for start in range(0, n, size):
+        index = np.arange(start, min(start + size, n))
+        padded = np.concatenate([index, np.full(size - len(index), index[0])])
+        parts.append((index, padded, jax.device_put(np.asarray(x)[padded]),
+                      jax.tree_util.tree_map(lambda leaf, padded=padded: leaf[padded], data)))
+    return parts
+
+
+def _joined(outs: list, parts: list[tuple]):
+    """The chunks' results without their padding, joined along the members."""
+    pieces = [jax.tree_util.tree_map(lambda leaf, k=len(part[0]): np.asarray(leaf)[:k], out)
+              for out, part in zip(outs, parts)]
+    return jax.tree_util.tree_map(lambda *leaves: np.concatenate(leaves), *pieces)
+
+
 class MemberPrograms:
     """The :class:`LaplacePrograms` bound to the members' data, each call split over threads.
 
@@ -267,24 +292,17 @@ class MemberPrograms:
 
         n = int(np.shape(x)[0])
         workers = max(1, min(int(workers), n))
-        size = -(-n // workers)
         self.n, self.programs = n, programs
-        self.parts = []
-        for start in range(0, n, size):
-            index = np.arange(start, min(start + size, n))
-            padded = np.concatenate([index, np.full(size - len(index), index[0])])
-            self.parts.append((index, padded, jax.device_put(np.asarray(x)[padded]),
-                               jax.tree_util.tree_map(lambda leaf: leaf[padded], data)))
+        self.parts = _cut(x, data, workers)
+        # The Hessian in chunks of at most HESSIAN_MEMBERS, one after the other: its vectorised work
+        # keeps the cores busy by itself, and its memory stays bounded (it grows with the chunk).
+        self.hessian_parts = _cut(x, data, -(-n // HESSIAN_MEMBERS))
         self.base = tuple(jax.device_put(np.asarray(b, dtype=float)) for b in base)
-        self.x, self.data = jax.device_put(np.asarray(x)), data
         self.pool = ThreadPoolExecutor(len(self.parts))
 
     def _run(self, call):
         futures = [self.pool.submit(call, part) for part in self.parts]
-        outs = [jax.device_get(f.result()) for f in futures]
-        pieces = [jax.tree_util.tree_map(lambda leaf: np.asarray(leaf)[:len(part[0])], out)
-                  for out, part in zip(outs, self.parts)]
-        return jax.tree_util.tree_map(lambda *leaves: np.concatenate(leaves), *pieces)
+        return _joined([jax.device_get(f.result()) for f in futures], self.parts)
 
     def value(self, u, phi):
         phi = jnp.asarray(phi)
@@ -300,9 +318,12 @@ class MemberPrograms:
                                                              part[3]))
 
     def hessian(self, phi, u):
-        """One call over all members: the Hessian's vectorised work keeps the cores busy by itself
-        (100 houses: 20 s in one call, 40 s in two chunks side by side)."""
-        return jax.device_get(self.programs.hessian(jnp.asarray(phi), np.asarray(u), self.x, self.base, self.data))
+        """The chunks one after the other (100 houses: one call of 7 s; two chunks side by side took twice
+        as long)."""
+        phi = jnp.asarray(phi)
+        outs = [jax.device_get(self.programs.hessian(phi, np.asarray(u)[part[1]], part[2], self.base, part[3]))
+                for part in self.hessian_parts]
+        return _joined(outs, self.hessian_parts)
 
     def close(self):
         self.pool.shutdown()

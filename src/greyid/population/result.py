@@ -132,7 +132,7 @@ class PopulationResult:
         base = spec.base()
         L = np.asarray(spec.cholesky(jnp.asarray(self.phi)))
         rows, self.individual_params = [], []
-        for k, name in enumerate(self.names):
+        for k, _name in enumerate(self.names):
             u = self._modes.u[k]
             theta = np.asarray(spec.theta(jnp.asarray(self.phi), jnp.asarray(u), jnp.asarray(self._members.x[k]),
                                           tuple(jnp.asarray(b) for b in base)))

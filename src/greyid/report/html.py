@@ -2,7 +2,8 @@
 
 Sections: model (equations rendered from SymPy as MathML), data, estimation
 (criterion, log-likelihood, information criteria, warnings), parameters with
-standard errors and 95 % Wald and profile-likelihood intervals, correlation matrix, derived quantities, the residual tests of
+standard errors and 95 % Wald and profile-likelihood intervals, correlation matrix, derived
+quantities, the residual tests of
 chapter 5 with their verdicts, the residual dashboard and coherency of each
 output, measured versus simulated outputs, and k-step predictions.
 """

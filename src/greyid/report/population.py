@@ -258,7 +258,8 @@ def _members_section(result, level: float) -> str:
     table = member_tests(result, level)
     tests = [c for c in table.columns if c != "rejects"]
     # Headers break at the underscores (a table of ten tests then fits the page).
-    head = ('<th class="name">data set</th>' + "".join(f"<th>{_esc(c.replace('_', ' ').replace('[', ' ['))}</th>" for c in tests)
+    head = ('<th class="name">data set</th>'
+            + "".join(f"<th>{_esc(c.replace('_', ' ').replace('[', ' ['))}</th>" for c in tests)
             + "<th>rejects</th>")
     rows = []
     for name, row in table.iterrows():
@@ -271,8 +272,8 @@ def _members_section(result, level: float) -> str:
             f"{level}).  With {len(tests)} tests per member about {expected:.1f} rejection(s) per member are "
             f"expected by chance alone, and about {level * len(table):.1f} member(s) per test; look for members and "
             "tests that reject together.</p>",
-            f'<div style="overflow-x:auto"><table class="tests"><thead><tr>{head}</tr></thead><tbody>{"".join(rows)}</tbody>'
-            "</table></div>"]
+            f'<div style="overflow-x:auto"><table class="tests"><thead><tr>{head}</tr></thead>'
+            f'<tbody>{"".join(rows)}</tbody></table></div>']
     for name, problem in table.attrs.get("problems", {}).items():
         body.append(f'<div class="warning">no tests for {_esc(name)}: {_esc(problem)}</div>')
     return _section("members", "Members' residual tests (chapter 5)", "\n".join(body))

@@ -323,11 +323,12 @@ def profile_intervals(fit, level: float = 0.95, names=None, notes: list | None =
 
 
 def plot_profile(table: pd.DataFrame, ax=None, wald_se: float | None = None):
-    """The deviance 2(ℓ̂ − ℓ_p) of a :func:`profile` table with the 95 % χ² threshold (and the Wald parabola)."""
-    import matplotlib.pyplot as plt
-
+    """The deviance 2(ℓ̂ − ℓ_p) of a :func:`profile` table with the 95 % χ² threshold (and the Wald parabola);
+    returns the Figure (drawn on ``ax`` where given, else on a new one), as greyid's other plots do."""
     if ax is None:
-        _, ax = plt.subplots(figsize=(5, 3.5))
+        from matplotlib.figure import Figure
+
+        ax = Figure(figsize=(5, 3.5), layout="constrained").subplots()
     name = table.attrs.get("quantity", table.columns[0])
     x = table[name].to_numpy()
     ax.plot(x, table["deviance"], "o-", label="profile")
@@ -338,4 +339,4 @@ def plot_profile(table: pd.DataFrame, ax=None, wald_se: float | None = None):
     ax.set_xlabel(name)
     ax.set_ylabel("2 (ℓ̂ − ℓ_p)")
     ax.legend(fontsize=8)
-    return ax
+    return ax.figure

@@ -121,7 +121,8 @@ def linearity_test(x, side: int | None = None, draws: int = 2000) -> TestResult:
     b = bispectrum(x, side)
     full = b.squares[b.squares["n_pairs"] == b.side * b.side]["statistic"].to_numpy()
     if len(full) < 8:
-        raise DataError(f"only {len(full)} full squares of side {b.side}; the linearity test needs 8 (use a smaller side)")
+        raise DataError(f"only {len(full)} full squares of side {b.side}; the linearity test needs 8 "
+                        "(use a smaller side)")
     observed = float(_iqr_excess(full))
     lam = max(float(full.mean()) - 2.0, 0.0)
     rng = np.random.default_rng(12345)
