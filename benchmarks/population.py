@@ -1,13 +1,13 @@
 """Population benchmark (issue "Population models"): Armadillo-size houses with two random effects.
 
-    python benchmarks/population.py [--sizes 100,1000] [--scheduler local]
+    python benchmarks/population.py [--sizes 100,1000] [--scheduler local] [--cache-dir DIR]
 
 Houses: the Armadillo model (pySIP's TwTi_RoRi, first-order hold, 232 rows; data
 from ../shared/data) simulated at its fitted parameters with a lognormal spread
 of 20 % in Ro and 30 % in Cw (one house per seed).  For each size it fits the
 population with ``Ro`` and ``Cw`` lognormal and prints the time of
 ``greyid.fit_population`` on the first call (compiling its programs, on an empty
-program store in a fresh process) and on a second call, with the estimates
+cache folder in a fresh process, or loading them from ``--cache-dir``) and on a second call, with the estimates
 beside the true spread, the peak memory of Python objects in the call and the
 process's peak resident memory so far (run one size per process to compare
 sizes).  ``--scheduler local`` runs the members' inner
@@ -46,7 +46,14 @@ def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--sizes", default="100,1000")
     parser.add_argument("--scheduler", default=None, choices=[None, "local"])
+    parser.add_argument("--cache-dir", default=None, help="greyid's cache folder (default: a new, empty one)")
     args = parser.parse_args()
+    import os
+    import tempfile
+
+    # An empty cache folder: the first call compiles everything, as in a fresh installation (with
+    # --cache-dir, a folder a previous run filled: the first call loads the programs kept there).
+    os.environ["GREYID_CACHE_DIR"] = args.cache_dir or tempfile.mkdtemp(prefix="greyid-bench-population-")
     import jax
 
     import greyid

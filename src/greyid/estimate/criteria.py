@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import ModelError
+from ..filters.api import _prepare, accurate_options, compiled_filter
 from ..filters.updates import LOG_2PI
 
 ROBUST_NORMS = ("huber", "tukey")
@@ -141,3 +142,17 @@ class GaussianPrior:
         if np.min(np.linalg.eigvalsh(cov)) <= 0:
             raise ModelError("the prior covariance (sd and corr) is not positive definite")
         return cls(names, mean, cov)
+
+
+def loglik(model, params, data, time="t", hold="zoh", method=None, time_unit=None, robust=None, **options) -> float:
+    """Sum over data sets of the Gaussian log-likelihood (3.18), or its robust version.
+
+    With ``robust=("huber", c)`` or ``("tukey", c)`` the squared normalised
+    innovations are replaced as in :mod:`greyid.estimate.criteria` (CTSM's
+    convention for Huber).
+    """
+    robust = check_robust(robust)
+    structure, theta, prepared = _prepare(model, params, data, time, hold, time_unit)
+    run = compiled_filter(structure, accurate_options(structure, theta, prepared, method, **options)[0],
+                          keep_outputs=False)
+    return float(sum(log_criterion(run(jnp.asarray(theta), inputs)[0], robust) for _, inputs in prepared))

@@ -197,22 +197,6 @@ def _prepare(model, params, data, time, hold, time_unit):
     return structure, theta, prepare_datasets(structure, theta, data, time, hold, time_unit)
 
 
-def loglik(model, params, data, time="t", hold="zoh", method=None, time_unit=None, robust=None, **options) -> float:
-    """Sum over data sets of the Gaussian log-likelihood (3.18), or its robust version.
-
-    With ``robust=("huber", c)`` or ``("tukey", c)`` the squared normalised
-    innovations are replaced as in :mod:`greyid.estimate.criteria` (CTSM's
-    convention for Huber).
-    """
-    from ..estimate.criteria import check_robust, log_criterion
-
-    robust = check_robust(robust)
-    structure, theta, prepared = _prepare(model, params, data, time, hold, time_unit)
-    run = compiled_filter(structure, accurate_options(structure, theta, prepared, method, **options)[0],
-                          keep_outputs=False)
-    return float(sum(log_criterion(run(jnp.asarray(theta), inputs)[0], robust) for _, inputs in prepared))
-
-
 def _result(structure: Structure, method: str, series: Series, terms, outputs) -> FilterResult:
     n = series.n_rows
     cut = jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], outputs)

@@ -554,7 +554,7 @@ class Model:
         columns) and ``robust=("huber", c)`` or ``("tukey", c)`` for the robust
         criterion (3.57–3.58) instead of the Gaussian one.
         """
-        from ..filters.api import loglik
+        from ..estimate.criteria import loglik
 
         data, settings = self._call_settings(data, dict(time=time, hold=hold, method=method, **options),
                                              DATA_KEYS + FILTER_KEYS)

@@ -1,0 +1,107 @@
+"""The package's layers: data flow one way, and a lower layer never imports a higher one.
+
+Model → filters → likelihood and estimator (estimate) → results' uses (uncertainty, validation,
+design, simulation, reports) → fleets → populations → command line.  The facades `Model` and
+`FitResult` delegate upwards (``model.fit``, ``fit.report``) by importing inside the method
+that is called; nothing else may, and nothing imports upwards at module level.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+SOURCE = Path(__file__).resolve().parents[1] / "src" / "greyid"
+
+#: Each package's layer; a module may import from its own layer and those below.
+LAYERS = {
+    "errors": 0, "schema": 0, "outputs": 0, "progress": 0, "_jax": 0, "_collector": 0, "_process": 0,
+    "compiler": 1, "programs": 1, "scaled": 1, "data": 1,
+    "model": 2,
+    "filters": 3, "library": 3,
+    "estimate": 4, "simulate": 4,
+    "uncertainty": 5, "validation": 5, "design": 5,
+    "report": 6, "datasets": 6,
+    "fleet": 7,
+    "population": 8,
+    "cli": 9, "__main__": 9,
+}
+
+#: The facades' delegations: (module, the class whose methods may import upwards where they are called).
+FACADES = {"greyid.model.model": "Model", "greyid.estimate.results": "FitResult"}
+
+
+def _module(path: Path, source: Path) -> str:
+    parts = ["greyid", *path.relative_to(source).with_suffix("").parts]
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _target(module: str, is_package: bool, node: ast.ImportFrom) -> str:
+    if node.level == 0:
+        return node.module or ""
+    base = module.split(".") if is_package else module.split(".")[:-1]
+    base = base[:len(base) - (node.level - 1)]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
+def _package(module: str) -> str | None:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else None  # None: the root package (greyid.__version__ and the like)
+
+
+def _imports(tree: ast.Module):
+    """``(import node, enclosing class or None, at module level)`` for every ``from`` import."""
+    def visit(node, cls, top):
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, ast.ImportFrom):
+                yield child, cls, top
+            elif isinstance(child, ast.ClassDef):
+                yield from visit(child, child.name, top)
+            elif isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+                yield from visit(child, cls, False)
+            else:
+                yield from visit(child, cls, top)
+    yield from visit(tree, None, True)
+
+
+def upward_imports(source: Path = SOURCE) -> list[str]:
+    """Every import of a higher layer's package, but the facades' delegations."""
+    found = []
+    for path in sorted(source.rglob("*.py")):
+        module = _module(path, source)
+        package = _package(module)
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        for node, cls, top in _imports(tree):
+            imported = _target(module, path.name == "__init__.py", node)
+            target = _package(imported)
+            if package is None or target is None or not imported.startswith("greyid"):
+                continue
+            if LAYERS[target] <= LAYERS[package]:
+                continue
+            if not top and cls is not None and FACADES.get(module) == cls:
+                continue  # a facade's delegation, imported where it is called
+            found.append(f"{module} ({'module level' if top else 'in ' + (cls or 'a function')}) imports "
+                         f"greyid.{target}")
+    return found
+
+
+def test_every_package_has_a_layer():
+    packages = {path.relative_to(SOURCE).parts[0].removesuffix(".py") for path in SOURCE.glob("*")
+                if path.suffix == ".py" or (path.is_dir() and (path / "__init__.py").exists())}
+    assert packages - {"__init__"} <= set(LAYERS), packages - set(LAYERS)
+
+
+def test_no_lower_layer_imports_a_higher_one():
+    assert upward_imports() == []
+
+
+def test_the_check_sees_an_upward_import(tmp_path):
+    """The check itself: an upward import written into a copy of a lower module is found."""
+    import shutil
+
+    copy = tmp_path / "greyid"
+    shutil.copytree(SOURCE, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    target = copy / "filters" / "api.py"
+    target.write_text(target.read_text(encoding="utf-8") + "\n\ndef helper():\n    from ..report import html\n",
+                      encoding="utf-8")
+    assert upward_imports(copy) == ["greyid.filters.api (in a function) imports greyid.report"]
