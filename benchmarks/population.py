@@ -85,6 +85,9 @@ def main():
                   f"the process so far {rss:.0f} MiB")
         omega = {name: round(float(fit.params.loc[f"omega_{name}", "estimate"]), 3) for name in SPREAD}
         print(f"  omega {omega} (simulated {SPREAD}); loglik {fit.loglik:.3f}")
+    if client is not None:
+        client.close()
+        client.cluster.close()
 
 
 if __name__ == "__main__":

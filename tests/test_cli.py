@@ -142,11 +142,26 @@ def test_design_command_ranks_a_candidate_and_names_bad_input(tmp_path, capsys):
     plan = test_cell_inputs(n=300)
     plan.to_csv(tmp_path / "prbs.csv", index=False)
     plan.assign(Qh=150.0).to_csv(tmp_path / "constant.csv", index=False)
-    assert main(["design", "test_cell", str(tmp_path / "prbs.csv"), "--candidate", str(tmp_path / "constant.csv"),
+    assert main(["design", "test_cell", str(tmp_path / "prbs.csv"), "--compare", str(tmp_path / "constant.csv"),
                  "--criterion", "D", "--criterion", "A"]) == 0
     printed = capsys.readouterr().out
     assert "Fisher information of plan 'prbs' (exact)" in printed and "Cramér–Rao bound" in printed
     assert "D rank" in printed and "A rank" in printed
+    lines = printed.splitlines()
+    assert lines[lines.index("criteria (smaller is better):") + 1].split()[:3] == ["plan", "D", "D"]
+    assert lines[lines.index("Cramér–Rao bound (least standard deviation of an unbiased estimate; inf: not "
+                             "determined):") + 1].split() == ["parameter", "value", "sd", "bound"]
+    # Measured data as the plan: the outputs are left out, with a notice, and the answer is the inputs'.
+    from greyid import library
+
+    outputs = library.load_model("test_cell").output_names
+    plan.assign(**{name: 20.0 for name in outputs}).to_csv(tmp_path / "measured.csv", index=False)
+    assert main(["design", "test_cell", str(tmp_path / "measured.csv"), "--criterion", "D"]) == 0
+    captured = capsys.readouterr()
+    assert f"the measured output column(s) {', '.join(outputs)} left out" in captured.err
+    assert main(["design", "test_cell", str(tmp_path / "prbs.csv"), "--criterion", "D"]) == 0
+    same = capsys.readouterr().out.replace("prbs", "measured")
+    assert same.split() == captured.out.split()
     assert main(["design", "test_cell", str(tmp_path / "missing.csv")]) == 2
     assert "plan file" in capsys.readouterr().err
     assert main(["design", "test_cell", str(tmp_path / "prbs.csv"), "--criterion", "Q"]) == 2

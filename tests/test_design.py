@@ -149,7 +149,7 @@ def test_compare_inputs_ranks_candidates_by_each_criterion(linear_model):
             design.criterion(info, "A", params=params, derived={"q": "b11*b12"}))
     # Exciting the inputs tells more about their gains.
     assert table.loc["loud", "Ds rank"] == 1 and table.loc["quiet", "Ds rank"] == 2
-    with pytest.raises(greyid.DataError, match="candidate 'bad'"):
+    with pytest.raises(greyid.DataError, match="plan 'bad'"):
         design.compare_inputs(linear_model, params, {"bad": plans["loud"].drop(columns="u2")}, free=names)
 
 

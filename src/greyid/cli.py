@@ -408,16 +408,24 @@ def _read_plan(m, path: Path):
     from .model.files import read_csv_file
 
     try:
-        return read_csv_file(path, m.options.get("separator"), m.options.get("decimal"))
+        table = read_csv_file(path, m.options.get("separator"), m.options.get("decimal"))
     except DataError as problem:
         raise InputProblem(f"plan {problem}") from None
+    measured = [name for name in m.output_names if name in table.columns]
+    if measured:  # measured data used as a plan: its inputs are the plan
+        err.print(f"plan '{path.stem}': the measured output column(s) {', '.join(measured)} left out "
+                  "(a plan is the times and inputs)")
+        table = table.drop(columns=measured)
+    return table
 
 
 @app.command(name="design")
 def design_command(model: str = typer.Argument(..., help="model file, fit file (.json) or library model name"),
-                   plan: Path = typer.Argument(..., help="CSV with the time column and the inputs (no outputs)"),
-                   candidates: Optional[list[Path]] = typer.Option(None, "--candidate",
-                                                                  help="another plan to rank against PLAN"),
+                   plan: Path = typer.Argument(..., help="CSV with the time column and the inputs (measured "
+                                                         "outputs in it are left out, with a notice)"),
+                   candidates: Optional[list[Path]] = typer.Option(None, "--compare", "--candidate",
+                                                                  help="another plan to rank against PLAN "
+                                                                       "(repeatable)"),
                    criterion: Optional[list[str]] = typer.Option(None, "--criterion",
                                                                  help="D, A, C or E (repeatable; default all)"),
                    method: Optional[str] = typer.Option(None, help="exact (linear models) or montecarlo"),
@@ -453,14 +461,15 @@ def design_command(model: str = typer.Argument(..., help="model file, fit file (
             info = table.attrs["information"][plan.stem]
             bound = design.cramer_rao_bound(info)
         out.print(f"Fisher information of plan '{plan.stem}' ({info.attrs.get('method')}), natural parameters:")
-        out.print(info.to_string(float_format=lambda v: f"{v:.4g}"))
+        out.print(info.rename_axis("parameter").reset_index().to_string(index=False,
+                                                                         float_format=lambda v: f"{v:.4g}"))
         out.print()
         out.print("Cramér–Rao bound (least standard deviation of an unbiased estimate; inf: not determined):")
         out.print(pd.DataFrame({"value": pd.Series(params)[bound.index], "sd bound": np.sqrt(bound)})
-                  .to_string(float_format=lambda v: f"{v:.4g}"))
+                  .rename_axis("parameter").reset_index().to_string(index=False, float_format=lambda v: f"{v:.4g}"))
         out.print()
         out.print("criteria (smaller is better):")
-        out.print(table.to_string(float_format=lambda v: f"{v:.5g}"))
+        out.print(table.rename_axis("plan").reset_index().to_string(index=False, float_format=lambda v: f"{v:.5g}"))
         flat = design.local_identifiability(info)
         for name, direction in table.attrs["undetermined"].items():
             out.print(f"not determined by plan '{name}': the direction {direction} (scaled parameters)")

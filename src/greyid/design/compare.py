@@ -56,17 +56,17 @@ def compare_inputs(model, params, candidates: Mapping[str, pd.DataFrame], criter
     rows, matrices, undetermined = {}, {}, {}
     for name, plan in candidates.items():
         if not isinstance(plan, pd.DataFrame):
-            raise DataError(f"candidate '{name}' is not a DataFrame of times and inputs")
+            raise DataError(f"plan '{name}' is not a DataFrame of times and inputs")
         try:
             info = fisher_information(model, point, plan, **information_options)
         except (DataError, ModelError) as error:
-            raise type(error)(f"candidate '{name}': {error}") from None
+            raise type(error)(f"plan '{name}': {error}") from None
         matrices[name] = info
         row = {}
         scaled = ScaledInformation.of(info.to_numpy(), list(info.index))
         if scaled.singular:
             undetermined[name] = scaled.describe()
-            warnings.warn(f"candidate '{name}' does not determine the direction {undetermined[name]} (scaled "
+            warnings.warn(f"plan '{name}' does not determine the direction {undetermined[name]} (scaled "
                           "parameters): its criteria of it are +inf", UndeterminedWarning, stacklevel=2)
         for label, spec in specs.items():
             options = {k: v for k, v in spec.items() if k != "name"}

@@ -117,6 +117,7 @@ class Outer:
         if evaluator is None:
             self.programs = laplace.MemberPrograms(programs, members.x, spec.base(), members.data,
                                                    worker_count() if workers is None else workers)
+            self.programs.compile_hessian(spec.phi0(), self.u)
             evaluator = functools.partial(evaluate, self.programs)
         self.evaluator = evaluator
 

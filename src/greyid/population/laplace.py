@@ -317,12 +317,28 @@ class MemberPrograms:
         return self._run(lambda part: self.programs.gradient(phi, np.asarray(u)[part[1]], part[2], self.base,
                                                              part[3]))
 
+    def compile_hessian(self, phi, u) -> None:
+        """Compile the Hessian's program in the background (the arguments give only its shapes): it is the
+        largest program and is needed last, so its compilation overlaps the search instead of following it."""
+        from concurrent.futures import ThreadPoolExecutor
+
+        part = self.hessian_parts[0]
+        args = (jnp.asarray(phi), np.asarray(u)[part[1]], part[2], self.base, part[3])
+        compiler = ThreadPoolExecutor(1)
+        self._hessian_compiled = compiler.submit(self.programs.hessian.executable, *args)
+        compiler.shutdown(wait=False)
+
     def hessian(self, phi, u):
         """The chunks one after the other (100 houses: one call of 7 s; two chunks side by side took twice
         as long)."""
+        if getattr(self, "_hessian_compiled", None) is not None:
+            self._hessian_compiled.result()  # compiled in the background (an error there is raised here)
         phi = jnp.asarray(phi)
-        outs = [jax.device_get(self.programs.hessian(phi, np.asarray(u)[part[1]], part[2], self.base, part[3]))
-                for part in self.hessian_parts]
+        program = self.programs.hessian
+        outs = []
+        for part in self.hessian_parts:
+            args = (phi, np.asarray(u)[part[1]], part[2], self.base, part[3])
+            outs.append(jax.device_get(program.executable(*args)(*args)))
         return _joined(outs, self.hessian_parts)
 
     def close(self):
