@@ -58,6 +58,25 @@ def test_summary_shows_intervals_and_bounds_apart(ou_case):
                                             "upper_bound", "fixed"]
 
 
+def test_p_values_read_alike_in_the_summary_and_the_report(ou_case):
+    """A p-value below double precision's resolution reads "< 1e-16" in both, not 0 in one of them; others
+    print with three digits in both."""
+    from greyid.estimate.results import p_value_text
+    from greyid.report.html import _p_value
+
+    m, df, fit = ou_case
+    assert p_value_text(0.0) == "< 1e-16" and p_value_text(0.012345) == "0.0123"
+    for p in (0.0, 3e-20, 0.012345, 0.5):
+        assert _p_value(p) == p_value_text(p)
+    lines = fit.summary().splitlines()
+    for name in FREE:
+        p = fit.params.loc[name, "p_value"]
+        if not np.isfinite(p) or not fit.tests_against_zero.get(name, True):
+            continue
+        row = next(line for line in lines if line.startswith(f"{name} "))
+        assert p_value_text(p) in row, row
+
+
 def test_sandwich_equals_finite_difference_scores(ou_case):
     """H⁻¹JH⁻¹ with J from central differences of the filter's per-step log-likelihood terms."""
     m, df, fit = ou_case

@@ -79,7 +79,7 @@ def test_a_fit_refuses_inconsistent_units_and_carries_consistent_ones(tmp_path):
     fit.save(tmp_path / "fit.json")
     assert greyid.load_fit(tmp_path / "fit.json").params.loc["Riw", "unit"] == "K/kW"
     figure = fit.validate().plot_prediction()
-    assert figure.axes[0].get_ylabel() == "yTi [degC]" and figure.axes[-1].get_xlabel() == "t [h]"
+    assert figure.axes[0].get_ylabel() == "yTi [°C]" and figure.axes[-1].get_xlabel() == "t [h]"
     from greyid.report.html import _parameters_section
 
     section = _parameters_section(fit)
@@ -112,3 +112,14 @@ def test_the_thesis_test_cell_carries_units_and_hand_conversions_get_none():
 
     assert derived_unit(m, m.units, "Hi*Hm/(Hi+Hm)") == "W/K"
     assert derived_unit(m, m.units, "(Ci + Hi*Cm/(Hm+Hi))*3600/1e6") == ""  # a conversion to MJ/K by hand
+
+
+def test_units_are_shown_as_a_reader_writes_them():
+    """Figures' axis labels and the report's tables write units alike: superscripts, °C, √h."""
+    from greyid.model.units import pretty
+    from greyid.validation.plots import labelled
+
+    assert pretty("kW/m^2") == "kW/m²" and pretty("degC") == "°C" and pretty("K/h^0.5") == "K/√h"
+    assert pretty("K^2") == "K²" and pretty("not a unit at all") == "not a unit at all"
+    assert pretty("log(K/kW)") == "log(K/kW)"
+    assert labelled("Ps", {"Ps": "kW/m^2"}) == "Ps [kW/m²]" and labelled("Ta", {}) == "Ta"

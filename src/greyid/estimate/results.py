@@ -22,11 +22,18 @@ from scipy import special
 from ..errors import ModelError
 from ..schema import FIT_FORMAT, check_fit_document
 from ..model.equations import parse_expression
+from ..model.units import pretty
 
 
 class FitWarning(UserWarning):
     """A fit finished with something to look at: an active bound, an ill-determined
     direction, no convergence.  The message is also in ``fit.warnings``."""
+
+
+def p_value_text(p: float) -> str:
+    """A p-value as the summary and the report print it: 3 digits, or ``< 1e-16`` below double
+    precision's resolution of 1 − p (where a computed 0 means "below that", not zero)."""
+    return "< 1e-16" if p < 1e-16 else f"{p:.3g}"
 
 
 @dataclass
@@ -212,10 +219,11 @@ class FitResult:
             if not row["fixed"] and not row["reliable"]:
                 flag += " (unreliable)"
             ci = intervals.loc[name]
-            unit = f" [{row['unit']}]" if row.get("unit") else ""
+            unit = f" [{pretty(row['unit'])}]" if row.get("unit") else ""
             t, p = (row["t_value"], row["p_value"]) if tested.get(name, True) else (None, None)
+            shown_p = p_value_text(p) if p is not None and np.isfinite(p) else "-"
             lines.append(f"{name:12.12s} {fmt(row['estimate'], 13, 6)} {fmt(row['std_error'], 11, 4)} "
-                         f"{fmt(t, 9, 4)} {fmt(p, 9, 3)} {fmt(ci['lower'], 11, 5)} "
+                         f"{fmt(t, 9, 4)} {shown_p:>9s} {fmt(ci['lower'], 11, 5)} "
                          f"{fmt(ci['upper'], 11, 5)}{unit}{flag}")
         if not all(tested.get(n, True) for n in self.params.index):
             lines.append("t_value, p_value: against 0; not shown for log-parameters (exp(p) in the equations) and "

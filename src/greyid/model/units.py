@@ -22,6 +22,7 @@ get none.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Mapping
@@ -49,9 +50,10 @@ def pretty(text: str) -> str:
     if text.startswith("log(") and text.endswith(")"):  # a log-parameter's unit: log of a unit
         return f"log({pretty(text[4:-1])})"
     try:
-        return format(registry().Unit(text), "~P") or text
+        shown = format(registry().Unit(text), "~P") or text
     except Exception:  # Pint raises several kinds; the text as given is still right
         return text
+    return re.sub(r"([^\s/·]+)⁰⋅⁵", r"√\1", shown)  # h⁰⋅⁵ → √h
 
 
 def parse_units(units: Mapping[str, str]) -> dict:

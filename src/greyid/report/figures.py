@@ -23,6 +23,7 @@ def data_figure(frame: pd.DataFrame, time_name: str, outputs, inputs, units=None
         else:
             ax.plot(t, frame[name], color="C0", lw=0.9)
         ax.set_ylabel(f"{labelled(name, units)}\n({role})", fontsize=8)
+        ax.tick_params(labelsize=8)  # the label and its ticks at one size
     axes[0].set_title("measured data")
     axes[-1].set_xlabel(labelled(time_name, units))
     return fig

@@ -19,6 +19,8 @@ import numpy as np
 import pandas as pd
 
 from ..errors import ModelError
+from ..estimate.results import p_value_text
+from ..model.units import pretty
 from .equations import model_equations
 from .figures import data_figure, embedded_png
 
@@ -124,7 +126,7 @@ def _data_section(fit, frames) -> str:
         t = frame[time_name]
         observed = {name: int(frame[name].notna().sum()) for name in s.output_names}
         title = f"<h3>Data set {i + 1}</h3>" if len(frames) > 1 else ""
-        unit = f" {fit.model.units[time_name]}" if time_name in fit.model.units else ""
+        unit = f" {pretty(fit.model.units[time_name])}" if time_name in fit.model.units else ""
         span = f"{time_name} from {_instant(t.iloc[0])} to {_instant(t.iloc[-1])}{unit}"
         parts.append(title + _facts([("rows", len(frame)), ("time", span),
                                      ("observed values", ", ".join(f"{k}: {v}" for k, v in observed.items())),
@@ -174,7 +176,7 @@ def _interval(lower, upper) -> str:
 
 
 def _p_value(p) -> str:
-    return "–" if not np.isfinite(p) else ("< 1e-16" if p < 1e-16 else f"{p:.2g}")
+    return "–" if not np.isfinite(p) else p_value_text(p)
 
 
 def _parameters_section(fit, profile=None) -> str:
@@ -185,8 +187,6 @@ def _parameters_section(fit, profile=None) -> str:
     params = fit.params
     table = params[["estimate", "std_error"]].copy()
     if "unit" in params:
-        from ..model.units import pretty
-
         table["unit"] = [pretty(u) for u in params["unit"]]
     wald = fit.conf_int(0.95)
     table["95 % Wald interval"] = [_interval(lo, hi) for lo, hi in zip(wald["lower"], wald["upper"])]

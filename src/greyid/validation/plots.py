@@ -101,9 +101,12 @@ def coherency_figure(residuals: pd.Series, inputs: pd.DataFrame, m: int | None =
 
 
 def labelled(name: str, units=None) -> str:
-    """``name [unit]`` where the model gives the name a unit."""
+    """``name [unit]`` where the model gives the name a unit, written as the report's tables write it
+    (``kW/m²``, ``°C``: :func:`greyid.model.units.pretty`)."""
+    from ..model.units import pretty
+
     unit = (units or {}).get(name)
-    return f"{name} [{unit}]" if unit else name
+    return f"{name} [{pretty(unit)}]" if unit else name
 
 
 def band_figure(frame: pd.DataFrame, time_name: str, outputs, title: str, band_label: str,
