@@ -95,3 +95,16 @@ def test_identifiability_section_judges_every_dynamic_parameter(report):
         assert f"<td>{name}</td>" in section or f">{name}<" in section
     assert "global" in section or "local" in section
     assert "not judged: Ti0, Tw0" in section
+
+
+def test_equations_show_a_true_minus_and_exp_as_written():
+    """The model's MathML: a minus sign (U+2212), not a hyphen; exp(x) as exp(x), not a raised e."""
+    from greyid.report.equations import model_equations
+
+    m = greyid.Model("decay")
+    m.add_system("dx = (-exp(la)*x + u - 1)*dt + exp(ls)*dw1")
+    m.add_inputs("u")
+    m.add_observation("y = x", variance="exp(le)")
+    text = "".join(math for math, _ in model_equations(m))
+    assert "&#8722;" in text and "<mo>-</mo>" not in text
+    assert "<mi>exp</mi>" in text and "ExponentialE" not in text

@@ -5,11 +5,20 @@ from __future__ import annotations
 import html
 
 import sympy as sp
-from sympy.printing.mathml import mathml
+from sympy.printing.mathml import MathMLPresentationPrinter
+
+
+class _Printer(MathMLPresentationPrinter):
+    """SymPy's presentation MathML, with exp(x) written as exp(x) (as the model was written, and
+    readable where x is long) instead of a raised e."""
+
+    def _print_exp(self, expr):
+        return self._print_Function(expr)
 
 
 def _math(expr: sp.Expr) -> str:
-    return mathml(expr, printer="presentation", mul_symbol="dot")
+    """``expr`` as MathML, with a true minus sign (U+2212) where SymPy writes a hyphen."""
+    return _Printer({"mul_symbol": "dot"}).doprint(expr).replace("<mo>-</mo>", "<mo>&#8722;</mo>")
 
 
 def _differential(name: str) -> str:
