@@ -108,3 +108,24 @@ def test_equations_show_a_true_minus_and_exp_as_written():
     text = "".join(math for math, _ in model_equations(m))
     assert "&#8722;" in text and "<mo>-</mo>" not in text
     assert "<mi>exp</mi>" in text and "ExponentialE" not in text
+
+
+def test_strong_correlations_and_intervals_cut_by_a_bound_are_flagged():
+    """A correlation above 0.95 is outlined and named below the table; a profile interval that ends at a
+    parameter's bound says so in its cell; cells do not wrap."""
+    import numpy as np
+    import pandas as pd
+
+    from greyid.report.html import _CSS, _correlation_table, _reaches_bound
+
+    corr = pd.DataFrame([[1.0, -0.97, 0.1], [-0.97, 1.0, 0.2], [0.1, 0.2, 1.0]], index=list("abc"),
+                        columns=list("abc"))
+    html = _correlation_table(corr)
+    assert html.count('class="strong"') == 2 and "a and b (-0.97)" in html
+    assert 'class="strong"' not in _correlation_table(corr.where(corr.abs() < 0.9, 0.5).where(
+        ~np.eye(3, dtype=bool), 1.0))
+    intervals = pd.DataFrame({"lower": [0.0, 1.0, 2.0], "upper": [3.0, 2.0, 10.0]}, index=["r", "a", "c"])
+    params = pd.DataFrame({"lower_bound": [0.0, 0.0, None], "upper_bound": [np.nan, 10.0, 10.0]},
+                          index=["r", "a", "c"])
+    assert _reaches_bound(intervals, params) == {"r", "c"}
+    assert "white-space: nowrap" in _CSS

@@ -37,6 +37,8 @@ h1 { font-size: 1.7em; margin-bottom: 0.1em; } h2 { border-bottom: 2px solid #dd
 nav a { margin-right: 0.9em; color: #2a62b5; text-decoration: none; }
 table { border-collapse: collapse; margin: 0.6em 0; font-size: 0.9em; }
 th, td { border: 1px solid #ddd; padding: 0.25em 0.6em; text-align: right; }
+td { white-space: nowrap; }  /* a number or an interval is never broken across lines */
+td.strong { font-weight: bold; outline: 2px solid #1d1d1f; outline-offset: -2px; }
 th { background: #f3f4f6; } td.name, th.name { text-align: left; font-family: ui-monospace, monospace; }
 .reject { background: #fde2e1; } .accept { background: #e3f5e6; }
 .warning { background: #fff4d6; border-left: 4px solid #e0a800; padding: 0.4em 0.8em; margin: 0.4em 0; }
@@ -74,17 +76,35 @@ def _table(frame: pd.DataFrame, digits: int = 4, row_class=None, index_name: str
     return f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(rows)}</tbody></table>"
 
 
-def _correlation_table(corr: pd.DataFrame) -> str:
+#: |correlation| of two estimates above which the report flags the pair.
+STRONG_CORRELATION = 0.95
+
+
+ESTIMATES_ADVICE = ("The data determine a combination of these parameters better than each alone; see the "
+                    "identifiability section.")
+
+
+def _correlation_table(corr: pd.DataFrame, advice: str = ESTIMATES_ADVICE) -> str:
+    """The correlation matrix, shaded by sign and size; pairs above :data:`STRONG_CORRELATION` outlined
+    and listed below the table."""
     head = '<th class="name"></th>' + "".join(f'<th class="name">{_esc(c)}</th>' for c in corr.columns)
-    rows = []
-    for name, row in corr.iterrows():
+    rows, strong = [], []
+    for i, (name, row) in enumerate(corr.iterrows()):
         cells = []
-        for col, v in row.items():
+        for j, (col, v) in enumerate(row.items()):
             shade = 0 if name == col or not np.isfinite(v) else min(abs(v), 1.0)
             color = f"rgba(214, 69, 65, {0.85 * shade:.2f})" if v > 0 else f"rgba(42, 98, 181, {0.85 * shade:.2f})"
-            cells.append(f'<td style="background:{color}">{_number(v, 2)}</td>')
+            flagged = name != col and np.isfinite(v) and abs(v) > STRONG_CORRELATION
+            if flagged and j < i:
+                strong.append(f"{col} and {name} ({_number(v, 3)})")
+            cls = ' class="strong"' if flagged else ""
+            cells.append(f'<td{cls} style="background:{color}">{_number(v, 2)}</td>')
         rows.append(f'<tr><td class="name">{_esc(name)}</td>{"".join(cells)}</tr>')
-    return f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(rows)}</tbody></table>"
+    table = f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(rows)}</tbody></table>"
+    if strong:
+        table += (f'<div class="warning">Correlation above {STRONG_CORRELATION} in absolute value (outlined): '
+                  f"{_esc('; '.join(strong))}. {_esc(advice)}</div>")
+    return table
 
 
 def _facts(items) -> str:
@@ -179,6 +199,21 @@ def _p_value(p) -> str:
     return "–" if not np.isfinite(p) else p_value_text(p)
 
 
+def _reaches_bound(intervals: pd.DataFrame, params: pd.DataFrame) -> set[str]:
+    """The parameters whose profile interval ends at a bound of the parameter (the likelihood does not
+    fall to the χ² threshold inside the bounds: the interval is cut there)."""
+    out = set()
+    for name, row in intervals.iterrows():
+        if name not in params.index:
+            continue
+        lower, upper = params.loc[name, "lower_bound"], params.loc[name, "upper_bound"]
+        for end, bound in ((row["lower"], lower), (row["upper"], upper)):
+            if bound is not None and np.isfinite(float(bound)) and np.isfinite(end) and \
+                    abs(end - float(bound)) <= 1e-9 * max(1.0, abs(float(bound))):
+                out.add(name)
+    return out
+
+
 def _parameters_section(fit, profile=None) -> str:
     """The parameter table; ``profile`` is the result of :func:`_profile_intervals` (or None).
 
@@ -194,8 +229,10 @@ def _parameters_section(fit, profile=None) -> str:
     if profile is not None:
         likelihood_ratio, notes = profile
         if likelihood_ratio is not None:
-            table["95 % profile interval"] = [_interval(lo, hi) for lo, hi in
-                                              zip(likelihood_ratio["lower"], likelihood_ratio["upper"])]
+            reaches = _reaches_bound(likelihood_ratio, params)
+            table["95 % profile interval"] = [_interval(lo, hi) + (" reaches a bound" if name in reaches else "")
+                                              for name, lo, hi in zip(likelihood_ratio.index, likelihood_ratio["lower"],
+                                                                      likelihood_ratio["upper"])]
     tested = fit.tests_against_zero
     table["t"] = [t if tested.get(n, True) else np.nan for n, t in params["t_value"].items()]
     table["p"] = [_p_value(p) if tested.get(n, True) else "–" for n, p in params["p_value"].items()]

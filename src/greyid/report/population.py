@@ -110,7 +110,8 @@ def _omega_section(result) -> str:
             "<p>Shrinkage 1 − sd(η̂)/ω: near 0 each member's data determine its own η; near 1 the members' "
             "estimates are pulled to the typical value and plots of η̂ against covariates understate trends.</p>"]
     if result.spec.full:
-        body.append("<h3>Correlation of the random effects</h3>" + _correlation_table(corr))
+        body.append("<h3>Correlation of the random effects</h3>"
+                    + _correlation_table(corr, "The members' parameters vary together."))
     return _section("omega", "Between-member variation (Ω)", "\n".join(body))
 
 
