@@ -1,5 +1,7 @@
-"""Bundled example: a two-state building model and data simulated from it."""
+"""Bundled example: a two-state building model and data simulated from it; real data sets by name
+(:func:`fetch`)."""
 
 from .building import TRUE_PARAMETERS, building_model, load_building_data
+from .remote import SOURCES, fetch
 
-__all__ = ["building_model", "load_building_data", "TRUE_PARAMETERS"]
+__all__ = ["building_model", "load_building_data", "TRUE_PARAMETERS", "fetch", "SOURCES"]

@@ -1,0 +1,154 @@
+"""Real data sets by name, from their original public sources, checked by SHA-256.
+
+    from greyid.datasets import fetch
+    frame = fetch("armadillo")
+
+Each data set is downloaded once (pooch) from the repository and file its
+provenance names, verified against the SHA-256 kept here, cached in the user's
+cache folder (``pooch.os_cache("greyid")``) and read into a DataFrame.  The
+environment variable ``GREYID_DATA_MIRROR`` names a local folder laid out like
+the project's ``shared/data`` (a data set's CSV at :attr:`Source.mirror`): where
+it is set, the file is read from there and nothing is downloaded (tests and CI
+use it).  The data are not greyid's: their licences are in :data:`SOURCES`.
+
+Downloading needs the ``data`` extra (``pip install "greyid[data]"``: pooch, and
+rdata for R's .rda files); the mirror needs neither.  The Annex 58 test box is
+not among them yet: its source is an .rda of the 1-minute series from which the
+course exercise derives its 10-minute file.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pandas as pd
+
+from ..errors import DataError
+
+MIRROR = "GREYID_DATA_MIRROR"
+
+
+def _read_csv(sep: str = ","):
+    return lambda path: pd.read_csv(path, sep=sep)
+
+
+def _read_rda(path) -> pd.DataFrame:
+    """The one data frame of an R .rda file (the ``rdata`` package: no R needed)."""
+    try:
+        import rdata
+    except ImportError:
+        raise ImportError('reading R data files needs rdata: pip install "greyid[data]"') from None
+
+    frames = rdata.read_rda(str(path))
+    if len(frames) != 1:
+        raise DataError(f"'{path}' holds {len(frames)} R objects; one data frame was expected")
+    frame = next(iter(frames.values()))
+    frame.columns = [str(c) for c in frame.columns]
+    return frame.reset_index(drop=True)
+
+
+def _r_vector(text: str) -> list[str]:
+    return [v.strip().strip('"') for v in text.replace("\n", " ").split(",") if v.strip()]
+
+
+def _read_r_dump(path) -> pd.DataFrame:
+    """R's ``datasets/data/Theoph.R``: a ``structure(list(...))`` of numeric columns and one ordered factor."""
+    text = Path(path).read_text(encoding="utf-8")
+    columns = {}
+    for name, body in re.findall(r"(\w+)\s*=\s*c\(([^()]*)\)", text):
+        if name in ("Wt", "Dose", "Time", "conc"):
+            columns[name] = np.array(_r_vector(body), dtype=float)
+    factor = re.search(r"Subject\s*=\s*ordered\(c\(([^()]*)\),\s*levels\s*=\s*1:(\d+),\s*labels\s*=\s*c\(([^()]*)\)",
+                       text)
+    if factor is None or set(columns) != {"Wt", "Dose", "Time", "conc"}:
+        raise DataError(f"'{path}' is not R's Theoph data set as expected")
+    codes = np.array(_r_vector(factor.group(1)), dtype=int)
+    labels = _r_vector(factor.group(3))
+    frame = pd.DataFrame({"Subject": [int(labels[c - 1]) for c in codes], **columns})
+    return frame[["Subject", "Wt", "Dose", "Time", "conc"]]
+
+
+@dataclass(frozen=True)
+class Source:
+    """Where a data set comes from and how it is read."""
+
+    url: str
+    sha256: str
+    mirror: str  # its file in a folder laid out like shared/data
+    read: Callable  # the downloaded file → DataFrame
+    read_mirror: Callable  # the mirror's file → DataFrame
+    licence: str
+    description: str
+
+
+GITHUB = "https://raw.githubusercontent.com"
+SOURCES: dict[str, Source] = {
+    "armadillo": Source(
+        f"{GITHUB}/locie/pySIP/da70d25619add47e6d16b75d95a662d2630f5547/data/armadillo/armadillo_data_H2.csv",
+        "87cafaf39e414a4f732c4ed01c8c74cc69c3cbad43ab439e68a40f39b9236a16",
+        "armadillo_box/armadillo_data_H2.csv", _read_csv(), _read_csv(),
+        "pySIP's repository (LGPL-3 in early versions, MIT in later documentation)",
+        "The Armadillo Box (42 m², Solar Decathlon 2010): 233 rows every 1800 s; Time [s], T_ext [°C], "
+        "P_hea [W], I_sol [W/m²], T_int [°C]."),
+    "ornstein_1d": Source(
+        f"{GITHUB}/phillipbvetter/ctsmTMB/60590a51d725c53edb58a9733bde24245aa67716/data/Ornstein.rda",
+        "a0a5a8dc094d14c2b2f96dfdc08ace4a547c97dedfb3ecc948d60d1b8347690a",
+        "ornstein_uhlenbeck/ornstein_1d.csv", _read_rda, _read_csv(), "ctsmTMB (GPL-3)",
+        "A simulated Ornstein–Uhlenbeck process: t (0 to 20 by 0.1), input u, observation y."),
+    "ornstein_2d": Source(
+        f"{GITHUB}/phillipbvetter/ctsmTMB/60590a51d725c53edb58a9733bde24245aa67716/data/Ornstein2D.rda",
+        "e5f7fb262f64d432158be29c8437aa74081626a414a12ba0c8ec5611e89dde9a",
+        "ornstein_uhlenbeck/ornstein_2d.csv", _read_rda, _read_csv(), "ctsmTMB (GPL-3)",
+        "A simulated two-state Ornstein–Uhlenbeck system: t, u, y1, y2."),
+    "prbs1": Source(
+        f"{GITHUB}/marcohv/exercises_ts_dtu/1d1d6ad6b7285b0019ab0151f116e1030a073555/Ex_2/inputPRBS1.csv",
+        "0934b179efdee4874b8f93c22d5e9258483425a7353de5f8623c69a72f7e70f5",
+        "prbs1_test_house/inputPRBS1.csv", _read_csv(";"), _read_csv(";"), "no licence stated",
+        "Bacher & Madsen's (2011) PRBS1 experiment: 1691 five-minute averages; t [h], Ta [°C], Ps [kW/m²], "
+        "Ph [kW], yTi [°C]."),
+    "theophylline": Source(
+        f"{GITHUB}/wch/r-source/02e4ee85542c87153eab3bed860fdd6ffd9920be/src/library/datasets/data/Theoph.R",
+        "36fafc4b23e7551bb596a7068b391cddc9d6aa725738d43c011bdbf3e60e7bdb",
+        "theophylline/Theoph.csv", _read_r_dump, _read_csv(), "distributed with R under the GPL",
+        "Boeckmann, Sheiner & Beal (1994): 12 subjects, 11 concentrations each; Subject, Wt [kg], Dose [mg/kg], "
+        "Time [h], conc [mg/L]."),
+}
+# To add: annex58_ce4_1min from marcohv/exercises_ts_dtu @1d1d6ad…, Ex_3/data/X5.rda (SHA-256
+# fb84ac3c61d80a0fa74e09de44e4b5f99e7d59d0936ba2488aaf877f18fc6d15; the data frame X, 5760 × 46, its t a
+# POSIXct that rdata returns as seconds); annex58_ce4_10min is derived from it by the exercise's R code
+# (10-minute means and derived columns: tod, Ti, Te, deltaT, sun position, yTi, ...).
+
+
+def fetch(name: str, data_home=None) -> pd.DataFrame:
+    """The data set ``name`` (one of :data:`SOURCES`) as a DataFrame: from ``$GREYID_DATA_MIRROR`` where
+    set, else downloaded once from its source into ``data_home`` (default: the user's cache folder) and
+    checked against its SHA-256."""
+    if name not in SOURCES:
+        raise DataError(f"no data set named '{name}'; the data sets are {', '.join(SOURCES)}")
+    source = SOURCES[name]
+    mirror = os.environ.get(MIRROR)
+    if mirror:
+        path = Path(mirror) / source.mirror
+        if not path.is_file():
+            raise DataError(f"data set '{name}': {path} not found in the mirror {MIRROR}={mirror}")
+        return source.read_mirror(path)
+    try:
+        import pooch
+    except ImportError:
+        raise ImportError('downloading data sets needs pooch: pip install "greyid[data]" (or set '
+                          f"{MIRROR} to a local copy laid out like shared/data)") from None
+    try:
+        path = pooch.retrieve(source.url, known_hash=f"sha256:{source.sha256}",
+                              path=data_home or pooch.os_cache("greyid"), progressbar=False)
+    except ValueError as error:  # pooch: the file's hash is not the one kept here
+        raise DataError(f"data set '{name}' downloaded from {source.url} does not match its SHA-256 "
+                        f"({error})") from None
+    except OSError as error:
+        raise DataError(f"data set '{name}' could not be downloaded from {source.url} ({error}); set {MIRROR} "
+                        "to a local copy laid out like shared/data") from None
+    return source.read(path)
