@@ -7,6 +7,11 @@ import os
 # Tests replace greyid's functions and constants at run time, which the keys of programs kept
 # on disk do not see (greyid.programs): keep none, except where test_programs.py switches it on.
 os.environ["GREYID_PROGRAMS"] = "off"
+# Data sets named in model files and examples (greyid.datasets.fetch) are read from the project's
+# shared/data beside the checkout, where it is, instead of downloaded.
+_SHARED_DATA = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data")
+if os.path.isdir(_SHARED_DATA):
+    os.environ.setdefault("GREYID_DATA_MIRROR", os.path.abspath(_SHARED_DATA))
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402

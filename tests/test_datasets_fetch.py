@@ -4,18 +4,23 @@ from __future__ import annotations
 
 import hashlib
 import http.server
+import json
+import shutil
+import subprocess
 import threading
 from functools import partial
+from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 
 import greyid
-import greyid.datasets.remote as fetching
+import greyid.data.named as fetching
 from test_crosscheck import DATA
 
 SHAPES = {"armadillo": (233, 5), "ornstein_1d": (201, 3), "ornstein_2d": (201, 4), "prbs1": (1691, 5),
-          "theophylline": (132, 5)}
+          "theophylline": (132, 5), "annex58_ce4_1min": (5760, 46), "annex58_ce4_10min": (528, 56)}
 
 
 @pytest.mark.parametrize("name", sorted(SHAPES))
@@ -65,3 +70,61 @@ def test_a_download_is_checked_against_its_sha256(server, tmp_path, monkeypatch)
                                                                    "test", "test"))
     with pytest.raises(greyid.DataError, match="does not match its SHA-256"):
         fetching.fetch("local", data_home=tmp_path / "other")
+
+
+def test_the_annex58_ten_minute_data_are_derived_as_the_course_derives_them():
+    """The course's 10-minute file (the mirror's) from its 1-minute series by greyid's port of its R code."""
+    from greyid.data.annex58 import ten_minutes
+
+    minutes, course = DATA / "annex58_test_box" / "ce4_1min.csv", DATA / "annex58_test_box" / "ce4_10min.csv"
+    if not (minutes.is_file() and course.is_file()):
+        pytest.skip(f"the mirror {DATA} has no Annex 58 files")
+    derived, expected = ten_minutes(pd.read_csv(minutes)), pd.read_csv(course)
+    assert list(derived.columns) == list(expected.columns) and len(derived) == len(expected) == 528
+    assert (derived["timedate"].dt.strftime("%Y-%m-%d %H:%M:%S") == expected["timedate"]).all()
+    for column in expected.columns.drop("timedate"):
+        a, b = derived[column].to_numpy(float), expected[column].to_numpy(float)
+        assert np.array_equal(np.isnan(a), np.isnan(b)), column  # a period with a gap is missing in both
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10, equal_nan=True, err_msg=column)
+
+
+def test_the_course_rda_time_column_reads_as_utc_timestamps(tmp_path):
+    """X5.rda's POSIXct column becomes timestamps (an .rda written by R, where R is installed)."""
+    pytest.importorskip("rdata")
+    if shutil.which("Rscript") is None:
+        pytest.skip("R is not installed: no .rda can be written here")
+    from greyid.data.annex58 import read_x5
+
+    path = tmp_path / "X.rda"
+    script = (f'X <- data.frame(t = as.POSIXct(c("2013-06-28 00:00:00", "2013-06-28 00:01:00"), tz = "UTC"), '
+              f'Qi = c(1.5, NA)); save(X, file = "{path}")')
+    subprocess.run(["Rscript", "-e", script], check=True, capture_output=True)
+    frame = read_x5(path)
+    assert list(frame["t"]) == [pd.Timestamp("2013-06-28 00:00:00"), pd.Timestamp("2013-06-28 00:01:00")]
+    assert frame["Qi"].iloc[0] == 1.5 and np.isnan(frame["Qi"].iloc[1])
+
+
+def test_a_model_file_names_its_data_set_and_a_saved_fit_keeps_it(tmp_path, monkeypatch):
+    """[data] dataset = "armadillo": `greyid fit` reads it, fit.json keeps "dataset:armadillo", and
+    `greyid fit fit.json` and `greyid validate fit.json` find the same data again."""
+    from greyid.cli import main
+
+    if not (DATA / fetching.SOURCES["armadillo"].mirror).is_file():
+        pytest.skip(f"the mirror {DATA} has no Armadillo file")
+    monkeypatch.setenv(fetching.MIRROR, str(DATA))
+    model_file = Path(__file__).resolve().parents[1] / "examples" / "armadillo.toml"
+    assert main(["fit", str(model_file), "--out", str(tmp_path / "first"), "-q"]) == 0
+    saved = json.loads((tmp_path / "first" / "fit.json").read_text())
+    assert saved["data_file"] == "dataset:armadillo"
+    assert main(["fit", str(tmp_path / "first" / "fit.json"), "--out", str(tmp_path / "again"), "-q"]) == 0
+    again = json.loads((tmp_path / "again" / "fit.json").read_text())
+    assert again["data_file"] == "dataset:armadillo"
+    assert abs(again["loglik"] - saved["loglik"]) < 1e-6
+    assert main(["validate", str(tmp_path / "first" / "fit.json")]) in (0, 1)  # a verdict, not bad input (2)
+    both = model_file.read_text().replace('dataset = "armadillo"', 'dataset = "armadillo"\nfile = "x.csv"')
+    (tmp_path / "both.toml").write_text(both)
+    assert main(["fit", str(tmp_path / "both.toml"), "-q"]) == 2
+    with pytest.raises(greyid.DataError, match="both a data file .* and a data set"):
+        from greyid.model.files import read_data
+
+        read_data(greyid.Model.from_toml(tmp_path / "both.toml"))

@@ -102,4 +102,4 @@ def test_prbs1_example():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         fit = library.load_model("TiTeTh").fit(data, starts=4)
-    check(fit, output_block("greyid fit TiTeTh ../shared/data/prbs1_test_house/inputPRBS1.csv --starts 4"))
+    check(fit, output_block("greyid fit TiTeTh dataset:prbs1 --starts 4"))

@@ -22,7 +22,15 @@ _LAZY = {"Model": "model", "FitResult": "estimate", "FitWarning": "estimate", "l
          "PopulationResult": "population"}
 
 
+#: Subpackages reachable as attributes after ``import greyid`` alone (``greyid.datasets.fetch``).
+_SUBPACKAGES = ("datasets", "library")
+
+
 def __getattr__(name):
+    if name in _SUBPACKAGES:
+        import importlib
+
+        return importlib.import_module(f".{name}", __name__)
     if name in _LAZY:
         import importlib
 
@@ -33,4 +41,4 @@ def __getattr__(name):
 
 
 def __dir__():
-    return sorted(list(globals()) + list(_LAZY))
+    return sorted(list(globals()) + list(_LAZY) + list(_SUBPACKAGES))

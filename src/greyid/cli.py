@@ -123,27 +123,28 @@ def check_output_folder(path: Path) -> None:
 
 
 def load_data(model, data: Optional[Path], fit=None, time: Optional[str] = None):
-    """``(frame, path)``: DATA, else the fit's data file, else the model file's ``[data] file``.
+    """``(frame, origin)``: DATA (a CSV file, or ``dataset:NAME``), else the fit's data, else the model file's
+    ``[data] file`` or ``[data] dataset``; ``origin`` is what a saved fit keeps to find the data again.
 
     A time column of timestamps is parsed (``[data] time_format``, ``time_zone``)
     and the conversion is said on standard error.
     """
     import pandas as pd
 
-    from .model.files import data_path, read_data
+    from .model.files import DATASET_PREFIX, data_origin, read_data
 
     if data is None and fit is not None and fit.data_file:
-        if not Path(fit.data_file).is_file():
+        if not fit.data_file.startswith(DATASET_PREFIX) and not Path(fit.data_file).is_file():
             raise InputProblem(f"the fit's data file '{fit.data_file}' does not exist (moved or deleted?); "
                                "give the data after the fit file")
-        data = Path(fit.data_file)
+        data = Path(fit.data_file) if not fit.data_file.startswith(DATASET_PREFIX) else fit.data_file
     frame = read_data(model, data, time)
     name = time or model.options.get("time", "t")
     if name in frame.columns and pd.api.types.is_datetime64_any_dtype(frame[name]):
         unit = model.options.get("time_unit") or "s"
         err.print(f"time column '{name}': timestamps from {frame[name].iloc[0]} read as elapsed time in "
                   f"'{unit}' since the first row (set [data] time_unit to change it)")
-    return frame, str(data_path(model, data).resolve())
+    return frame, data_origin(model, data)
 
 
 def _run(command) -> None:
@@ -170,7 +171,8 @@ def _run(command) -> None:
 # ---------------------------------------------------------------------- commands
 @app.command()
 def fit(model: str = typer.Argument(..., help="model file (.toml) or library model name"),
-        data: Optional[Path] = typer.Argument(None, help="CSV data (default: the model file's [data] file)"),
+        data: Optional[Path] = typer.Argument(None, help="CSV data or dataset:NAME (default: the fit's data, the "
+                                              "model file's [data] file or dataset)"),
         out_dir: Optional[Path] = typer.Option(None, "--out", help="folder for fit.json, summary.txt, parameters.csv"),
         method: Optional[str] = typer.Option(None, help="filter: kalman, ekf, iekf, ekf2, ukf, gaussian2, truncated2"),
         hold: Optional[str] = typer.Option(None, help="input hold between samples: zoh or foh"),
@@ -186,8 +188,8 @@ def fit(model: str = typer.Argument(..., help="model file (.toml) or library mod
             check_output_folder(out_dir)
         if report and out_dir is None:
             raise InputProblem("--report needs --out DIR to write the report into")
-        m, _ = load_model_or_fit(model)
-        frame, data_file = load_data(m, data, time=time_column)
+        m, saved = load_model_or_fit(model)
+        frame, data_file = load_data(m, data, saved, time=time_column)
         if not quiet:
             err.print(f"fitting '{m.name}' to {len(frame)} rows of {data_file}")
         started = time.perf_counter()

@@ -28,7 +28,7 @@ ESTIMATION_KEYS = ("criterion", "robust", "horizon", "starts", "seed", "maxiter"
                    "optimizer")
 #: Where the data live, for the command line: a CSV file (relative to the model
 #: file), its field separator and its decimal mark (both detected where not given).
-FILE_KEYS = ("file", "separator", "decimal")
+FILE_KEYS = ("file", "dataset", "separator", "decimal")
 ALL_KEYS = DATA_KEYS + FILE_KEYS + FILTER_KEYS + ESTIMATION_KEYS
 
 HOLDS = ("zoh", "foh")
@@ -44,8 +44,8 @@ def check_options(options: Mapping) -> dict:
             raise ModelError(f"unknown setting '{key}'; settings are {list(ALL_KEYS)}")
         if value is None:
             continue
-        if key in ("time", "file", "separator", "decimal", "time_unit", "time_format", "time_zone") and not isinstance(
-                value, str):
+        text_keys = ("time", "file", "dataset", "separator", "decimal", "time_unit", "time_format", "time_zone")
+        if key in text_keys and not isinstance(value, str):
             raise ModelError(f"setting '{key}' must be a string, got {value!r}")
         if key == "hold" and value not in HOLDS:
             raise ModelError(f"setting 'hold' must be 'zoh' or 'foh', got {value!r}")

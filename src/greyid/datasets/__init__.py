@@ -2,6 +2,6 @@
 (:func:`fetch`)."""
 
 from .building import TRUE_PARAMETERS, building_model, load_building_data
-from .remote import SOURCES, fetch
+from ..data.named import SOURCES, fetch
 
 __all__ = ["building_model", "load_building_data", "TRUE_PARAMETERS", "fetch", "SOURCES"]

@@ -55,7 +55,7 @@ class FitResult:
     data: list | None = None
     start_values: list = field(default_factory=list)
     starts: list = field(default_factory=list)  # per start: label, criterion, converged, iterations, message
-    data_file: str | None = None  # where the data came from, when read from a file
+    data_file: str | None = None  # where the data came from: a file's path, or dataset:NAME (greyid.datasets)
     _cache: dict = field(default_factory=dict, repr=False)
 
     # -------------------------------------------------------------- numbers
@@ -353,11 +353,11 @@ class FitResult:
         if self.data is None and self.data_file:
             from ..data.prepare import as_frames
             from ..errors import DataError
-            from ..model.files import read_data
+            from ..model.files import DATASET_PREFIX, read_data
             from ..model.options import rename_columns
 
-            path = Path(self.data_file)
-            if not path.is_file():
+            path = Path(self.data_file) if not self.data_file.startswith(DATASET_PREFIX) else self.data_file
+            if isinstance(path, Path) and not path.is_file():
                 raise DataError(f"the data file this fit was made from, '{path}', is not there any more; "
                                 "attach the data with fit.with_data(frame)")
             self.data = as_frames(rename_columns(read_data(self.model, path), self.model.options.get("columns")))

@@ -27,7 +27,7 @@ A model file holds what the Python API holds, readable at a glance::
     UA = "1/(Rie + Rea)"
 
     [data]
-    file = "data.csv"       # optional, relative to this file
+    file = "data.csv"       # optional, relative to this file; or dataset = "armadillo"
     time = "t"
     hold = "zoh"
     [data.columns]          # model name = column in the data, where they differ
@@ -286,6 +286,23 @@ def write_model(model, path=None) -> str:
 
 
 # ---------------------------------------------------------------------- data
+#: How a saved fit names data that came from :func:`greyid.datasets.fetch` rather than a file.
+DATASET_PREFIX = "dataset:"
+
+
+def _dataset_name(model, path) -> str | None:
+    """The named data set the data come from: ``path`` written ``dataset:NAME``, else (no path) the model
+    file's ``[data] dataset``; None for a file."""
+    if path is not None:
+        text = str(path)
+        return text[len(DATASET_PREFIX):] if text.startswith(DATASET_PREFIX) else None
+    options = model.options
+    if "dataset" in options and "file" in options:
+        raise DataError(f"the model file names both a data file ('{options['file']}') and a data set "
+                        f"('{options['dataset']}') in [data]; keep one")
+    return options.get("dataset")
+
+
 def data_path(model, path=None) -> Path:
     """Where the data for ``model`` are: ``path``, else the model file's ``[data] file``
     (relative to the model file)."""
@@ -293,33 +310,49 @@ def data_path(model, path=None) -> Path:
         return Path(path)
     options = model.options
     if "file" not in options:
-        raise DataError("no data file given, and the model file names none ([data] file = \"...\")")
+        raise DataError("no data file given, and the model file names none ([data] file = \"...\" or "
+                        "[data] dataset = \"armadillo\" for a data set greyid fetches by name)")
     path = Path(options["file"])
     if not path.is_absolute() and model.source is not None:
         path = Path(model.source).parent / path
     return path
 
 
+def data_origin(model, path=None) -> str:
+    """Where the data come from, as a saved fit keeps it: the data file's absolute path, or
+    ``dataset:NAME`` for a data set of :func:`greyid.datasets.fetch`."""
+    name = _dataset_name(model, path)
+    return f"{DATASET_PREFIX}{name}" if name is not None else str(data_path(model, path).resolve())
+
+
 def read_data(model, path=None, time: str | None = None):
-    """Read the CSV data for ``model`` from :func:`data_path`.
+    """Read the data for ``model``: the CSV file of :func:`data_path`, or the named data set
+    (``[data] dataset``, or ``path`` written ``dataset:NAME``) by :func:`greyid.datasets.fetch`.
 
     The separator is ``[data] separator`` when given, else detected.  Column
     renaming by ``[data.columns]`` happens when the data are used.
     """
-    path = data_path(model, path)
-    if path.is_dir():
-        raise DataError(f"data file '{path}' is a folder; give the CSV file inside it")
-    if not path.is_file():
-        raise DataError(f"data file '{path}' not found")
-    frame = read_csv_file(path, model.options.get("separator"), model.options.get("decimal"))
-    missing = [(name, column) for name, column in (model.options.get("columns") or {}).items()
+    name = _dataset_name(model, path)
+    if name is not None:
+        from ..data.named import fetch
+
+        frame, where = fetch(name), f"data set '{name}'"
+    else:
+        path = data_path(model, path)
+        if path.is_dir():
+            raise DataError(f"data file '{path}' is a folder; give the CSV file inside it")
+        if not path.is_file():
+            raise DataError(f"data file '{path}' not found")
+        frame = read_csv_file(path, model.options.get("separator"), model.options.get("decimal"))
+        where = f"data file '{path}'"
+    missing = [(n, column) for n, column in (model.options.get("columns") or {}).items()
                if column not in frame.columns]
     if missing:
-        name, column = missing[0]
-        raise DataError(f"[data.columns] maps '{name}' to the column '{column}', which data file '{path}' does not "
+        n, column = missing[0]
+        raise DataError(f"[data.columns] maps '{n}' to the column '{column}', which {where} does not "
                         f"have; its columns are {list(frame.columns)}")
     return parse_timestamps(frame, time or model.options.get("time", "t"), model.options.get("time_format"),
-                            model.options.get("time_zone"), str(path))
+                            model.options.get("time_zone"), str(path) if name is None else where)
 
 
 def read_csv_file(path, separator=None, decimal=None):

@@ -152,7 +152,10 @@ def _data_section(fit, frames) -> str:
                                      ("observed values", ", ".join(f"{k}: {v}" for k, v in observed.items())),
                                      ("hold", fit.settings["hold"])]))
         parts.append(embedded_png(data_figure(frame, time_name, s.output_names, s.input_names, fit.model.units)))
-    if fit.data_file:
+    if fit.data_file and fit.data_file.startswith("dataset:"):
+        name = fit.data_file[len("dataset:"):]
+        parts.insert(0, f"<p>The data set <code>{_esc(name)}</code> (<code>greyid.datasets.fetch</code>).</p>")
+    elif fit.data_file:
         parts.insert(0, f"<p>Read from <code>{_esc(fit.data_file)}</code>.</p>")
     return _section("data", "Data", "\n".join(parts))
 

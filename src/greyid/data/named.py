@@ -12,15 +12,16 @@ it is set, the file is read from there and nothing is downloaded (tests and CI
 use it).  The data are not greyid's: their licences are in :data:`SOURCES`.
 
 Downloading needs the ``data`` extra (``pip install "greyid[data]"``: pooch, and
-rdata for R's .rda files); the mirror needs neither.  The Annex 58 test box is
-not among them yet: its source is an .rda of the 1-minute series from which the
-course exercise derives its 10-minute file.
+rdata for R's .rda files); the mirror needs neither.  The Annex 58 test box's 10-minute data are derived
+from the course's 1-minute .rda as the course's R code derives them
+(:mod:`greyid.data.annex58`).
 """
 
 from __future__ import annotations
 
 import os
 import re
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -33,8 +34,14 @@ from ..errors import DataError
 MIRROR = "GREYID_DATA_MIRROR"
 
 
-def _read_csv(sep: str = ","):
-    return lambda path: pd.read_csv(path, sep=sep)
+def _read_csv(sep: str = ",", parse: list[str] | None = None):
+    def read(path):
+        frame = pd.read_csv(path, sep=sep)
+        for column in parse or []:
+            frame[column] = pd.to_datetime(frame[column])
+        return frame
+
+    return read
 
 
 def _read_rda(path) -> pd.DataFrame:
@@ -44,7 +51,9 @@ def _read_rda(path) -> pd.DataFrame:
     except ImportError:
         raise ImportError('reading R data files needs rdata: pip install "greyid[data]"') from None
 
-    frames = rdata.read_rda(str(path))
+    with warnings.catch_warnings():  # POSIXct has no constructor in rdata: its seconds are what is wanted
+        warnings.filterwarnings("ignore", message="Missing constructor for R class", category=UserWarning)
+        frames = rdata.read_rda(str(path))
     if len(frames) != 1:
         raise DataError(f"'{path}' holds {len(frames)} R objects; one data frame was expected")
     frame = next(iter(frames.values()))
@@ -86,7 +95,21 @@ class Source:
     description: str
 
 
+def _annex58_minutes(path) -> pd.DataFrame:
+    from .annex58 import read_x5
+
+    return read_x5(path)
+
+
+def _annex58_ten_minutes(path) -> pd.DataFrame:
+    from .annex58 import read_x5, ten_minutes
+
+    return ten_minutes(read_x5(path))
+
+
 GITHUB = "https://raw.githubusercontent.com"
+EXERCISES = f"{GITHUB}/marcohv/exercises_ts_dtu/1d1d6ad6b7285b0019ab0151f116e1030a073555"
+X5_SHA256 = "fb84ac3c61d80a0fa74e09de44e4b5f99e7d59d0936ba2488aaf877f18fc6d15"
 SOURCES: dict[str, Source] = {
     "armadillo": Source(
         f"{GITHUB}/locie/pySIP/da70d25619add47e6d16b75d95a662d2630f5547/data/armadillo/armadillo_data_H2.csv",
@@ -106,7 +129,7 @@ SOURCES: dict[str, Source] = {
         "ornstein_uhlenbeck/ornstein_2d.csv", _read_rda, _read_csv(), "ctsmTMB (GPL-3)",
         "A simulated two-state Ornstein–Uhlenbeck system: t, u, y1, y2."),
     "prbs1": Source(
-        f"{GITHUB}/marcohv/exercises_ts_dtu/1d1d6ad6b7285b0019ab0151f116e1030a073555/Ex_2/inputPRBS1.csv",
+        f"{EXERCISES}/Ex_2/inputPRBS1.csv",
         "0934b179efdee4874b8f93c22d5e9258483425a7353de5f8623c69a72f7e70f5",
         "prbs1_test_house/inputPRBS1.csv", _read_csv(";"), _read_csv(";"), "no licence stated",
         "Bacher & Madsen's (2011) PRBS1 experiment: 1691 five-minute averages; t [h], Ta [°C], Ps [kW/m²], "
@@ -117,11 +140,20 @@ SOURCES: dict[str, Source] = {
         "theophylline/Theoph.csv", _read_r_dump, _read_csv(), "distributed with R under the GPL",
         "Boeckmann, Sheiner & Beal (1994): 12 subjects, 11 concentrations each; Subject, Wt [kg], Dose [mg/kg], "
         "Time [h], conc [mg/L]."),
+    "annex58_ce4_1min": Source(
+        f"{EXERCISES}/Ex_3/data/X5.rda", X5_SHA256, "annex58_test_box/ce4_1min.csv", _annex58_minutes,
+        _read_csv(parse=["t"]), "no licence stated",
+        "IEA EBC Annex 58 Common Exercise 4 (a test box with a glazed wall, summer 2013), as the DTU course's "
+        "Ex_3 gives it: 5760 one-minute rows from 2013-06-28 00:00 UTC, 46 columns; t [timestamp, UTC], Ti.down "
+        "and Ti.up [°C] (indoor air), Te.down and Te.middle [°C] (exterior), Qi [W] (heat input), Gv [W/m²] "
+        "(vertical solar irradiance), Gvn.2 and the surface temperatures."),
+    "annex58_ce4_10min": Source(
+        f"{EXERCISES}/Ex_3/data/X5.rda", X5_SHA256, "annex58_test_box/ce4_10min.csv", _annex58_ten_minutes,
+        _read_csv(parse=["timedate"]), "no licence stated",
+        "The course exercise's 10-minute data, derived from the 1-minute series as its R code does "
+        "(greyid.data.annex58.ten_minutes): 528 rows from 2013-06-28 08:10 UTC, t [s from the first "
+        "sample], yTi = Ti [°C] (output), Te [°C], Gv [W/m²], Qi [W], stepQi, tod [h], sun position [rad]."),
 }
-# To add: annex58_ce4_1min from marcohv/exercises_ts_dtu @1d1d6ad…, Ex_3/data/X5.rda (SHA-256
-# fb84ac3c61d80a0fa74e09de44e4b5f99e7d59d0936ba2488aaf877f18fc6d15; the data frame X, 5760 × 46, its t a
-# POSIXct that rdata returns as seconds); annex58_ce4_10min is derived from it by the exercise's R code
-# (10-minute means and derived columns: tod, Ti, Te, deltaT, sun position, yTi, ...).
 
 
 def fetch(name: str, data_home=None) -> pd.DataFrame:
