@@ -12,8 +12,8 @@ signals' power (mean 150 W, variance 150² W²) split 1:1, 1:2 and 1:9. The thes
 writes the sinusoids' "τ₁ = 3 h, τ₂ = 54 h" as periods, and also says that sin3's
 frequencies lie exactly at the system's poles, 0.0184 and 0.330 (7.51), which are
 1/54 and 1/3: ``--sinusoids rates`` reads τ as time constants, ω = 1/τ rad/h,
-instead of periods (ω = 2π/τ, the default). The outdoor surface temperature is a daily cycle with a slow weather component
-(seeded), the same for every candidate.
+instead of periods (ω = 2π/τ, the default). The outdoor surface temperature is a
+daily cycle with a slow weather component (seeded), the same for every candidate.
 
 The thesis estimated the information from 100 simulated paths per candidate; here
 it is exact (``greyid.design``, linear model) unless ``--method montecarlo``.
