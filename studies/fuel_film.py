@@ -13,13 +13,13 @@ delays Δt are estimated as a continuous parameter (the thesis reports them on
 the sampling grid).  All points are fitted in one batched call
 (``greyid.fit_many``), the residuals' cumulative periodograms are tested
 (figure 8.3), and X, τ_s, τ_ff and Δt are related to the operating conditions
-by best-subset regression with Mallows' C_p (section 8.4, ``greyid.fleet.relate``):
-throttle angle α, speed N and the air flow ṁ_a = L_th/k_b (the manifold pressure
-of the thesis is not in table 8.2).
+by best-subset regression with Mallows' C_p (section 8.4, ``greyid.fleet.relate``)
+on the thesis' explanatory variables: throttle angle α and speed N (table 8.2),
+manifold pressure P_man and air flow ṁ_a (table 8.3).
 
 With ``--data DIR``: one CSV per operating point (columns t [s], mfi [g/s],
 phi) and ``DIR/conditions.csv`` with a ``file`` column naming them (without
-``.csv``) and the covariates (e.g. throttle, rpm, ma).
+``.csv``) and the covariates (those of throttle, rpm, pman, ma it has).
 """
 
 from __future__ import annotations
@@ -57,8 +57,17 @@ TABLE_8_2 = pd.DataFrame.from_records([
 ], columns=["file", "throttle", "rpm", "delta_t", "tau_s", "tau_s_se", "tau_ff", "tau_ff_se", "X", "X_se", "kb",
             "kb_se", "s1f", "s1f_se", "s1ff", "s1ff_se", "s2", "s2_se"]).set_index("file")
 
+#: Table 8.3: the manifold pressure P_man [kPa] and the air flow ṁ_a [g/s] measured at each point.
+TABLE_8_3 = pd.DataFrame.from_records([
+    ("s20g2", 39.49, 6.89), ("s30g1", 45.67, 17.07), ("s30g4", 83.56, 12.56), ("s40g2", 70.26, 33.09),
+    ("s40g3", 77.15, 29.00), ("s40g4", 93.25, 18.03), ("s50g3", 85.36, 36.48), ("s50g4", 95.58, 19.69),
+    ("s60g4", 97.08, 22.91), ("s70g4", 98.06, 23.48), ("s80g4", 98.45, 21.92),
+], columns=["file", "pman", "ma"]).set_index("file")
+
+#: The explanatory variables of section 8.4: throttle angle α, speed N, manifold pressure, air flow.
+EXPLANATORY = ["throttle", "rpm", "pman", "ma"]
+
 PARAMETERS = ["delta_t", "tau_s", "tau_ff", "X", "kb", "s1f", "s1ff", "s2"]
-L_TH = 14.67  # the stoichiometric air/fuel mass ratio
 SAMPLES, STEP, CLOCK = 3000, 0.0125, 40  # 3000 samples at 12.5 ms; T_prbs = 0.5 s = 40 samples
 
 
@@ -123,8 +132,9 @@ def whiteness(fleet, datasets: dict) -> pd.DataFrame:
 def regressions(fleet, covariates: pd.DataFrame) -> dict:
     """Section 8.4: the best subsets for X, τ_s, τ_ff (Mallows' C_p) and Δt against 1/ṁ_a."""
     out = {}
+    candidates = [c for c in EXPLANATORY if c in covariates.columns]
     for parameter in ("X", "tau_s", "tau_ff"):
-        out[parameter] = relate(fleet, covariates, parameter, candidates=["throttle", "rpm", "ma"])
+        out[parameter] = relate(fleet, covariates, parameter, candidates=candidates)
     inverse = covariates.assign(inverse_ma=1.0 / covariates["ma"])
     out["delta_t"] = relate(fleet, inverse, "delta_t", candidates=["inverse_ma"], weighted=False)
     return out
@@ -164,7 +174,7 @@ def main(argv=None) -> None:
     started = time.perf_counter()
     if args.data is None:
         datasets = {name: experiment(point, args.seed + k) for k, (name, point) in enumerate(TABLE_8_2.iterrows())}
-        conditions = TABLE_8_2[["throttle", "rpm"]].assign(ma=L_TH / TABLE_8_2["kb"])
+        conditions = TABLE_8_2[["throttle", "rpm"]].join(TABLE_8_3)
         reference = TABLE_8_2
     else:
         datasets, conditions = own_data(args.data)

@@ -72,6 +72,28 @@ def test_fleet_table_summary_and_plot(fleet):
     assert len([ax for ax in fig.axes if ax.get_visible()]) == len(fleet.estimates().columns)
 
 
+def test_fleet_plot_tick_labels_do_not_overlap(fleet, monkeypatch):
+    """Estimates in SI units (capacities ~1e7, resistances ~1e-3, spread in their fourth digit): the
+    drawn tick labels of every panel keep apart."""
+    import pandas as pd
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    rng = np.random.default_rng(3)
+    spread = pd.DataFrame({"Cw": 1.5086e7 * (1 + 1e-3 * rng.normal(size=200)),
+                           "Ro": 1.8427e-3 * (1 + 1e-3 * rng.normal(size=200)),
+                           "Tw0": 26.588 + 1e-3 * rng.normal(size=200)})
+    monkeypatch.setattr(fleet, "estimates", lambda: spread)
+    fig = fleet.plot()
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    renderer = canvas.get_renderer()
+    for ax in fig.axes:
+        boxes = [label.get_window_extent(renderer) for label in ax.get_xticklabels() if label.get_text()]
+        assert len(boxes) >= 2
+        for left, right in zip(boxes, boxes[1:]):
+            assert left.x1 < right.x0, f"{ax.get_xlabel()}: tick labels overlap"
+
+
 def test_failed_data_sets_become_rows_with_their_error(fleet_model, houses):
     bad_column = houses["house0"].drop(columns=["Qi"])
     too_short = houses["house2"].iloc[:5]

@@ -129,3 +129,29 @@ def test_strong_correlations_and_intervals_cut_by_a_bound_are_flagged():
                           index=["r", "a", "c"])
     assert _reaches_bound(intervals, params) == {"r", "c"}
     assert "white-space: nowrap" in _CSS
+
+
+def test_the_time_axis_has_a_unit_where_anything_says_it():
+    """[units] of the time column or t, the unit timestamps were read in, or the description's words."""
+    from greyid.model.units import figure_units, time_unit
+
+    described = greyid.Model("described", description="A house; time in seconds, powers in W.")
+    assert time_unit(described, "Time") == "s" and figure_units(described, "Time") == {"Time": "s"}
+    assert time_unit(greyid.Model("h", description="Time is in hours."), "t") == "h"
+    assert time_unit(greyid.Model("bare", description="no word on it"), "t") is None
+    assert time_unit(greyid.Model("bare"), "t", {"time_unit": "min"}) == "min"
+    stated = greyid.Model("stated", description="time in seconds")
+    stated.set_units({"t": "h"})  # [units] wins over the description
+    assert time_unit(stated, "t") == "h"
+
+
+def test_identifiability_reads_in_words_and_combinations_as_formulas(report):
+    """Each status is explained beside it, and a combination is a formula (MathML), not Python syntax."""
+    from greyid.report.equations import inline_formula
+
+    text, _ = report
+    section = text[text.find('<section id="identifiability">'):text.find('<section id="validation">')]
+    assert "input–output behaviour" in section and "meaning" in section
+    formula = inline_formula("Ri*Ro**2", ["Ri", "Ro"])
+    assert formula.startswith("<math>") and "**" not in formula and "<msup>" in formula
+    assert "<mi>Ri</mi>" in formula and "<mi>Ro</mi>" in formula

@@ -72,20 +72,29 @@ class FleetResult:
         return self.summary()
 
     def plot(self, parameters=None, bins: int = 20):
-        """Histograms of the estimates across the fleet (one panel per free parameter); a Figure."""
-        import matplotlib.pyplot as plt
+        """Histograms of the estimates across the fleet (one panel per free parameter); a Figure.
+
+        At most four ticks per axis and a shared power of ten (×10⁶) under it, so that the tick labels of
+        estimates such as 1.5086e7 or 0.0018 do not run into each other."""
+        from matplotlib.figure import Figure
+        from matplotlib.ticker import MaxNLocator, ScalarFormatter
 
         estimates = self.estimates()
         names = list(estimates.columns) if parameters is None else list(parameters)
         cols = min(3, max(len(names), 1))
         rows = -(-len(names) // cols)
-        fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3 * rows), squeeze=False)
+        fig = Figure(figsize=(4 * cols, 3 * rows), layout="constrained")
+        axes = fig.subplots(rows, cols, squeeze=False)
         for ax, name in zip(axes.flat, names):
             ax.hist(estimates[name].dropna(), bins=bins, color="tab:blue", alpha=0.8)
+            ax.xaxis.set_major_locator(MaxNLocator(nbins=4))
+            formatter = ScalarFormatter(useMathText=True)
+            formatter.set_powerlimits((-2, 3))
+            ax.xaxis.set_major_formatter(formatter)
+            ax.tick_params(labelsize=8)
             ax.set_xlabel(name)
             ax.set_ylabel("data sets")
         for ax in list(axes.flat)[len(names):]:
             ax.set_visible(False)
         fig.suptitle(f"{self.model.name}: estimates across {len(estimates)} data sets")
-        fig.tight_layout()
         return fig

@@ -284,3 +284,35 @@ def derived_unit(model, units: Mapping[str, str], expression: str, time_name: st
     except UnitMismatch as error:
         raise ModelError(f"the derived quantity '{expression}' mixes units: {error}") from None
     return "" if q is ANY else _show(q)
+
+
+#: "time in seconds", "time is in hours", "time [h]": how model descriptions say their time unit.
+_DESCRIBED_TIME = re.compile(r"\btime(?: is)?(?: measured)? in (seconds?|minutes?|hours?|days?)\b"
+                             r"|\btime \[(s|min|h|d)\]", re.IGNORECASE)
+_TIME_WORDS = {"second": "s", "minute": "min", "hour": "h", "day": "d"}
+
+
+def time_unit(model, time_name: str = "t", settings: Mapping | None = None) -> str | None:
+    """The unit of the model's time for axis labels: ``[units]`` of the time column or of t, else the
+    ``time_unit`` timestamps were read in, else what the model's description says ("time in seconds");
+    None where nothing says it."""
+    units = model.units
+    for key in (time_name, "t"):
+        if units.get(key):
+            return units[key]
+    if settings and settings.get("time_unit"):
+        return str(settings["time_unit"])
+    found = _DESCRIBED_TIME.search(getattr(model, "description", "") or "")
+    if found is None:
+        return None
+    word = found.group(1)
+    return _TIME_WORDS[word.lower().rstrip("s")] if word else found.group(2)
+
+
+def figure_units(model, time_name: str = "t", settings: Mapping | None = None) -> dict:
+    """The model's units for figures, with the time column's unit (:func:`time_unit`) where it has one."""
+    units = model.units
+    unit = time_unit(model, time_name, settings)
+    if unit and not units.get(time_name):
+        units[time_name] = unit
+    return units

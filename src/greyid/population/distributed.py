@@ -58,7 +58,10 @@ def _evaluate_chunk(payload, phi, u0, kind: str):
 
 
 def evaluate(programs, phi, u0, kind: str):
-    """The modes at φ and what ``kind`` ("value", "gradient", "exact") asks of them, for one set of members."""
+    """The modes at φ and what ``kind`` ("value", "gradient", "exact") asks of them, for one set of members;
+    ``kind="hessian"`` takes ``u0`` as the modes at φ, found before, and gives the outer Hessian alone."""
+    if kind == "hessian":
+        return None, None, None, np.asarray(programs.hessian(phi, u0))
     modes = laplace.conditional_modes(programs, phi, u0)
     values, gradients, hessians = laplace.laplace_values(modes), None, None
     if kind != "value" and modes.finite.all():
@@ -144,8 +147,9 @@ class ClusterEvaluator:
                 self.chunks[k] = (self.chunks[k][0], self.client.scatter(self.payloads[k], direct=False))
                 futures[k] = submit(k)
         parts = [future.result() for future in futures]
-        modes = laplace.Modes(*(np.concatenate([p[0][k] for p in parts]) for k in range(5)))
-        values = np.concatenate([p[1] for p in parts])
+        modes = None if parts[0][0] is None else laplace.Modes(*(np.concatenate([p[0][k] for p in parts])
+                                                                 for k in range(5)))
+        values = None if parts[0][1] is None else np.concatenate([p[1] for p in parts])
         gradients = None if any(p[2] is None for p in parts) else np.concatenate([p[2] for p in parts])
         hessians = None if any(p[3] is None for p in parts) else np.concatenate([p[3] for p in parts])
         return modes, values, gradients, hessians

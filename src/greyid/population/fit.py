@@ -113,6 +113,7 @@ class Outer:
         self.members = members
         self.u = np.zeros((len(members.names), spec.n_random))
         self.evaluations = 0
+        self.last_gradient = None  # (φ, modes, values, gradients) of the last finite gradient evaluation
         self.programs = None
         if evaluator is None:
             self.programs = laplace.MemberPrograms(programs, members.x, spec.base(), members.data,
@@ -128,7 +129,13 @@ class Outer:
         self.evaluations += 1
         return modes, values, gradients, hessians
 
+    def _at_last_gradient(self, phi) -> bool:
+        last = self.last_gradient
+        return last is not None and np.array_equal(last[0], np.asarray(phi, dtype=float))
+
     def modes(self, phi) -> laplace.Modes:
+        if self._at_last_gradient(phi):
+            return self.last_gradient[1]
         return self._evaluate(phi, "value")[0]
 
     def value(self, phi):
@@ -139,14 +146,25 @@ class Outer:
         if gradients is None:
             n = len(phi)
             return np.full(len(modes.u), np.inf), np.full((len(modes.u), n), np.nan), modes
-        return np.asarray(values), np.asarray(gradients), modes
+        values, gradients = np.asarray(values), np.asarray(gradients)
+        if np.all(np.isfinite(values)) and np.all(np.isfinite(gradients)):
+            self.last_gradient = (np.array(phi, dtype=float), modes, values, gradients)
+        return values, gradients, modes
 
     def value_and_gradient(self, phi):
         values, gradients, _ = self.member_gradients(phi)
         return float(np.sum(values)), gradients.sum(axis=0)
 
     def exact(self, phi):
-        _, values, gradients, hessians = self._evaluate(phi, "exact")
+        """Value, gradient and Hessian at φ; where the search's last gradient was taken at this φ (where
+        the quasi-Newton stage ends), its modes, values and gradients are used and only the Hessian is
+        computed."""
+        if self._at_last_gradient(phi):
+            _, modes, values, gradients = self.last_gradient
+            hessians = self.evaluator(np.asarray(phi, dtype=float), modes.u, "hessian")[3]
+            self.evaluations += 1
+        else:
+            _, values, gradients, hessians = self._evaluate(phi, "exact")
         if hessians is None or not np.all(np.isfinite(values)):
             n = len(phi)
             return np.inf, np.full(n, np.nan), np.full((n, n), np.nan)

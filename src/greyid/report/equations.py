@@ -65,3 +65,9 @@ def model_equations(model) -> list[tuple[str, str]]:
         out.append((named_equation(eq.lhs, eq.rhs, noise=eq.lhs), eq.text))
         out.append((variance_equation(eq.lhs, variance), f"Var(e_{eq.lhs}) = {given}"))
     return out
+
+
+def inline_formula(text: str, names) -> str:
+    """A formula written in Python's syntax (``Ri*Ro**2``) as inline MathML (Ri·Ro²), its names as symbols."""
+    expr = sp.sympify(text, locals={name: sp.Symbol(name) for name in names})
+    return f"<math>{_math(expr)}</math>"

@@ -20,8 +20,8 @@ import pandas as pd
 
 from ..errors import ModelError
 from ..estimate.results import p_value_text
-from ..model.units import pretty
-from .equations import model_equations
+from ..model.units import figure_units, pretty
+from .equations import inline_formula, model_equations
 from .figures import data_figure, embedded_png
 
 #: Section ids, in order; a complete report has every one of them.
@@ -146,12 +146,13 @@ def _data_section(fit, frames) -> str:
         t = frame[time_name]
         observed = {name: int(frame[name].notna().sum()) for name in s.output_names}
         title = f"<h3>Data set {i + 1}</h3>" if len(frames) > 1 else ""
-        unit = f" {pretty(fit.model.units[time_name])}" if time_name in fit.model.units else ""
+        units = figure_units(fit.model, time_name, fit.settings)
+        unit = f" {pretty(units[time_name])}" if time_name in units else ""
         span = f"{time_name} from {_instant(t.iloc[0])} to {_instant(t.iloc[-1])}{unit}"
         parts.append(title + _facts([("rows", len(frame)), ("time", span),
                                      ("observed values", ", ".join(f"{k}: {v}" for k, v in observed.items())),
                                      ("hold", fit.settings["hold"])]))
-        parts.append(embedded_png(data_figure(frame, time_name, s.output_names, s.input_names, fit.model.units)))
+        parts.append(embedded_png(data_figure(frame, time_name, s.output_names, s.input_names, units)))
     if fit.data_file and fit.data_file.startswith("dataset:"):
         name = fit.data_file[len("dataset:"):]
         parts.insert(0, f"<p>The data set <code>{_esc(name)}</code> (<code>greyid.datasets.fetch</code>).</p>")
@@ -279,14 +280,30 @@ def _identifiability_section(fit) -> str:
         return _section("identifiability", "Structural identifiability", body)
     result = identifiability(model, fit.values)
     table = pd.DataFrame({"status": pd.Series(result.status)})
-    body = [_table(table, row_class=lambda r: "reject" if r["status"] == "not identifiable" else "accept",
+    table["meaning"] = table["status"].map(IDENTIFIABILITY_MEANING).fillna("")
+    body = ["<p>Which parameters an experiment on this model can determine at all, judged from its equations "
+            "before any data (thesis section 6.1): what any experiment reveals is the model's input–output "
+            "behaviour, its transfer functions G(p) and H(p) and the innovations' covariance (6.15–6.18); a "
+            "parameter is determined if only one value of it reproduces that behaviour.</p>",
+            _table(table, row_class=lambda r: "reject" if r["status"] == "not identifiable" else "accept",
                    index_name="parameter")]
-    body += [f"<p>identifiable combination: <code>{_esc(c)}</code></p>" for c in result.combinations]
+    if result.combinations:
+        formulas = ", ".join(inline_formula(c, model.parameter_names) for c in result.combinations)
+        body.append(f"<p>Determined although their factors are not: {formulas}. Data fix these combinations; "
+                    "fix all but one of each combination's parameters (or give priors) to estimate the rest.</p>")
     body += [f"<p>{_esc(note)}</p>" for note in result.notes]
-    body.append("<p>From the transfer functions G(p), H(p) and the innovations' covariance that any experiment "
-                "reveals (6.15–6.18), at generic points around the estimates; \"global\" where SymPy solves G's "
-                "equations uniquely within the bounds.</p>")
+    body.append("<p>Judged at generic points around the estimates; \"global\" where SymPy solves G's equations "
+                "uniquely within the bounds.</p>")
     return _section("identifiability", "Structural identifiability", "\n".join(body))
+
+
+#: What each identifiability status tells a reader (the report's table).
+IDENTIFIABILITY_MEANING = {
+    "global": "one value only reproduces the model's input–output behaviour",
+    "local": "near the estimate one value only does; a few separate values elsewhere may do too (e.g. two "
+             "resistances that could swap places), which no data tell apart",
+    "not identifiable": "a continuum of values does: no experiment determines it alone",
+}
 
 
 def _validation_sections(fit, validation, steps: int, n_paths: int, seed: int) -> list[str]:

@@ -85,17 +85,27 @@ def residual_dashboard(residuals: pd.Series, inputs: pd.DataFrame | None = None,
 def coherency_figure(residuals: pd.Series, inputs: pd.DataFrame, m: int | None = None, dt: float = 1.0,
                      level: float = 0.05, time_unit: str | None = None) -> Figure:
     """Squared coherency with each input and the multiple coherency, with the (7.42) critical levels."""
+    from ..model.units import pretty
+
     coh = coherency(residuals, inputs, m=m, dt=dt, level=level)
     fig = Figure(figsize=(9, 4), layout="constrained")
     ax = fig.add_subplot()
     for i, col in enumerate(coh.values.columns):
         color = "k" if col == "multiple" else f"C{i}"
         ax.plot(coh.values.index, coh.values[col], lw=1.2 if col == "multiple" else 0.8, color=color, label=col)
-        ax.axhline(coh.critical[col], color=color, ls=":", lw=0.8)
+    # The critical levels (7.42) in greys no curve uses, each in the legend: one level serves every single
+    # input's coherency (it depends on m alone), another the multiple coherency.
+    singles = sorted({float(coh.critical[c]) for c in coh.values.columns if c != "multiple"})
+    for k, value in enumerate(singles):
+        label = f"{1 - level:.0%} critical level, one input" + (f" ({k + 1})" if len(singles) > 1 else "")
+        ax.axhline(value, color="0.55", ls="--", lw=0.9, label=label)
+    if "multiple" in coh.values.columns:
+        ax.axhline(float(coh.critical["multiple"]), color="0.3", ls=":", lw=1.1,
+                   label=f"{1 - level:.0%} critical level, multiple")
     ax.set_ylim(0, 1)
-    ax.set_xlabel(f"frequency [1/{time_unit}]" if time_unit else "frequency [cycles per time unit]")
+    ax.set_xlabel(f"frequency [1/{pretty(time_unit)}]" if time_unit else "frequency [cycles per time unit]")
     ax.set_ylabel("squared coherency")
-    ax.set_title(f"coherency of residuals and inputs (Daniell m = {coh.m}; dotted: {1 - level:.0%} critical level)")
+    ax.set_title(f"coherency of residuals and inputs (Daniell m = {coh.m})")
     ax.legend(fontsize=8)
     return fig
 

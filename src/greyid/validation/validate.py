@@ -70,13 +70,19 @@ class Validation:
         return output
 
     # -------------------------------------------------------------- figures
+    def _units(self) -> dict:
+        """The model's units for figures, the time axis's included where anything says it."""
+        from ..model.units import figure_units
+
+        return figure_units(self.fit.model, self.fit.settings.get("time", "t"), self.fit.settings)
+
     def plot(self, output: str | None = None):
         """The residual dashboard of one output (the first by default)."""
         label = self._label(output)
         time_name = self.fit.settings.get("time", "t")
         return residual_dashboard(self.residuals[label], self.inputs[label], self.times[label], self.lags,
                                   self.level, title=f"standardised residuals of {label}",
-                                  time_label=labelled(time_name, self.fit.model.units))
+                                  time_label=labelled(time_name, self._units()))
 
     def plot_coherency(self, output: str | None = None):
         """Coherency of one output's residuals with each input, and the multiple coherency."""
@@ -86,7 +92,7 @@ class Validation:
         t = self.times[label].to_numpy(dtype=float)
         dt = float(np.median(np.diff(t))) if len(t) > 1 and np.issubdtype(t.dtype, np.number) else 1.0
         return coherency_figure(self.residuals[label], self.inputs[label], self.m, dt, self.level,
-                                self.fit.model.units.get(self.fit.settings.get("time", "t")))
+                                self._units().get(self.fit.settings.get("time", "t")))
 
     def plot_simulation(self, n_paths: int = 200, seed: int = 0):
         """Measured against the deterministic simulation and a Monte Carlo band of the SDE."""
@@ -95,7 +101,7 @@ class Validation:
         check = simulation_check(self.fit, n_paths=n_paths, seed=seed, level=self.level)
         return band_figure(check.frame, check.time_name, check.output_names,
                            "measured and simulated outputs", f"{1 - self.level:.0%} Monte Carlo band",
-                           units=self.fit.model.units)
+                           units=self._units())
 
     def plot_bootstrap(self, n_samples: int = 100, seed: int = 0):
         """Deterministic simulations at parameters drawn from N(θ̂, Σ̂)."""
@@ -104,7 +110,7 @@ class Validation:
         boot = parameter_bootstrap(self.fit, n_samples=n_samples, seed=seed, level=self.level)
         return band_figure(boot.frame, boot.time_name, boot.output_names,
                            "simulated outputs under parameter uncertainty", f"{1 - self.level:.0%} bootstrap band",
-                           units=self.fit.model.units)
+                           units=self._units())
 
     def plot_prediction(self, steps: int = 1):
         """Measured against ``steps``-ahead predictions with ±2 standard deviations."""
@@ -112,7 +118,7 @@ class Validation:
         data = data[0] if isinstance(data, list) else data
         pred = self.fit.predict(data, steps=steps)
         return prediction_figure(data, pred, self.fit.settings["time"], self.fit.model.output_names, steps,
-                                 units=self.fit.model.units)
+                                 units=self._units())
 
 
 def validate(fit, level: float = 0.05, lags: int | None = None, m: int | None = None) -> Validation:
