@@ -151,7 +151,8 @@ def test_identifiability_reads_in_words_and_combinations_as_formulas(report):
 
     text, _ = report
     section = text[text.find('<section id="identifiability">'):text.find('<section id="validation">')]
-    assert "input–output behaviour" in section and "meaning" in section
+    assert "input–output behaviour" in section
+    assert "<b>global</b>: one value only reproduces" in section or "<b>local</b>: near the estimate" in section
     formula = inline_formula("Ri*Ro**2", ["Ri", "Ro"])
     assert formula.startswith("<math>") and "**" not in formula and "<msup>" in formula
     assert "<mi>Ri</mi>" in formula and "<mi>Ro</mi>" in formula

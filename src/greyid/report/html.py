@@ -280,13 +280,15 @@ def _identifiability_section(fit) -> str:
         return _section("identifiability", "Structural identifiability", body)
     result = identifiability(model, fit.values)
     table = pd.DataFrame({"status": pd.Series(result.status)})
-    table["meaning"] = table["status"].map(IDENTIFIABILITY_MEANING).fillna("")
+    meanings = "".join(f"<li><b>{_esc(status)}</b>: {_esc(IDENTIFIABILITY_MEANING[status])}</li>"
+                       for status in IDENTIFIABILITY_MEANING if status in set(table["status"]))
     body = ["<p>Which parameters an experiment on this model can determine at all, judged from its equations "
             "before any data (thesis section 6.1): what any experiment reveals is the model's input–output "
             "behaviour, its transfer functions G(p) and H(p) and the innovations' covariance (6.15–6.18); a "
             "parameter is determined if only one value of it reproduces that behaviour.</p>",
             _table(table, row_class=lambda r: "reject" if r["status"] == "not identifiable" else "accept",
-                   index_name="parameter")]
+                   index_name="parameter"),
+            f"<ul>{meanings}</ul>"]
     if result.combinations:
         formulas = ", ".join(inline_formula(c, model.parameter_names) for c in result.combinations)
         body.append(f"<p>Determined although their factors are not: {formulas}. Data fix these combinations; "
