@@ -100,6 +100,38 @@ def _log_prior(theta, index, mean, chol):
     return -0.5 * (z @ z + 2 * jnp.sum(jnp.log(jnp.diag(chol))) + len(index) * jnp.log(2 * jnp.pi))
 
 
+def criterion_functions(structure, problem: Problem):
+    """``(terms, negative)``: θ, data ↦ the filter's per-step terms, and θ ↦ the negative log-criterion
+    (3.18, or the robust or k-step criterion) summed over the data sets, minus the log-prior (MAP)."""
+    kappa = scale_consistency(problem.robust)
+    if problem.horizon == 1:
+        run = compiled_filter(structure, problem.options, keep_outputs=False)
+
+        def terms(theta, data):
+            return run(theta, data)[0]
+    else:
+        ahead = make_ahead(structure, problem.options, problem.horizon)
+
+        def terms(theta, data):
+            return ahead(theta, data).terms
+
+    if problem.horizon == 1 and problem.long_series:
+        # Summed in the scan: nothing kept per step, so memory independent of the length.
+        criterion = make_summed_filter(
+            structure, problem.options, lambda step_terms: step_criterion(step_terms, problem.robust, kappa))
+    else:
+        def criterion(theta, data):
+            return log_criterion(terms(theta, data), problem.robust)
+
+    def negative(theta, prior_mean, prior_chol, datasets):
+        total = sum(criterion(theta, d) for d in datasets)
+        if problem.prior is not None:
+            total = total + _log_prior(theta, problem.prior_index, prior_mean, prior_chol)
+        return -total
+
+    return terms, negative
+
+
 class Programs(NamedTuple):
     """The compiled functions of one estimation problem (see :func:`build`)."""
 
@@ -121,33 +153,12 @@ def build(structure, problem: Problem) -> Programs:
     ten times faster through the EKF's sub-step Jacobians (Lotka–Volterra, A.66).
     """
     kappa = scale_consistency(problem.robust)
-    if problem.horizon == 1:
-        run = compiled_filter(structure, problem.options, keep_outputs=False)
-
-        def terms(theta, data):
-            return run(theta, data)[0]
-    else:
-        ahead = make_ahead(structure, problem.options, problem.horizon)
-
-        def terms(theta, data):
-            return ahead(theta, data).terms
-
-    if problem.horizon == 1 and problem.long_series:
-        # Summed in the scan: nothing kept per step, so memory independent of the length.
-        criterion = make_summed_filter(
-            structure, problem.options, lambda step_terms: step_criterion(step_terms, problem.robust, kappa))
-    else:
-        def criterion(theta, data):
-            return log_criterion(terms(theta, data), problem.robust)
-
+    terms, negative_at_theta = criterion_functions(structure, problem)
     kinds = problem.transform.kind
 
     def negative(z, base, lower, upper, prior_mean, prior_chol, datasets):
         theta = problem.theta(z, base, Transform(kinds, lower, upper), jnp)
-        total = sum(criterion(theta, d) for d in datasets)
-        if problem.prior is not None:
-            total = total + _log_prior(theta, problem.prior_index, prior_mean, prior_chol)
-        return -total
+        return negative_at_theta(theta, prior_mean, prior_chol, datasets)
 
     def contributions(z, base, lower, upper, data):
         theta = problem.theta(z, base, Transform(kinds, lower, upper), jnp)

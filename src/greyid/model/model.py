@@ -528,6 +528,24 @@ class Model:
             prior = self.prior()
         return fit(self, data, prior=prior, init=init, init_from=init_from, progress=progress, **settings)
 
+    def likelihood(self, data, time: str | None = None, hold: str | None = None, method: str | None = None,
+                   criterion: str | None = None, prior=None, robust=None, horizon: int | None = None, **options):
+        """The negative log-likelihood of ``data`` (or the criterion ``fit`` would minimise: MAP, robust,
+        k-step) as a function of the free parameters: a :class:`~greyid.estimate.likelihood.Likelihood`
+        with ``.names``, ``.value(x)``, ``.value_and_grad(x)`` and ``.hessian(x)`` (x in the parameters'
+        own units, one vector or one row per vector; ``unconstrained=True`` for the optimiser's z), and
+        ``.function()``, the pure JAX function for ``jax.grad``, ``vmap``, samplers and optimisers."""
+        from ..estimate.likelihood import Likelihood
+
+        given = dict(time=time, hold=hold, method=method, criterion=criterion, robust=robust, horizon=horizon,
+                     **options)
+        data, settings = self._call_settings(data, given, DATA_KEYS + FILTER_KEYS + ESTIMATION_KEYS)
+        for key in ("prior_correlation", "starts", "seed", "maxiter", "cov_type", "optimizer"):
+            settings.pop(key, None)
+        if prior is None and settings.get("criterion") == "map":
+            prior = self.prior()
+        return Likelihood(self, data, prior=prior, **settings)
+
     def predict(self, params, data, steps: int = 1, time: str | None = None, hold: str | None = None,
                 method: str | None = None, states: bool = False, **options):
         """``steps``-ahead output predictions with standard deviations (a DataFrame).

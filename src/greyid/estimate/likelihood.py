@@ -1,0 +1,133 @@
+"""The negative log-likelihood of a model on data as a public object (``model.likelihood(data)``).
+
+What ``model.fit`` minimises — the negative log-likelihood (3.18) through the
+model's filter, or the chosen criterion (MAP, robust, k-step) — as functions of
+the free parameters, as ctsmTMB's ``likelihood()`` and statsmodels'
+``loglike``/``score`` give it:
+
+    nll = model.likelihood(data, time="t", hold="zoh")
+    nll.names                        # the free parameters, in order
+    nll.value(x)                     # x in the parameters' own units
+    nll.value_and_grad(x)            # exact gradient (forward mode)
+    nll.hessian(x)
+    nll.value(X)                     # a 2-D X: one row per parameter vector
+    f = nll.function()               # the pure JAX function x ↦ value: jax.grad, vmap, BlackJAX, optax
+
+With ``unconstrained=True`` x is the optimiser's coordinate z, in which every
+bound is gone (θ = l + e^z and the like, :mod:`.transforms`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..compiler import jit
+from ..data.prepare import as_frames
+from ..errors import ModelError
+from ..filters.api import prepare_datasets
+from . import objective
+from .estimation import check_observed, check_settings, free_parameters, make_problem
+from .transforms import Transform
+
+
+class Likelihood:
+    """The negative log-likelihood (or criterion) of ``model`` on ``data``; see the module docstring.
+
+    Built by :meth:`greyid.Model.likelihood`.  Parameters not free in the model
+    (fixed ones) keep their values; the free ones are ``names``, in order.
+    """
+
+    def __init__(self, model, data, time: str = "t", hold: str = "zoh", method=None, criterion: str = "ml",
+                 prior=None, robust=None, horizon: int = 1, time_unit=None, **filter_settings):
+        structure = model.structure
+        robust, _ = check_settings(criterion, prior, robust, horizon, None, "auto", 1)
+        parameters = free_parameters(model)
+        problem = make_problem(structure, parameters, method, (robust, horizon, prior), filter_settings)
+        prepared = prepare_datasets(structure, parameters.theta0, as_frames(data), time, hold, time_unit,
+                                    check=False)
+        check_observed(prepared, len(parameters.free))
+        if sum(series.n_rows for series, _ in prepared) > objective.LONG_SERIES:
+            problem = replace(problem, long_series=True)
+        self.model, self.problem = model, problem
+        self.names = [parameters.names[i] for i in parameters.free]
+        self.n_obs = sum(int(np.sum(~np.isnan(series.outputs))) for series, _ in prepared)
+        self._free, self._transform = parameters.free, parameters.transform
+        base, lower, upper, prior_mean, prior_chol = problem.arguments(parameters.theta0)
+        datasets = [inputs for _, inputs in prepared]
+        _, negative = objective.criterion_functions(structure, problem)
+        kinds = problem.transform.kind
+
+        def at_x(x):
+            # θ with the free entries from x, element by element (see Problem.theta).
+            position = {index: j for j, index in enumerate(self._free)}
+            theta = jnp.stack([x[position[i]] if i in position else base[i] for i in range(base.shape[0])])
+            return negative(theta, prior_mean, prior_chol, datasets)
+
+        def at_z(z):
+            theta = problem.theta(z, base, Transform(kinds, lower, upper), jnp)
+            return negative(theta, prior_mean, prior_chol, datasets)
+
+        self._functions = {False: at_x, True: at_z}
+        self._programs: dict = {}
+
+    # ------------------------------------------------------------------ the functions
+    def function(self, unconstrained: bool = False):
+        """The pure JAX function x ↦ negative log-likelihood (one parameter vector), for ``jax.grad``,
+        ``jax.vmap``, samplers and optimisers of your own."""
+        return self._functions[bool(unconstrained)]
+
+    def _program(self, kind: str, unconstrained: bool, batched: bool):
+        key = (kind, bool(unconstrained), batched)
+        if key not in self._programs:
+            fun = self._functions[bool(unconstrained)]
+            if kind == "value_and_grad":
+                fun = objective.forward_value_and_grad(fun)
+            elif kind == "hessian":
+                fun = jax.jacfwd(jax.jacfwd(fun))
+            self._programs[key] = jit(jax.vmap(fun) if batched else fun)
+        return self._programs[key]
+
+    def _call(self, kind: str, x, unconstrained: bool):
+        x = np.asarray(x, dtype=float)
+        if x.ndim not in (1, 2) or x.shape[-1] != len(self.names):
+            raise ModelError(f"x must hold the {len(self.names)} free parameters {self.names} (a vector, or one row "
+                             f"per parameter vector), got shape {x.shape}")
+        out = self._program(kind, unconstrained, x.ndim == 2)(jnp.asarray(x))
+        return jax.tree_util.tree_map(np.asarray, out)
+
+    def value(self, x, unconstrained: bool = False):
+        """The negative log-likelihood at x (a vector of ``names``' values, or one row per vector)."""
+        return self._call("value", x, unconstrained)
+
+    def __call__(self, x, unconstrained: bool = False):
+        return self.value(x, unconstrained)
+
+    def value_and_grad(self, x, unconstrained: bool = False):
+        """``(value, gradient)`` at x; the gradient exact (forward mode, one tangent per parameter)."""
+        return self._call("value_and_grad", x, unconstrained)
+
+    def hessian(self, x, unconstrained: bool = False):
+        """The exact Hessian at x (forward over forward)."""
+        return self._call("hessian", x, unconstrained)
+
+    # ------------------------------------------------------------------ coordinates
+    def to_unconstrained(self, x) -> np.ndarray:
+        """z of the parameter values x (the optimiser's coordinates, bounds removed)."""
+        return self._transform.to_z(np.asarray(x, dtype=float))
+
+    def from_unconstrained(self, z) -> np.ndarray:
+        """The parameter values x at z."""
+        return np.asarray(self._transform.to_theta(jnp.asarray(z, dtype=float)))
+
+    def start(self) -> np.ndarray:
+        """The free parameters' initial values, in ``names``' order."""
+        return np.array([self.model.parameters[name].init for name in self.names], dtype=float)
+
+    def __repr__(self) -> str:
+        return (f"<negative log-likelihood of '{self.model.name}' on {self.n_obs} observed values; "
+                f"free parameters {self.names}>")

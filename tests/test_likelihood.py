@@ -1,0 +1,107 @@
+"""model.likelihood(data): the negative log-likelihood as a public object, against model.loglik, the fit,
+central differences, a batched call, JAX's own grad, and SciPy's optimiser."""
+
+from __future__ import annotations
+
+import warnings
+
+import jax
+import numpy as np
+import pytest
+from scipy.optimize import minimize
+
+import greyid
+from greyid.datasets import building_model, load_building_data
+
+
+@pytest.fixture(scope="module")
+def problem():
+    model, data = building_model(), load_building_data()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fit = model.fit(data)
+    return model, data, fit, model.likelihood(data)
+
+
+def test_value_is_the_negative_log_likelihood(problem):
+    model, data, fit, nll = problem
+    free = [n for n in model.parameter_names if not fit.params.loc[n, "fixed"]]
+    assert nll.names == free
+    x_hat = np.array([fit.values[n] for n in nll.names])
+    assert nll.value(x_hat) == pytest.approx(-fit.loglik, rel=1e-10)
+    x0 = nll.start()
+    at_start = {**fit.values, **dict(zip(nll.names, x0))}
+    assert nll.value(x0) == pytest.approx(-model.loglik(at_start, data), rel=1e-10)
+
+
+def test_gradient_and_hessian_against_central_differences(problem):
+    _, _, fit, nll = problem
+    x = np.array([fit.values[n] for n in nll.names]) * 1.02
+    value, gradient = nll.value_and_grad(x)
+    assert value == pytest.approx(nll.value(x), rel=1e-12)
+    h = 1e-6 * np.maximum(np.abs(x), 1e-3)
+    central = np.array([(nll.value(x + h[i] * e) - nll.value(x - h[i] * e)) / (2 * h[i])
+                        for i, e in enumerate(np.eye(len(x)))])
+    np.testing.assert_allclose(gradient, central, rtol=1e-5, atol=1e-6 * np.abs(central).max())
+    hessian = nll.hessian(x)
+    rows = np.array([(nll.value_and_grad(x + h[i] * e)[1] - nll.value_and_grad(x - h[i] * e)[1]) / (2 * h[i])
+                     for i, e in enumerate(np.eye(len(x)))])
+    np.testing.assert_allclose(hessian, rows, rtol=1e-4, atol=1e-6 * np.abs(rows).max())
+    np.testing.assert_allclose(hessian, hessian.T, rtol=1e-10, atol=1e-10 * np.abs(hessian).max())
+
+
+def test_a_2d_x_evaluates_each_row_and_jax_composes(problem):
+    _, _, fit, nll = problem
+    x = np.array([fit.values[n] for n in nll.names])
+    rng = np.random.default_rng(0)
+    batch = x * (1 + 0.01 * rng.normal(size=(4, len(x))))
+    values = nll.value(batch)
+    np.testing.assert_allclose(values, [nll.value(row) for row in batch], rtol=1e-12)
+    values_b, gradients_b = nll.value_and_grad(batch)
+    np.testing.assert_allclose(gradients_b[2], nll.value_and_grad(batch[2])[1], rtol=1e-10)
+    own = jax.jit(jax.grad(nll.function()))(batch[1])
+    np.testing.assert_allclose(own, gradients_b[1], rtol=1e-8)
+
+
+def test_unconstrained_coordinates(problem):
+    _, _, fit, nll = problem
+    x = np.array([fit.values[n] for n in nll.names])
+    z = nll.to_unconstrained(x)
+    np.testing.assert_allclose(nll.from_unconstrained(z), x, rtol=1e-12)
+    assert nll.value(z, unconstrained=True) == pytest.approx(nll.value(x), rel=1e-12)
+    dtheta_dz = nll._transform.derivative(z)
+    np.testing.assert_allclose(nll.value_and_grad(z, unconstrained=True)[1], nll.value_and_grad(x)[1] * dtheta_dz,
+                               rtol=1e-8, atol=1e-10)
+
+
+def test_scipy_finds_the_fits_optimum(problem):
+    _, _, fit, nll = problem
+    z0 = nll.to_unconstrained(nll.start())
+    result = minimize(lambda z: nll.value_and_grad(z, unconstrained=True), z0, jac=True, method="BFGS",
+                      options={"gtol": 1e-8, "maxiter": 2000})
+    assert -result.fun == pytest.approx(fit.loglik, abs=1e-4)
+
+
+def test_bad_x_is_named(problem):
+    *_, nll = problem
+    with pytest.raises(greyid.ModelError, match="free parameters"):
+        nll.value(np.zeros(len(nll.names) + 1))
+
+
+def test_a_sampler_runs_on_the_function(problem):
+    """BlackJAX's NUTS on −f(z): the documented sampler example, a few steps from the optimum."""
+    blackjax = pytest.importorskip("blackjax")
+    _, _, fit, nll = problem
+    f = nll.function(unconstrained=True)
+    z_hat = nll.to_unconstrained(np.array([fit.values[n] for n in nll.names]))
+    mass = np.linalg.inv(nll.hessian(z_hat, unconstrained=True))
+    nuts = blackjax.nuts(lambda z: -f(z), step_size=0.5, inverse_mass_matrix=np.diag(mass))
+    state = nuts.init(z_hat)
+    step = jax.jit(nuts.step)
+    keys = jax.random.split(jax.random.key(0), 20)
+    draws = []
+    for key in keys:
+        state, _ = step(key, state)
+        draws.append(np.asarray(state.position))
+    values = [nll.value(z, unconstrained=True) for z in draws]
+    assert np.all(np.isfinite(values)) and max(values) < -fit.loglik + 30
