@@ -128,3 +128,17 @@ def test_a_model_file_names_its_data_set_and_a_saved_fit_keeps_it(tmp_path, monk
         from greyid.model.files import read_data
 
         read_data(greyid.Model.from_toml(tmp_path / "both.toml"))
+
+
+def test_without_pooch_the_command_line_says_what_to_install(tmp_path, monkeypatch, capsys):
+    """A data set named in a model file, no mirror and no pooch: exit 2 and the pip command, no traceback."""
+    import sys
+
+    from greyid.cli import main
+
+    monkeypatch.delenv(fetching.MIRROR, raising=False)
+    monkeypatch.setitem(sys.modules, "pooch", None)  # import pooch raises ImportError
+    model_file = Path(__file__).resolve().parents[1] / "examples" / "armadillo.toml"
+    assert main(["fit", str(model_file), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert 'pip install "greyid[data]"' in err and "Traceback" not in err

@@ -158,7 +158,8 @@ def _run(command) -> None:
             # A fit's warnings are printed once, at the end of its summary.
             warnings.simplefilter("ignore", FitWarning)
             code = command()
-    except (InputProblem, ModelError, DataError) as problem:
+    except (InputProblem, ModelError, DataError, ImportError) as problem:
+        # ImportError: an optional dependency a command needs is missing (its message says what to install).
         if DEBUG["on"]:
             import traceback
 
