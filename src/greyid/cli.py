@@ -131,13 +131,13 @@ def load_data(model, data: Optional[Path], fit=None, time: Optional[str] = None)
     """
     import pandas as pd
 
-    from .model.files import DATASET_PREFIX, data_origin, read_data
+    from .model.files import data_origin, named_dataset, read_data
 
     if data is None and fit is not None and fit.data_file:
-        if not fit.data_file.startswith(DATASET_PREFIX) and not Path(fit.data_file).is_file():
+        if named_dataset(fit.data_file) is None and not Path(fit.data_file).is_file():
             raise InputProblem(f"the fit's data file '{fit.data_file}' does not exist (moved or deleted?); "
                                "give the data after the fit file")
-        data = Path(fit.data_file) if not fit.data_file.startswith(DATASET_PREFIX) else fit.data_file
+        data = fit.data_file
     frame = read_data(model, data, time)
     name = time or model.options.get("time", "t")
     if name in frame.columns and pd.api.types.is_datetime64_any_dtype(frame[name]):

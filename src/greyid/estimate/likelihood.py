@@ -56,17 +56,15 @@ class Likelihood:
         self.model, self.problem = model, problem
         self.names = [parameters.names[i] for i in parameters.free]
         self.n_obs = sum(int(np.sum(~np.isnan(series.outputs))) for series, _ in prepared)
-        self._free, self._transform = parameters.free, parameters.transform
+        self._transform = parameters.transform
+        self._start = parameters.theta0[list(parameters.free)]
         base, lower, upper, prior_mean, prior_chol = problem.arguments(parameters.theta0)
         datasets = [inputs for _, inputs in prepared]
         _, negative = objective.criterion_functions(structure, problem)
         kinds = problem.transform.kind
 
         def at_x(x):
-            # θ with the free entries from x, element by element (see Problem.theta).
-            position = {index: j for j, index in enumerate(self._free)}
-            theta = jnp.stack([x[position[i]] if i in position else base[i] for i in range(base.shape[0])])
-            return negative(theta, prior_mean, prior_chol, datasets)
+            return negative(problem.assemble(x, base, jnp), prior_mean, prior_chol, datasets)
 
         def at_z(z):
             theta = problem.theta(z, base, Transform(kinds, lower, upper), jnp)
@@ -126,7 +124,7 @@ class Likelihood:
 
     def start(self) -> np.ndarray:
         """The free parameters' initial values, in ``names``' order."""
-        return np.array([self.model.parameters[name].init for name in self.names], dtype=float)
+        return self._start.copy()
 
     def __repr__(self) -> str:
         return (f"<negative log-likelihood of '{self.model.name}' on {self.n_obs} observed values; "

@@ -70,7 +70,10 @@ class Problem:
         θ is assembled element by element: a scatter into ``base_theta`` would
         become a loop per derivative order in the compiled Hessian program.
         """
-        free_theta = (transform or self.transform).to_theta(z, xp)
+        return self.assemble((transform or self.transform).to_theta(z, xp), base_theta, xp)
+
+    def assemble(self, free_theta, base_theta, xp=np):
+        """θ with the free parameters' values ``free_theta`` and the fixed ones from ``base_theta``."""
         position = {index: j for j, index in enumerate(self.free)}
         return xp.stack([free_theta[position[i]] if i in position else base_theta[i]
                          for i in range(len(base_theta))])

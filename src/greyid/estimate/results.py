@@ -353,14 +353,14 @@ class FitResult:
         if self.data is None and self.data_file:
             from ..data.prepare import as_frames
             from ..errors import DataError
-            from ..model.files import DATASET_PREFIX, read_data
+            from ..model.files import named_dataset, read_data
             from ..model.options import rename_columns
 
-            path = Path(self.data_file) if not self.data_file.startswith(DATASET_PREFIX) else self.data_file
-            if isinstance(path, Path) and not path.is_file():
-                raise DataError(f"the data file this fit was made from, '{path}', is not there any more; "
-                                "attach the data with fit.with_data(frame)")
-            self.data = as_frames(rename_columns(read_data(self.model, path), self.model.options.get("columns")))
+            if named_dataset(self.data_file) is None and not Path(self.data_file).is_file():
+                raise DataError(f"the data file this fit was made from, '{self.data_file}', is not there any "
+                                "more; attach the data with fit.with_data(frame)")
+            self.data = as_frames(rename_columns(read_data(self.model, self.data_file),
+                                                 self.model.options.get("columns")))
         return self.data
 
     def _data(self, data):

@@ -290,12 +290,18 @@ def write_model(model, path=None) -> str:
 DATASET_PREFIX = "dataset:"
 
 
+def named_dataset(origin) -> str | None:
+    """NAME of an origin written ``dataset:NAME`` (a saved fit's ``data_file``, a command line's DATA);
+    None for a file's path."""
+    text = str(origin)
+    return text[len(DATASET_PREFIX):] if text.startswith(DATASET_PREFIX) else None
+
+
 def _dataset_name(model, path) -> str | None:
     """The named data set the data come from: ``path`` written ``dataset:NAME``, else (no path) the model
     file's ``[data] dataset``; None for a file."""
     if path is not None:
-        text = str(path)
-        return text[len(DATASET_PREFIX):] if text.startswith(DATASET_PREFIX) else None
+        return named_dataset(path)
     options = model.options
     if "dataset" in options and "file" in options:
         raise DataError(f"the model file names both a data file ('{options['file']}') and a data set "

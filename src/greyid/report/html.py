@@ -20,6 +20,7 @@ import pandas as pd
 
 from ..errors import ModelError
 from ..estimate.results import p_value_text
+from ..model.files import named_dataset
 from ..model.units import figure_units, pretty
 from .equations import inline_formula, model_equations
 from .figures import data_figure, embedded_png
@@ -153,8 +154,8 @@ def _data_section(fit, frames) -> str:
                                      ("observed values", ", ".join(f"{k}: {v}" for k, v in observed.items())),
                                      ("hold", fit.settings["hold"])]))
         parts.append(embedded_png(data_figure(frame, time_name, s.output_names, s.input_names, units)))
-    if fit.data_file and fit.data_file.startswith("dataset:"):
-        name = fit.data_file[len("dataset:"):]
+    if fit.data_file and named_dataset(fit.data_file) is not None:
+        name = named_dataset(fit.data_file)
         parts.insert(0, f"<p>The data set <code>{_esc(name)}</code> (<code>greyid.datasets.fetch</code>).</p>")
     elif fit.data_file:
         parts.insert(0, f"<p>Read from <code>{_esc(fit.data_file)}</code>.</p>")
