@@ -1,13 +1,15 @@
-"""The steady-state form of the exact Kalman filter on long regular series (filters/steady.py).
+"""The steady-state form of the exact Kalman filter on regular series (filters/steady.py).
 
 References: the Riccati recursion iterated to convergence, the mean recursion
 step by step, and the ordinary filter (steady form switched off) on the same
 series — with missing values, an irregular interval, both holds, both covariance
-forms and correlated output noise.  The series are made long relative to
-chunks made short for the tests.
+forms and correlated output noise.  Long series are made long relative to
+chunks made short for the tests; shorter ones (one switch after their first
+rows) are a few hundred rows, as the public likelihood takes them.
 """
 
 import collections
+import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -19,17 +21,14 @@ from conftest import random_linear_model_spec, random_linear_parameters
 from greyid.estimate.criteria import step_criterion
 from greyid.filters import steady
 from greyid.filters.api import filter_options, prepare_datasets, sampling_intervals
-from greyid.filters.core import make_summed_filter
+from greyid.filters.core import make_filter, make_summed_filter
 from test_correlated_noise import TRUE as CORRELATED_TRUE, correlated_model
 
 N_ROWS = 1400
 
 
-@pytest.fixture
-def short_chunks(monkeypatch):
-    """Chunks of 64 rows from 512 rows on; counts the chunks run in the steady state."""
-    monkeypatch.setattr(steady, "MIN_ROWS", 512)
-    monkeypatch.setattr(steady, "CHUNK", 64)
+def count_steady_rows(monkeypatch):
+    """Counts the calls of the steady-state form that ran (not only traced)."""
     counts = collections.Counter()
     rows = steady.steady_rows
 
@@ -39,6 +38,14 @@ def short_chunks(monkeypatch):
 
     monkeypatch.setattr(steady, "steady_rows", counted)
     return counts
+
+
+@pytest.fixture
+def short_chunks(monkeypatch):
+    """Chunks of 64 rows from 512 rows on; counts the chunks run in the steady state."""
+    monkeypatch.setattr(steady, "MIN_ROWS", 512)
+    monkeypatch.setattr(steady, "CHUNK", 64)
+    return count_steady_rows(monkeypatch)
 
 
 def step_by_step(monkeypatch):
@@ -69,16 +76,24 @@ def loop_recursion(F, v, start):
     return jnp.stack(out)
 
 
-@pytest.mark.parametrize("rows", [5 * steady.BLOCK, 3 * steady.BLOCK - 7, 40 * steady.BLOCK])
-def test_linear_recursion_is_the_loop(rows):
-    """Blocks carried by powers of F^BLOCK (up to a chunk's blocks) or by a scan (more), a partial last
-    block; and the derivatives of first and second order (the recursion's own rule) equal the loop's."""
+RECURSIONS = {"blocks": lambda F, v, start: steady.linear_recursion(steady.recursion(F), v, start),
+              "short": steady.short_recursion}
+
+
+@pytest.mark.parametrize("kind, rows", [("blocks", 5 * steady.BLOCK), ("blocks", 3 * steady.BLOCK - 7),
+                                        ("blocks", 40 * steady.BLOCK), ("short", 5 * steady.BLOCK),
+                                        ("short", 3 * steady.BLOCK - 7), ("short", 1)])
+def test_mean_recursions_are_the_loop(kind, rows):
+    """Blocks carried by powers of F^BLOCK (up to a chunk's blocks) or by a scan (more), or by two
+    triangular solves (short), a partial last block; and the derivatives of first and second order (the
+    recursions' own rules) and in reverse mode (the rules transposed) equal the loop's."""
+    recursion = RECURSIONS[kind]
     rng = np.random.default_rng(1)
     n = 3
     F = jnp.asarray(rng.normal(size=(n, n)) * 0.4)
     v, start = jnp.asarray(rng.normal(size=(rows, n))), jnp.asarray(rng.normal(size=n))
-    np.testing.assert_allclose(np.asarray(steady.linear_recursion(steady.recursion(F), v, start)),
-                               np.asarray(loop_recursion(F, v, start)), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(recursion(F, v, start)), np.asarray(loop_recursion(F, v, start)),
+                               rtol=1e-12, atol=1e-12)
     weights = jnp.asarray(rng.normal(size=(rows, n)))
 
     def summary(recursion, a):  # F, v and start all depend on a
@@ -86,10 +101,11 @@ def test_linear_recursion_is_the_loop(rows):
 
     a = jnp.asarray([0.1, 0.05, 1.2])
     def fast(a):
-        return summary(lambda *p: steady.linear_recursion(steady.recursion(p[0]), *p[1:]), a)
+        return summary(recursion, a)
     def slow(a):
         return summary(loop_recursion, a)
     np.testing.assert_allclose(jax.jacfwd(fast)(a), jax.jacfwd(slow)(a), rtol=1e-10)
+    np.testing.assert_allclose(jax.grad(fast)(a), jax.grad(slow)(a), rtol=1e-10)
     np.testing.assert_allclose(jax.jacfwd(jax.jacfwd(fast))(a), jax.jacfwd(jax.jacfwd(slow))(a), rtol=1e-9)
 
 
@@ -215,6 +231,94 @@ def test_no_steady_state_without_one(monkeypatch, short_chunks):
     step_by_step(monkeypatch)
     other = greyid.Model.from_dict(model.to_dict())
     assert other.loglik(params, frame) == pytest.approx(value, abs=1e-9)
+
+
+def shorter_series(seed, rows=400, missing_at=None):
+    """A regular series of the random linear model, a few hundred rows (a shorter series)."""
+    rng = np.random.default_rng(seed)
+    model = random_linear_model_spec()
+    params, _ = random_linear_parameters(rng)
+    t = np.arange(rows) * 0.5
+    frame = pd.DataFrame({"t": t, "u1": rng.normal(size=rows), "u2": np.sin(t / 7)})
+    simulated = model.simulate(params, frame, method="exact", seed=seed).outputs[0]
+    frame["y1"], frame["y2"] = simulated[:, 0], simulated[:, 1]
+    if missing_at is not None:
+        frame.loc[missing_at, "y1"] = np.nan
+    return model, params, frame
+
+
+@pytest.fixture
+def counted_steady(monkeypatch):
+    return count_steady_rows(monkeypatch)
+
+
+def shorter_filters(model, params, frame, hold="zoh", form="sqrt"):
+    """The filter with and without the switch after the first rows, at θ, keeping every output."""
+    structure = model.structure
+    theta = jnp.asarray(model.parameter_vector(params))
+    (_, inputs), = prepare_datasets(structure, np.asarray(theta), frame, "t", hold, None)
+    options = filter_options(structure, None, form=form)
+    switching = dataclasses.replace(options, short_series_steady_state=True)
+    return (lambda th: make_filter(structure, switching, True)(th, inputs),
+            lambda th: make_filter(structure, options, True)(th, inputs), theta)
+
+
+@pytest.mark.parametrize("hold, form", [("zoh", "sqrt"), ("foh", "plain")])
+def test_shorter_series_switch_after_their_first_rows(counted_steady, hold, form):
+    """A few hundred regular rows: the rows after HEAD at once in the steady state, every output as the
+    ordinary filter's — per-row terms, states, covariances — and the log-likelihood to 1e-9."""
+    model, params, frame = shorter_series(seed=21)
+    fast, exact, theta = shorter_filters(model, params, frame, hold, form)
+    (fast_terms, fast_out), (terms, out) = fast(theta), exact(theta)
+    assert counted_steady["steady"] == 1
+    assert abs(float(fast_terms.loglik.sum() - terms.loglik.sum())) < 1e-9
+    np.testing.assert_allclose(fast_terms.loglik, terms.loglik, atol=1e-10)
+    rows = len(frame)  # the rows padding the series to its length bucket carry nothing used
+    for name in ("filtered_mean", "output_prediction", "innovation"):
+        np.testing.assert_allclose(getattr(fast_out, name)[:rows], getattr(out, name)[:rows], atol=1e-9)
+    for name in ("predicted_cov", "filtered_cov", "innovation_cov"):
+        np.testing.assert_allclose(getattr(fast_out, name)[:rows], getattr(out, name)[:rows], atol=1e-10)
+
+
+def test_shorter_series_derivatives_equal_the_ordinary_filter_s(counted_steady):
+    """Forward and reverse mode through the switch: the gradient of the ordinary filter to 1e-8 of its
+    scale (the carried covariance's derivatives stand for P∞'s), the Hessian to 1e-6."""
+    model, params, frame = shorter_series(seed=24)
+    fast, exact, theta = shorter_filters(model, params, frame)
+
+    def total(run):
+        return lambda th: -jnp.sum(run(th)[0].loglik)
+
+    forward, reverse, expected = (jax.jacfwd(total(fast))(theta), jax.grad(total(fast))(theta),
+                                  jax.grad(total(exact))(theta))
+    assert counted_steady["steady"] >= 2
+    scale = np.max(np.abs(expected))
+    np.testing.assert_allclose(forward, expected, atol=1e-8 * scale)
+    np.testing.assert_allclose(reverse, expected, atol=1e-8 * scale)
+    directions = jnp.asarray(np.random.default_rng(24).normal(size=(2, len(theta))))
+    rows = [jax.jvp(jax.jacfwd(total(fast)), (theta,), (u,))[1] for u in directions]
+    expected_rows = [jax.jvp(jax.jacfwd(total(exact)), (theta,), (u,))[1] for u in directions]
+    np.testing.assert_allclose(rows, expected_rows, atol=1e-6 * np.max(np.abs(expected_rows)))
+
+
+def test_shorter_series_with_a_missing_value_or_no_steady_state_step_through(counted_steady):
+    """A missing output after the first rows, or a filter with no steady state: every row step by step,
+    the same values as the ordinary filter's exactly."""
+    model, params, frame = shorter_series(seed=23, missing_at=200)
+    fast, exact, theta = shorter_filters(model, params, frame)
+    assert float(fast(theta)[0].loglik.sum()) == float(exact(theta)[0].loglik.sum())
+    assert counted_steady["steady"] == 0
+
+    import greyid
+
+    walk = greyid.Model("unobserved_walk")
+    walk.add_system("dx1 = -a*x1*dt + s*dw1", "dx2 = 0*dt + s*dw2")
+    walk.add_observation("y = x1", variance="r")
+    walk.set_initial_state(mean={"x1": 0.0, "x2": 0.0}, covariance=[[1.0, 0.0], [0.0, 1.0]])
+    walk_frame = pd.DataFrame({"t": np.arange(300) * 0.5, "y": np.random.default_rng(6).normal(size=300)})
+    fast, exact, theta = shorter_filters(walk, dict(a=0.5, s=0.3, r=0.1), walk_frame)
+    assert float(fast(theta)[0].loglik.sum()) == float(exact(theta)[0].loglik.sum())
+    assert counted_steady["steady"] == 0
 
 
 def test_sampling_intervals_merge_rounding_only():

@@ -60,17 +60,26 @@ class Likelihood:
         self._start = parameters.theta0[list(parameters.free)]
         base, lower, upper, prior_mean, prior_chol = problem.arguments(parameters.theta0)
         datasets = [inputs for _, inputs in prepared]
-        _, negative = objective.criterion_functions(structure, problem)
         kinds = problem.transform.kind
 
-        def at_x(x):
-            return negative(problem.assemble(x, base, jnp), prior_mean, prior_chol, datasets)
+        def functions(problem):
+            _, negative = objective.criterion_functions(structure, problem)
 
-        def at_z(z):
-            theta = problem.theta(z, base, Transform(kinds, lower, upper), jnp)
-            return negative(theta, prior_mean, prior_chol, datasets)
+            def at_x(x):
+                return negative(problem.assemble(x, base, jnp), prior_mean, prior_chol, datasets)
 
-        self._functions = {False: at_x, True: at_z}
+            def at_z(z):
+                theta = problem.theta(z, base, Transform(kinds, lower, upper), jnp)
+                return negative(theta, prior_mean, prior_chol, datasets)
+
+            return {False: at_x, True: at_z}
+
+        # A short series' switch to the steady state after its first rows (:mod:`greyid.filters.steady`)
+        # for single values and gradients; Hessians and evaluations vectorised over parameter
+        # vectors (one decision per row of x would run both forms) step through every row.
+        self._functions = functions(replace(problem, options=replace(problem.options,
+                                                                     short_series_steady_state=True)))
+        self._every_row = functions(problem)
         self._programs: dict = {}
 
     # ------------------------------------------------------------------ the functions
@@ -82,7 +91,8 @@ class Likelihood:
     def _program(self, kind: str, unconstrained: bool, batched: bool):
         key = (kind, bool(unconstrained), batched)
         if key not in self._programs:
-            fun = self._functions[bool(unconstrained)]
+            every_row = batched or kind == "hessian"
+            fun = (self._every_row if every_row else self._functions)[bool(unconstrained)]
             if kind == "value_and_grad":
                 fun = objective.forward_value_and_grad(fun)
             elif kind == "hessian":
@@ -95,8 +105,10 @@ class Likelihood:
         if x.ndim not in (1, 2) or x.shape[-1] != len(self.names):
             raise ModelError(f"x must hold the {len(self.names)} free parameters {self.names} (a vector, or one row "
                              f"per parameter vector), got shape {x.shape}")
-        out = self._program(kind, unconstrained, x.ndim == 2)(jnp.asarray(x))
-        return jax.tree_util.tree_map(np.asarray, out)
+        # NumPy in and out directly (the compiled program's own fast path): a jnp.asarray and
+        # a tree_map around each call cost a third of the Armadillo model's value and gradient.
+        out = self._program(kind, unconstrained, x.ndim == 2).top(x)
+        return tuple(np.asarray(a) for a in out) if isinstance(out, tuple) else np.asarray(out)
 
     def value(self, x, unconstrained: bool = False):
         """The negative log-likelihood at x (a vector of ``names``' values, or one row per vector)."""

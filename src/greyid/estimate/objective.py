@@ -118,8 +118,9 @@ def criterion_functions(structure, problem: Problem):
         def terms(theta, data):
             return ahead(theta, data).terms
 
-    if problem.horizon == 1 and problem.long_series:
-        # Summed in the scan: nothing kept per step, so memory independent of the length.
+    if problem.horizon == 1 and (problem.long_series or problem.options.short_series_steady_state):
+        # Summed in the scan: nothing kept per step, so memory independent of the length (long
+        # series), and no per-step stores in the rows run step by step (the public likelihood).
         criterion = make_summed_filter(
             structure, problem.options, lambda step_terms: step_criterion(step_terms, problem.robust, kappa))
     else:
