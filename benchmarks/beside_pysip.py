@@ -3,6 +3,7 @@
     python benchmarks/beside_pysip.py make DIR      # greyid's environment: the data sets, as CSV files
     python benchmarks/beside_pysip.py greyid DIR    # greyid's environment: fit each, timed
     python benchmarks/beside_pysip.py pysip DIR     # pySIP's environment: fit each, timed
+    python benchmarks/beside_pysip.py pysip-call DIR  # pySIP's environment: its criterion per call
     (after DIR, the data sets' names to run only those, e.g. armadillo_10000)
 
 pySIP (locie/pySIP, not on PyPI) needs an environment of its own: its
@@ -13,7 +14,11 @@ pySIP's tests drop it) and the Armadillo model (pySIP's TwTi_RoRi, first-order
 hold) simulated at its fitted parameters on the house's inputs repeated to
 10⁴ and 10⁵ rows (1800 s apart).  Each tool fits from the same starting values
 as pySIP's test (its scales); "first" is the first fit in the process
-(compilation included), "second" a second fit of the same data.
+(compilation included), "second" a second fit of the same data.  ``pysip-call``
+times pySIP's negative log-posterior on the 232 rows at its optimum (the
+fastest of 300 calls), and its value with the gradient as its fit takes them:
+SciPy's 3-point differences, two evaluations per free parameter
+(greyid's side: ``benchmarks/likelihood.py``).
 """
 
 from __future__ import annotations
@@ -21,6 +26,9 @@ from __future__ import annotations
 import sys
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from timing import durations, fastest  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 ARMADILLO = ROOT.parent / "shared" / "data" / "armadillo_box" / "armadillo_data_H2.csv"
@@ -62,23 +70,17 @@ def run_greyid(folder: Path) -> None:
     for path in files(folder):
         data = pd.read_csv(path)
         model = armadillo_model()
-        times = []
-        for _ in range(2):
-            start = time.perf_counter()
-            fit = model.fit(data, time="Time", hold="foh")
-            times.append(time.perf_counter() - start)
+        times, fit = durations(lambda: model.fit(data, time="Time", hold="foh"), 2)
         print(f"greyid {path.name}: first {times[0]:.2f} s, second {times[1]:.2f} s, log L {fit.loglik:.4f}, "
               f"{fit.iterations} iterations", flush=True)
 
 
-def run_pysip(folder: Path) -> None:
-    import pandas as pd
+def pysip_parameters() -> list:
+    """pySIP's own test of the Armadillo fit (tests/data/test_armadillo.py): its parameters and scales."""
     from pysip.params.prior import LogNormal, Normal
-    from pysip.regressors import Regressor
-    from pysip.statespace.thermal_network import TwTi_RoRi
 
     day = 3600.0 * 24.0
-    parameters = [  # pySIP's own test of the Armadillo fit (tests/data/test_armadillo.py)
+    return [
         dict(name="Ro", scale=1e-2, bounds=(0, None), prior=LogNormal(1, 1)),
         dict(name="Ri", scale=1e-3, bounds=(0, None), prior=LogNormal(1, 1)),
         dict(name="Cw", scale=1e7 / day, bounds=(0, None), prior=LogNormal(1, 1)),
@@ -91,6 +93,15 @@ def run_pysip(folder: Path) -> None:
         dict(name="sigx0_w", value=1, transform="fixed"),
         dict(name="sigx0_i", value=0.1, transform="fixed"),
     ]
+
+
+def run_pysip(folder: Path) -> None:
+    import pandas as pd
+    from pysip.regressors import Regressor
+    from pysip.statespace.thermal_network import TwTi_RoRi
+
+    day = 3600.0 * 24.0
+    parameters = pysip_parameters()
     for path in files(folder):
         df = pd.read_csv(path).set_index("Time")
         df.index /= day
@@ -105,6 +116,28 @@ def run_pysip(folder: Path) -> None:
               f"its log_likelihood() {loglik:.4f}", flush=True)
 
 
+def run_pysip_call(folder: Path) -> None:
+    import numpy as np
+    import pandas as pd
+    from scipy.optimize._numdiff import approx_derivative  # what minimize(jac="3-point") calls
+
+    from pysip.regressors import Regressor
+    from pysip.statespace.thermal_network import TwTi_RoRi
+
+    day = 3600.0 * 24.0
+    df = pd.read_csv(folder / "armadillo_232.csv").set_index("Time")
+    df.index /= day
+    regressor = Regressor(ss=TwTi_RoRi(pysip_parameters(), hold_order=1), outputs="T_int", inputs=["T_ext", "P_hea"])
+    regressor.fit(df=df)
+    data = regressor.prepare_data(df)
+    eta = np.array(regressor.ss.parameters.eta_free)
+
+    value = fastest(lambda: regressor._target(eta, *data))
+    gradient = fastest(lambda: approx_derivative(lambda e: regressor._target(e, *data), eta, method="3-point"))
+    print(f"pySIP armadillo_232: criterion {value * 1e3:.3f} ms per call; value and 3-point gradient "
+          f"({2 * len(eta)} more calls) {(value + gradient) * 1e3:.3f} ms", flush=True)
+
+
 if __name__ == "__main__":
     action, folder = sys.argv[1], Path(sys.argv[2])
-    {"make": make, "greyid": run_greyid, "pysip": run_pysip}[action](folder)
+    {"make": make, "greyid": run_greyid, "pysip": run_pysip, "pysip-call": run_pysip_call}[action](folder)

@@ -15,6 +15,11 @@ the free parameters, as ctsmTMB's ``likelihood()`` and statsmodels'
 
 With ``unconstrained=True`` x is the optimiser's coordinate z, in which every
 bound is gone (θ = l + e^z and the like, :mod:`.transforms`).
+
+Single evaluations of a shorter regular series of a linear model switch to the
+filter's steady state after its first rows (:mod:`greyid.filters.steady`) and
+sum the criterion in the filter's scan; the Hessian and batches of parameter
+vectors step through every row (``FilterOptions.short_series_steady_state``).
 """
 
 from __future__ import annotations

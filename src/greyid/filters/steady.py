@@ -238,12 +238,7 @@ class Recursion(NamedTuple):
 
 
 def _powers(F, count):
-    """F⁰ … F^count, by doubling: each step appends the products of those so far with the next power of two."""
-    powers, F_two = jnp.eye(F.shape[0])[None], F
-    while powers.shape[0] < count + 1:
-        powers = jnp.concatenate([powers, jnp.einsum("ab,kbc->kac", F_two, powers)])
-        F_two = F_two @ F_two
-    return powers[:count + 1]
+    return jax.lax.scan(lambda M, _: (F @ M, M), jnp.eye(F.shape[0]), None, length=count + 1)[1]
 
 
 def recursion(F) -> Recursion:
