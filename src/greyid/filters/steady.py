@@ -25,8 +25,8 @@ tests' random linear model: 24), and a sequential step costs about a tenth of
 the whole vectorised rest.
 
 The answers equal the ordinary filter's up to the tolerances; the derivatives
-are those of the same computation: P∞'s through the doubling iterations (long
-series), the carried covariance's through the first rows (shorter ones).
+are P∞'s: through the doubling iterations (long series), by the implicit
+function theorem (shorter ones, :func:`steady_prediction`).
 """
 
 from __future__ import annotations
@@ -169,16 +169,11 @@ def settled_state(model: SteadyModel, cov, rows: int):
     transition = disc.transition
     P = symmetrize(small.mm(small.mm(transition, to_matrix(cov, model.form)), transition.T)
                    + disc.noise_covariance)
-    T, noise, S_value, P = jax.lax.stop_gradient((transition, disc.noise_covariance, S, P))
-    C_value = jax.lax.stop_gradient(C)
-    PCt = small.mm(P, C_value.T)
-    gain = small.cho_solve(small.cholesky(symmetrize(small.mm(C_value, PCt) + S_value)), PCt.T).T
-    F = small.mm(T, jnp.eye(P.shape[0]) - small.mm(gain, C_value))
+    T, noise, C_value, S_value, P = jax.lax.stop_gradient((transition, disc.noise_covariance, C, S, P))
+    gain, F = closed_loop(P, T, C_value, S_value)
     TK = small.mm(T, gain)
     X = symmetrize(small.mm(small.mm(TK, S_value), TK.T) + noise)
-    powers = []
     for _ in range(SMITH_DOUBLINGS):
-        powers.append(F)
         X = symmetrize(X + small.mm(small.mm(F, X), F.T))
         F = small.mm(F, F)
     scale = jnp.sqrt(jnp.diag(X))
@@ -187,8 +182,14 @@ def settled_state(model: SteadyModel, cov, rows: int):
     settled = (jnp.max(jnp.abs(F)) <= 1e-8) & (difference <= SETTLED_TOLERANCE)
     # Where it has not settled the steady state is not used: P keeps everything finite.
     X = jnp.where(settled, X, P)
-    powers = jnp.where(settled, jnp.stack(powers), 0.0)
-    return steady_state(model, steady_prediction(X, powers, transition, disc.noise_covariance, C, S), rows), settled
+    return steady_state(model, steady_prediction(X, transition, disc.noise_covariance, C, S), rows), settled
+
+
+def closed_loop(P, transition, C, S):
+    """The gain K = PCᵀ(CPCᵀ + S)⁻¹ of a predicted covariance P (4.28) and the closed loop F = Φ(I − KC)."""
+    PCt = small.mm(P, C.T)
+    gain = small.cho_solve(small.cholesky(symmetrize(small.mm(C, PCt) + S)), PCt.T).T
+    return gain, small.mm(transition, jnp.eye(P.shape[0]) - small.mm(gain, C))
 
 
 def riccati_step(P, transition, noise, C, S):
@@ -200,30 +201,27 @@ def riccati_step(P, transition, noise, C, S):
 
 
 @jax.custom_jvp
-def steady_prediction(X, powers, transition, noise, C, S):
+def steady_prediction(X, transition, noise, C, S):
     """P∞ = X (given, found by :func:`settled_state`), with the derivatives of the Riccati equation's fixed point.
 
     P∞ = R(P∞; Φ, Λ, C, S) gives, by the implicit function theorem,
     dP∞ = F dP∞ Fᵀ + ∂R (the step's derivative with P∞ held), F = Φ(I − KC) the
-    closed loop at P∞, summed by doubling with F, F², F⁴, … (Smith's method;
-    ``powers``, the test's, are the same to its tolerance and save the products
-    in a first derivative).  The rule is written in this function's own output,
-    so derivatives of higher order follow from it too, and it is linear in the
-    tangents, so reverse mode transposes it.
+    closed loop at P∞, summed by SMITH_DOUBLINGS doublings with F, F², F⁴, …
+    (Smith's method, as the test's sum).  The rule is written in this function's
+    own output, so derivatives of higher order follow from it too, and it is
+    linear in the tangents, so reverse mode transposes it.
     """
     return X
 
 
 @steady_prediction.defjvp
 def _steady_prediction_jvp(primals, tangents):
-    X, powers, transition, noise, C, S = primals
-    _, _, d_transition, d_noise, dC, dS = tangents
-    P = steady_prediction(X, powers, transition, noise, C, S)  # carries its own derivatives at the next order
+    X, transition, noise, C, S = primals
+    _, d_transition, d_noise, dC, dS = tangents
+    P = steady_prediction(X, transition, noise, C, S)  # carries its own derivatives at the next order
     _, dP = jax.jvp(lambda *a: riccati_step(P, *a), (transition, noise, C, S), (d_transition, d_noise, dC, dS))
-    PCt = small.mm(P, C.T)
-    gain = small.cho_solve(small.cholesky(symmetrize(small.mm(C, PCt) + S)), PCt.T).T
-    F = small.mm(transition, jnp.eye(P.shape[0]) - small.mm(gain, C))
-    for _ in range(powers.shape[0]):
+    _, F = closed_loop(P, transition, C, S)
+    for _ in range(SMITH_DOUBLINGS):
         dP = dP + small.mm(small.mm(F, dP), F.T)
         F = small.mm(F, F)
     return P, symmetrize(dP)
