@@ -1,6 +1,6 @@
 """Estimation benchmarks (issue "Estimation", section Speed).
 
-    python benchmarks/fit.py [--lengths 1000,10000,100000,1000000]
+    python benchmarks/fit.py [--lengths 1000,10000,100000,1000000] [--steady-state]
 
 Prints, on this machine:
 * the Armadillo fit (pySIP's TwTi_RoRi, first-order hold, 232 rows; data from
@@ -12,6 +12,8 @@ Prints, on this machine:
   first, as ``pip install`` does: with an editable install and
   ``PYTHONDONTWRITEBYTECODE`` set (as on the development machine) every
   process would otherwise compile them again, 0.4 s (``--no-bytecode`` measures that);
+* with ``--steady-state``, the same fits with ``steady_state=True`` (the fit's programs switch
+  a shorter series to the filter's steady state), interleaved with the default ones;
 * log-likelihood + gradient time of the test-cell model against series length.
 """
 
@@ -35,13 +37,15 @@ import pandas as pd
 import greyid
 from greyid.datasets.reference import armadillo_model
 from greyid.datasets import thesis
-case, path = sys.argv[1], sys.argv[2]
+case, path, steady = sys.argv[1], sys.argv[2], sys.argv[3] == "steady"
 if case == "armadillo":
     model, data = armadillo_model(), pd.read_csv(path).iloc[:-1]
     kwargs = dict(time="Time", hold="foh")
 else:
     model, data = thesis.test_cell_model(), pd.read_csv(path)
     kwargs = {}
+if steady:
+    kwargs["steady_state"] = True
 ready = time.perf_counter()
 fit = model.fit(data, **kwargs)
 first = time.perf_counter()
@@ -67,21 +71,19 @@ def test_cell_data() -> Path:
     return path
 
 
-def fit_case(case: str, data: Path, repeats: int) -> None:
-    """First fits with an empty and a warm compilation cache, ``repeats`` times each (median, range)."""
-    runs = {"cold cache": [], "warm cache": []}
+def fit_case(case: str, data: Path, repeats: int, steady_state: bool = False) -> None:
+    """First fits with an empty and a warm compilation cache, ``repeats`` times each (median, range); with
+    ``steady_state`` the same with ``fit(..., steady_state=True)``, the two interleaved."""
+    variants = ["default", "steady"] if steady_state else ["default"]
+    runs = {(variant, cache): [] for variant in variants for cache in ("cold cache", "warm cache")}
     for _ in range(repeats):
-        env = dict(os.environ, GREYID_CACHE_DIR=tempfile.mkdtemp(prefix="greyid-bench-cache-"))
-        for results in runs.values():
-            start = time.perf_counter()
-            out = subprocess.run([sys.executable, "-c", FIT_SCRIPT, case, str(data)], env=env, check=True,
-                                 capture_output=True, text=True).stdout.split()
-            total = time.perf_counter() - start
-            setup, first, median, fastest = (float(v) for v in out[:4])
-            results.append(dict(setup=setup, first=setup + first,
-                                start=total - setup - first - 7 * median,
-                                median=median, fastest=fastest, loglik=out[4], iterations=out[5]))
-    for label, results in runs.items():
+        for variant in variants:
+            env = dict(os.environ, GREYID_CACHE_DIR=tempfile.mkdtemp(prefix="greyid-bench-cache-"))
+            for cache in ("cold cache", "warm cache"):
+                run_fits(runs[variant, cache], case, data, variant, env)
+    for (variant, cache), results in runs.items():
+        label = cache if variant == "default" else f"steady_state=True, {cache}"
+
         def stat(key, fmt):
             values = sorted(r[key] for r in results)
             return f"{values[len(values) // 2]:{fmt}} ({values[0]:{fmt}}–{values[-1]:{fmt}})"
@@ -91,6 +93,17 @@ def fit_case(case: str, data: Path, repeats: int) -> None:
               f"{stat('median', '.3f')} s (medians of 7 fits per process; fastest single fit "
               f"{min(r['fastest'] for r in results):.3f} s); loglik {results[0]['loglik']}, "
               f"{results[0]['iterations']} iterations")
+
+
+def run_fits(results: list, case: str, data: Path, variant: str, env: dict) -> None:
+    """One fresh process: its first fit and seven compiled ones, appended to ``results``."""
+    start = time.perf_counter()
+    out = subprocess.run([sys.executable, "-c", FIT_SCRIPT, case, str(data), variant], env=env, check=True,
+                         capture_output=True, text=True).stdout.split()
+    total = time.perf_counter() - start
+    setup, first, median, fastest = (float(v) for v in out[:4])
+    results.append(dict(setup=setup, first=setup + first, start=total - setup - first - 7 * median,
+                        median=median, fastest=fastest, loglik=out[4], iterations=out[5]))
 
 
 def scaling(lengths: list[int]) -> None:
@@ -138,6 +151,8 @@ def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--lengths", default="1000,10000,100000,1000000")
     parser.add_argument("--repeats", type=int, default=3, help="fresh processes per case and cache state")
+    parser.add_argument("--steady-state", action="store_true",
+                        help="also fit with steady_state=True (interleaved with the default)")
     parser.add_argument("--no-bytecode", action="store_true",
                         help="do not byte-compile greyid's modules first (see the module's docstring)")
     args = parser.parse_args()
@@ -145,11 +160,11 @@ def main():
         byte_compile()
     if ARMADILLO.exists():
         print("Armadillo fit (TwTi_RoRi, foh, 232 rows):")
-        fit_case("armadillo", ARMADILLO, args.repeats)
+        fit_case("armadillo", ARMADILLO, args.repeats, args.steady_state)
     else:
         print(f"Armadillo data not found at {ARMADILLO}; skipped")
     print("Test-cell fit (7.43, 1512 samples):")
-    fit_case("testcell", test_cell_data(), args.repeats)
+    fit_case("testcell", test_cell_data(), args.repeats, args.steady_state)
     print("Test-cell log-likelihood + gradient against series length:")
     scaling([int(v) for v in args.lengths.split(",")])
 

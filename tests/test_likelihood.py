@@ -12,6 +12,7 @@ from scipy.optimize import minimize
 
 import greyid
 from greyid.datasets import building_model, load_building_data
+from greyid.schema import check_options
 
 
 @pytest.fixture(scope="module")
@@ -105,3 +106,37 @@ def test_a_sampler_runs_on_the_function(problem):
         draws.append(np.asarray(state.position))
     values = [nll.value(z, unconstrained=True) for z in draws]
     assert np.all(np.isfinite(values)) and max(values) < -fit.loglik + 30
+
+
+def test_a_fit_with_the_steady_state_finds_the_same_optimum(problem):
+    """model.fit(steady_state=True): the fit's programs switch shorter series to the steady state where
+    the filter settles — the same estimates, log-likelihood and covariance as stepping through every row,
+    the setting kept with the fit for what reruns its filter; with several starts each runs alone."""
+    model, data, fit, _ = problem
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        steady = model.fit(data, steady_state=True)
+        two = model.fit(data, steady_state=True, starts=2)
+    assert steady.settings["steady_state"] is True and fit.settings["steady_state"] is False
+    assert steady.converged and steady.loglik == pytest.approx(fit.loglik, abs=1e-8)
+    np.testing.assert_allclose(steady.params["estimate"], fit.params["estimate"], rtol=1e-6)
+    np.testing.assert_allclose(steady.cov.to_numpy(), fit.cov.to_numpy(), rtol=1e-4,
+                               atol=1e-8 * np.abs(fit.cov.to_numpy()).max())
+    assert steady._filter_settings()["steady_state"] is True
+    assert two.loglik == pytest.approx(fit.loglik, abs=1e-8)
+    every_row = model.likelihood(data, steady_state=False)
+    x = np.array([fit.values[n] for n in every_row.names])
+    assert every_row.value(x) == pytest.approx(-fit.loglik, rel=1e-12)
+
+
+def test_fleets_and_populations_refuse_the_steady_state(problem):
+    model, data, _, _ = problem
+    with pytest.raises(greyid.errors.ModelError, match="steady_state=True is for single fits"):
+        greyid.fit_many(model, {"a": data, "b": data}, steady_state=True)
+    with pytest.raises(greyid.errors.ModelError, match="steady_state=True is for single fits"):
+        greyid.fit_population(model, {"a": data, "b": data}, random={model.parameter_names[0]: "normal"},
+                              steady_state=True)
+    with pytest.raises(greyid.errors.ModelError, match="steady_state must be True or False, got 'yes'"):
+        model.fit(data, steady_state="yes")
+    with pytest.raises(greyid.errors.ModelError, match="setting 'steady_state' must be true or false"):
+        check_options({"steady_state": "yes"})

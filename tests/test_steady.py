@@ -258,7 +258,7 @@ def shorter_filters(model, params, frame, hold="zoh", form="sqrt"):
     theta = jnp.asarray(model.parameter_vector(params))
     (_, inputs), = prepare_datasets(structure, np.asarray(theta), frame, "t", hold, None)
     options = filter_options(structure, None, form=form)
-    switching = dataclasses.replace(options, short_series_steady_state=True)
+    switching = dataclasses.replace(options, steady_state=True)
     return (lambda th: make_filter(structure, switching, True)(th, inputs),
             lambda th: make_filter(structure, options, True)(th, inputs), theta)
 

@@ -22,7 +22,7 @@ from .errors import ModelError
 #: mapping from model names (inputs, outputs) to the data's column names.
 DATA_KEYS = ("time", "hold", "time_unit", "columns", "time_format", "time_zone")
 #: Filter settings (see :func:`greyid.filters.api.filter_options`).
-FILTER_KEYS = ("method", "form", "substeps", "iterations", "alpha", "beta", "kappa")
+FILTER_KEYS = ("method", "form", "substeps", "iterations", "alpha", "beta", "kappa", "steady_state")
 #: Estimation settings of :meth:`Model.fit`.
 ESTIMATION_KEYS = ("criterion", "robust", "horizon", "starts", "seed", "maxiter", "prior_correlation", "cov_type",
                    "optimizer")
@@ -63,6 +63,8 @@ def check_options(options: Mapping) -> dict:
             isinstance(value, int) and not isinstance(value, bool) and value >= 1
         ):
             raise ModelError(f"setting '{key}' must be a positive integer, got {value!r}")
+        if key == "steady_state" and not isinstance(value, bool):
+            raise ModelError(f"setting 'steady_state' must be true or false, got {value!r}")
         if key == "seed" and not (isinstance(value, int) and not isinstance(value, bool)):
             raise ModelError(f"setting 'seed' must be an integer, got {value!r}")
         if key == "robust":

@@ -21,6 +21,7 @@ from ..data.prepare import as_frames
 from ..errors import DataError, ModelError
 from ..filters.accuracy import LOGLIK_TOLERANCE, MAX_SUBSTEPS, SubstepChoice, needs_substeps
 from ..filters.api import check_at_parameters, filter_options, prepare_datasets
+from ..filters.core import takes_steady_state
 from ..model.delays import delay_parameters
 from ..progress import FitProgress
 from .criteria import GaussianPrior, check_robust
@@ -199,7 +200,11 @@ def single_programs(structure, problem: Problem, arguments: tuple, stack: ExitSt
     while the search takes its first (scoring) steps.
     """
     programs = compiled(structure, problem)
-    out = {EXACT: stack.enter_context(Derivatives(programs.derivatives, len(problem.free), arguments))}
+    # With the steady state a shorter series' Hessian costs about as much as its first rows: split
+    # over threads, each block would repeat them (Armadillo: 1.5 ms in two threads, 1.1 ms in one).
+    workers = 1 if problem.options.steady_state and takes_steady_state(structure, problem.options) else None
+    out = {EXACT: stack.enter_context(Derivatives(programs.derivatives, len(problem.free), arguments,
+                                                  workers=workers))}
     if programs.scoring is not None:
         # One thread on long series: two concurrent scoring programs of 10⁶ rows
         # have deadlocked in XLA's CPU runtime (benchmarks/length.py).
@@ -367,7 +372,9 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
             finished(i, optimum)
             return optimum
 
-        if len(points) == 1 or problem.long_series:
+        # With the steady state each start runs alone: vectorised over starts, each start's switch
+        # would run both forms.
+        if len(points) == 1 or problem.long_series or problem.options.steady_state:
             optima = [optimize(problem, z_start, i, newton_only[i]) for i, z_start in enumerate(points)]
         else:
             # All starts together, each request kind evaluated for all of them by one
@@ -411,7 +418,7 @@ def finish(model, frames, problem: Problem, best, optima, args, datasets, theta0
     if call["cov_type"] != "hessian":
         scores = score_covariance(step_scores(model.structure, problem, best.z, args, datasets), int(call["horizon"]))
     settings = dict(call, method=options.method, form=options.form, substeps=options.substeps,
-                    iterations=options.iterations,
+                    iterations=options.iterations, steady_state=options.steady_state,
                     substep_note=None if substep_choice is None else substep_choice.describe(),
                     substeps_accurate=None if substep_choice is None else substep_choice.accurate,
                     start_labels=labels)

@@ -19,7 +19,8 @@ bound is gone (θ = l + e^z and the like, :mod:`.transforms`).
 Single evaluations of a shorter regular series of a linear model switch to the
 filter's steady state after its first rows (:mod:`greyid.filters.steady`) and
 sum the criterion in the filter's scan; the Hessian and batches of parameter
-vectors step through every row (``FilterOptions.short_series_steady_state``).
+vectors step through every row.  ``steady_state=False`` steps through every
+row for single evaluations too.
 """
 
 from __future__ import annotations
@@ -48,11 +49,13 @@ class Likelihood:
     """
 
     def __init__(self, model, data, time: str = "t", hold: str = "zoh", method=None, criterion: str = "ml",
-                 prior=None, robust=None, horizon: int = 1, time_unit=None, **filter_settings):
+                 prior=None, robust=None, horizon: int = 1, time_unit=None, steady_state: bool = True,
+                 **filter_settings):
         structure = model.structure
         robust, _ = check_settings(criterion, prior, robust, horizon, None, "auto", 1)
         parameters = free_parameters(model)
-        problem = make_problem(structure, parameters, method, (robust, horizon, prior), filter_settings)
+        problem = make_problem(structure, parameters, method, (robust, horizon, prior),
+                               dict(filter_settings, steady_state=steady_state))
         prepared = prepare_datasets(structure, parameters.theta0, as_frames(data), time, hold, time_unit,
                                     check=False)
         check_observed(prepared, len(parameters.free))
@@ -82,9 +85,8 @@ class Likelihood:
         # A short series' switch to the steady state after its first rows (:mod:`greyid.filters.steady`)
         # for single values and gradients; Hessians and evaluations vectorised over parameter
         # vectors (one decision per row of x would run both forms) step through every row.
-        self._functions = functions(replace(problem, options=replace(problem.options,
-                                                                     short_series_steady_state=True)))
-        self._every_row = functions(problem)
+        self._functions = functions(problem)
+        self._every_row = functions(replace(problem, options=replace(problem.options, steady_state=False)))
         self._programs: dict = {}
 
     # ------------------------------------------------------------------ the functions

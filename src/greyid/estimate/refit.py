@@ -59,7 +59,7 @@ class Refit:
         self.parameters = FreeParameters(tuple(self.names), self.theta_hat, tuple(free), tuple(lower), tuple(upper),
                                          transform)
         s = fit.settings
-        filter_settings = {k: s.get(k) for k in ("form", "substeps", "iterations")}
+        filter_settings = {k: s.get(k) for k in ("form", "substeps", "iterations", "steady_state")}
         self.problem = make_problem(self.structure, self.parameters, s["method"],
                                     (s.get("robust"), s.get("horizon", 1), s.get("prior")), filter_settings)
         prepared = prepare_datasets(self.structure, self.theta_hat, fit_data(fit), s["time"], s["hold"],

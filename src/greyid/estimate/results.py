@@ -527,6 +527,8 @@ def parameter_expression(text: str, names, what: str):
 def filter_settings(settings: dict) -> dict:
     """The keyword arguments that rerun a fit's filter (time column, hold, method ...)."""
     out = {k: settings[k] for k in ("time", "hold", "method", "form", "substeps", "iterations")}
+    if settings.get("steady_state"):  # fits saved before the setting existed leave it out
+        out["steady_state"] = True
     if settings.get("time_unit"):
         out["time_unit"] = settings["time_unit"]
     return out

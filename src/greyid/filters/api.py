@@ -105,7 +105,7 @@ def filter_options(structure: Structure, method: str | None, **options) -> Filte
     """Settings with the default method: exact Kalman for linear models, EKF otherwise."""
     if method is None:
         method = KALMAN if structure.is_linear else EKF
-    unknown = set(options) - {"form", "substeps", "iterations", "alpha", "beta", "kappa"}
+    unknown = set(options) - {"form", "substeps", "iterations", "alpha", "beta", "kappa", "steady_state"}
     if unknown:
         raise ModelError(f"unknown filter option '{sorted(unknown)[0]}'")
     return FilterOptions(method=method, **{k: v for k, v in options.items() if v is not None})

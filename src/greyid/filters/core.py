@@ -56,12 +56,15 @@ class FilterOptions:
     alpha: float = 1.0
     beta: float = 0.0
     kappa: float = 0.0
-    #: Short regular series of a time-invariant linear model switch to the steady state after
-    #: their first rows (:mod:`.steady`).  It pays for values and gradients; a Hessian's program
-    #: grows (and loads slower) by more than it gains, and in programs vectorised over series or
-    #: parameter vectors each member's decision would run both forms.  The public likelihood
-    #: turns it on for its single evaluations (:mod:`greyid.estimate.likelihood`).
-    short_series_steady_state: bool = False
+    #: Shorter regular series (steady.SHORT_ROWS rows or more) of a time-invariant linear model
+    #: filtered exactly switch to the steady state too, after their first rows where the filter
+    #: has settled (:mod:`.steady`); long ones (steady.MIN_ROWS or more) always do.  Its programs
+    #: hold both forms: a fit's first call compiles them 2–3 times as long, and its later
+    #: evaluations run in half the time (docs/performance.md).  The public likelihood turns it on
+    #: for its single evaluations (:mod:`greyid.estimate.likelihood`); programs vectorised over
+    #: series or parameter vectors (fleets, populations, a fit's starts) would run both forms for
+    #: every member and do not take it.
+    steady_state: bool = False
 
     def __post_init__(self):
         if self.method not in METHODS:
@@ -72,6 +75,8 @@ class FilterOptions:
             raise ModelError(f"substeps must be a positive integer, got {self.substeps!r}")
         if not isinstance(self.iterations, int) or self.iterations < 1:
             raise ModelError(f"iterations must be a positive integer, got {self.iterations!r}")
+        if not isinstance(self.steady_state, (bool, np.bool_)):
+            raise ModelError(f"steady_state must be True or False, got {self.steady_state!r}")
 
 
 class FilterInputs(NamedTuple):
@@ -164,6 +169,13 @@ def carried_from_start(theta, *initial):
     return tuple(a + tie for a in initial)
 
 
+def takes_steady_state(structure: Structure, options: FilterOptions) -> bool:
+    """Whether this model's filter can switch to the steady state (given enough regular rows): exact
+    Kalman filtering of a time-invariant linear model without delays, with a constant observation."""
+    return (options.method == KALMAN and structure.kind == LTI and not structure.delays
+            and structure.constant_observation)
+
+
 def filter_steps(structure: Structure, options: FilterOptions):
     """``steps(theta, data) -> FilterSteps``: one implementation of each filter.
 
@@ -251,9 +263,9 @@ def filter_steps(structure: Structure, options: FilterOptions):
         x0, P0 = initial_state(structure, theta, data, first_noise)
         steady_pieces = None
         n_rows = data.t.shape[0]
-        if (exact_linear and delays is None and structure.constant_observation
+        if (takes_steady_state(structure, options)
                 and (n_rows >= steady_form.MIN_ROWS
-                     or (options.short_series_steady_state and n_rows >= steady_form.SHORT_ROWS))):
+                     or (options.steady_state and n_rows >= steady_form.SHORT_ROWS))):
             steady_pieces = steady_model(theta, data, cache, affine)
 
         def predict(x, cov, row: Row):

@@ -95,6 +95,9 @@ def fit_many(model, datasets, time: str | None = None, hold: str | None = None, 
              **options) -> FleetResult:
     """Fit ``model`` to each of ``datasets``; see :func:`greyid.fit_many` (``worker_timeout``: seconds a
     cluster may have no worker before its pending members are given up as failed rows)."""
+    if resolve(model._options, options, ("steady_state",)).get("steady_state"):
+        raise ModelError("steady_state=True is for single fits (model.fit, model.likelihood): a fleet evaluates "
+                         "its data sets together in one program, where each series' switch would run both forms")
     names, sources = named_datasets(datasets)
     if len(set(map(str, names))) != len(names):
         raise DataError("the data sets' names must be unique")

@@ -141,7 +141,7 @@ class Model:
 
         Data: ``time`` (column), ``hold`` ("zoh"/"foh"), ``time_unit``,
         ``columns`` (model name → data column).  Filter: ``method``, ``form``,
-        ``substeps``, ``iterations``.  Estimation: ``criterion``, ``robust``,
+        ``substeps``, ``iterations``, ``steady_state``.  Estimation: ``criterion``, ``robust``,
         ``horizon``, ``starts``, ``seed``, ``maxiter``, ``prior_correlation``.
         An argument given to ``fit``/``loglik``/... overrides the default.
         """
@@ -512,6 +512,11 @@ class Model:
         ``"opg"`` (see :mod:`greyid.estimate.covariance`).  ``optimizer`` is ``"auto"``
         (Fisher scoring far from the optimum where a Hessian is costly, then exact
         Newton steps), ``"scoring"`` or ``"newton"`` (see :mod:`greyid.estimate.optimize`).
+        ``steady_state=True``: a regular series of 128 rows or more of a linear
+        time-invariant model runs the fit's programs in the filter's steady state
+        once the filter has settled (as ``likelihood`` does): later fits of the model in
+        the process take about half the time, the first one compiles 2–3 times as long
+        (docs/performance.md); the same estimates to about 1e-9 in the log-likelihood.
         Settings not given come from :meth:`set_options`, then
         from the defaults (time column "t", zero-order hold, ML).  Returns a
         :class:`~greyid.estimate.FitResult`.
@@ -534,7 +539,9 @@ class Model:
         k-step) as a function of the free parameters: a :class:`~greyid.estimate.likelihood.Likelihood`
         with ``.names``, ``.value(x)``, ``.value_and_grad(x)`` and ``.hessian(x)`` (x in the parameters'
         own units, one vector or one row per vector; ``unconstrained=True`` for the optimiser's z), and
-        ``.function()``, the pure JAX function for ``jax.grad``, ``vmap``, samplers and optimisers."""
+        ``.function()``, the pure JAX function for ``jax.grad``, ``vmap``, samplers and optimisers.
+        Its single evaluations of a regular series of a linear model switch to the filter's steady
+        state where it has settled; ``steady_state=False`` steps through every row."""
         from ..estimate.likelihood import Likelihood
 
         given = dict(time=time, hold=hold, method=method, criterion=criterion, robust=robust, horizon=horizon,

@@ -333,6 +333,10 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
     if unknown:
         raise ModelError(f"fit_population does not take '{sorted(unknown)[0]}'; it takes time, hold, method, init, "
                          f"omega_init, maxiter, progress and the filter's options {list(FILTER_OPTIONS)}")
+    if options.get("steady_state"):
+        raise ModelError("steady_state=True is for single fits (model.fit, model.likelihood): a population "
+                         "evaluates its members together in one program, where each member's switch would run "
+                         "both forms")
     time_unit, columns = options.pop("time_unit", None), options.pop("columns", None)
     settings = model._options if hasattr(model, "_options") else {}
     time = time or settings.get("time") or "t"
