@@ -321,6 +321,54 @@ def test_shorter_series_with_a_missing_value_or_no_steady_state_step_through(cou
     assert counted_steady["steady"] == 0
 
 
+def forward_sums(model, params, frame):
+    """The summed log-likelihood of a shorter series with the steady state, differentiated forward only (a
+    fit's Hessian program: the loop that tests until its filter settles), and the ordinary filter's."""
+    structure = model.structure
+    theta = model.parameter_vector(params)
+    (_, inputs), = prepare_datasets(structure, theta, frame, "t", "zoh", None)
+    options = filter_options(structure, None)
+    switching = make_summed_filter(structure, dataclasses.replace(options, steady_state=True),
+                                   lambda terms: step_criterion(terms, None), forward_only=True)
+    ordinary = make_summed_filter(structure, options, lambda terms: step_criterion(terms, None))
+    return jnp.asarray(theta), lambda th: switching(th, inputs), lambda th: ordinary(th, inputs)
+
+
+@pytest.mark.parametrize("missing_at", [None, 200])
+def test_forward_sums_switch_where_the_filter_settles(counted_steady, missing_at):
+    """The loop stops where the filter has settled and the later rows are regular and observed — after
+    a missing value at row 200, at the next test after it, where the single test after HEAD rows steps
+    through every row — and the sum equals the ordinary filter's to 1e-9, its forward gradient to 1e-8
+    of its scale and rows of its Hessian (forward over forward, as a fit's) to 1e-6."""
+    model, params, frame = shorter_series(seed=25, missing_at=missing_at)
+    theta, fast, exact = forward_sums(model, params, frame)
+    value, expected = float(fast(theta)), float(exact(theta))
+    assert counted_steady["steady"] == 1
+    assert abs(value - expected) < 1e-9
+    gradient, expected_gradient = jax.jacfwd(fast)(theta), jax.jacfwd(exact)(theta)
+    scale = np.max(np.abs(expected_gradient))
+    np.testing.assert_allclose(gradient, expected_gradient, atol=1e-8 * scale)
+    directions = jnp.asarray(np.random.default_rng(25).normal(size=(2, len(theta))))
+    rows = jax.vmap(lambda u: jax.jvp(jax.jacfwd(fast), (theta,), (u,))[1])(directions)
+    expected_rows = jax.vmap(lambda u: jax.jvp(jax.jacfwd(exact), (theta,), (u,))[1])(directions)
+    np.testing.assert_allclose(rows, expected_rows, atol=1e-6 * np.max(np.abs(expected_rows)))
+
+
+def test_forward_sums_without_a_steady_state_step_through(counted_steady):
+    """A filter that never settles (a mode neither stable nor observed): every row step by step, the
+    ordinary filter's value exactly."""
+    import greyid
+
+    walk = greyid.Model("unobserved_walk")
+    walk.add_system("dx1 = -a*x1*dt + s*dw1", "dx2 = 0*dt + s*dw2")
+    walk.add_observation("y = x1", variance="r")
+    walk.set_initial_state(mean={"x1": 0.0, "x2": 0.0}, covariance=[[1.0, 0.0], [0.0, 1.0]])
+    frame = pd.DataFrame({"t": np.arange(300) * 0.5, "y": np.random.default_rng(6).normal(size=300)})
+    theta, fast, exact = forward_sums(walk, dict(a=0.5, s=0.3, r=0.1), frame)
+    assert float(fast(theta)) == float(exact(theta))
+    assert counted_steady["steady"] == 0
+
+
 def test_sampling_intervals_merge_rounding_only():
     t = np.arange(300_000) / 3.0
     dt = np.concatenate([[0.0], np.diff(t)])

@@ -103,9 +103,13 @@ def _log_prior(theta, index, mean, chol):
     return -0.5 * (z @ z + 2 * jnp.sum(jnp.log(jnp.diag(chol))) + len(index) * jnp.log(2 * jnp.pi))
 
 
-def criterion_functions(structure, problem: Problem):
+def criterion_functions(structure, problem: Problem, forward_only: bool = False):
     """``(terms, negative)``: θ, data ↦ the filter's per-step terms, and θ ↦ the negative log-criterion
-    (3.18, or the robust or k-step criterion) summed over the data sets, minus the log-prior (MAP)."""
+    (3.18, or the robust or k-step criterion) summed over the data sets, minus the log-prior (MAP).
+
+    ``forward_only``: ``negative`` is differentiated in forward mode only, which lets a shorter
+    series with the steady state switch where its filter settles (:func:`~greyid.filters.core.scan_rows`).
+    """
     kappa = scale_consistency(problem.robust)
     if problem.horizon == 1:
         run = compiled_filter(structure, problem.options, keep_outputs=False)
@@ -122,7 +126,8 @@ def criterion_functions(structure, problem: Problem):
         # Summed in the scan: nothing kept per step, so memory independent of the length (long
         # series), and no per-step stores in the rows run step by step (the public likelihood).
         criterion = make_summed_filter(
-            structure, problem.options, lambda step_terms: step_criterion(step_terms, problem.robust, kappa))
+            structure, problem.options, lambda step_terms: step_criterion(step_terms, problem.robust, kappa),
+            forward_only)
     else:
         def criterion(theta, data):
             return log_criterion(terms(theta, data), problem.robust)
@@ -157,18 +162,26 @@ def build(structure, problem: Problem) -> Programs:
     ten times faster through the EKF's sub-step Jacobians (Lotka–Volterra, A.66).
     """
     kappa = scale_consistency(problem.robust)
+    forward = forward_hessian(problem.options.method, len(problem.free)) or problem.long_series
     terms, negative_at_theta = criterion_functions(structure, problem)
+    # The Hessian's program, forward over forward, lets a shorter series with the steady state switch
+    # where its filter settles (tested every few rows) rather than only after its first rows: its
+    # rows step by step are the costliest.
+    _, negative_forward = criterion_functions(structure, problem, forward_only=True) if forward else (None, None)
     kinds = problem.transform.kind
 
-    def negative(z, base, lower, upper, prior_mean, prior_chol, datasets):
-        theta = problem.theta(z, base, Transform(kinds, lower, upper), jnp)
-        return negative_at_theta(theta, prior_mean, prior_chol, datasets)
+    def in_z(negative_at_theta):
+        def negative(z, base, lower, upper, prior_mean, prior_chol, datasets):
+            theta = problem.theta(z, base, Transform(kinds, lower, upper), jnp)
+            return negative_at_theta(theta, prior_mean, prior_chol, datasets)
+
+        return negative
+
+    negative = in_z(negative_at_theta)
 
     def contributions(z, base, lower, upper, data):
         theta = problem.theta(z, base, Transform(kinds, lower, upper), jnp)
         return step_criterion(terms(theta, data), problem.robust, kappa)
-
-    forward = forward_hessian(problem.options.method, len(problem.free)) or problem.long_series
 
     def kept(name):
         return kept_key(structure, (name, problem.key(), problem.prior_index, forward))
@@ -177,7 +190,8 @@ def build(structure, problem: Problem) -> Programs:
     if problem.horizon == 1 and problem.robust is None:
         scoring = jit(expected_information(structure, problem, kinds), key=kept("scoring"))
     # Per-step scores (rows: steps, columns: ∂/∂z), forward mode: nothing stored per step.
-    return Programs(jit(hessian_rows(negative, forward), key=kept("derivatives")),
+    return Programs(jit(hessian_rows(in_z(negative_forward) if forward else negative, forward),
+                        key=kept("derivatives")),
                     jit(negative, key=kept("value")),
                     jit(jax.jacfwd(contributions), key=kept("step_scores")),
                     jit(forward_value_and_grad(negative), key=kept("value_and_grad")), scoring)

@@ -383,13 +383,16 @@ def make_filter(structure: Structure, options: FilterOptions, keep_outputs: bool
     return jit(run)
 
 
-def scan_rows(parts: FilterSteps, n_rows: int, collect: Callable | None, accumulate: Callable | None = None):
+def scan_rows(parts: FilterSteps, n_rows: int, collect: Callable | None, accumulate: Callable | None = None,
+              forward_only: bool = False):
     """Predict and update over all rows; ``collect`` picks what each step returns.
 
     With ``accumulate`` the scan instead sums ``accumulate(StepTerms_k)`` in its
     carry and returns the sum: nothing is kept per step.  Long regular series
     of a linear model switch to the steady-state form where the filter reaches
-    it (:mod:`.steady`).
+    it (:mod:`.steady`), shorter ones too where the options ask for it; a sum
+    only ever differentiated in forward mode (``forward_only``) tests more than
+    once where to switch (:func:`loop_until_settled`).
     """
 
     def step(carry, row):
@@ -408,6 +411,9 @@ def scan_rows(parts: FilterSteps, n_rows: int, collect: Callable | None, accumul
     if parts.steady is None:
         _, total, collected = step_by_step(parts.initial, parts.rows, n_rows)
         return collected if accumulate is None else total
+    if (n_rows < steady_form.MIN_ROWS and accumulate is not None and forward_only
+            and n_rows % steady_form.TEST_EVERY == 0):  # (as the length buckets of 128 rows and more are)
+        return loop_until_settled(parts, n_rows, step, accumulate)
     if n_rows < steady_form.MIN_ROWS:
         return scan_settling(parts, n_rows, step_by_step, collect, accumulate)
     return scan_chunks(parts, n_rows, step_by_step, collect, accumulate)
@@ -440,6 +446,54 @@ def scan_settling(parts: FilterSteps, n_rows: int, step_by_step: Callable, colle
     if accumulate is not None:
         return total + rest_total
     return jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), collected, rest_collected)
+
+
+def loop_until_settled(parts: FilterSteps, n_rows: int, step: Callable, accumulate: Callable):
+    """The summed criterion of a shorter series, step by step until the filter has settled, then the
+    rest at once in the steady state (:mod:`.steady`).
+
+    A loop whose length is decided as it runs (``lax.while_loop``, which forward-mode derivatives
+    pass through and reverse mode does not), over blocks of TEST_EVERY rows: after each it tests,
+    as :func:`scan_settling` does once, whether the filter has settled and all later rows are
+    regular and observed, and stops where they are.  So a filter that settles late (the thesis'
+    test cell, after 76 rows) switches then instead of stepping through every row, with one loop
+    body and one steady form in the program.  The rest — from the row where the loop stopped, a
+    window of n_rows − TEST_EVERY rows padded at the end — goes through :func:`~.steady.steady_rows`.
+    """
+    model, every = parts.steady, steady_form.TEST_EVERY
+    count, window = n_rows // every, n_rows - every
+    usable = (((parts.rows.dt_index == model.regular_index) & jnp.all(parts.rows.mask > 0, axis=-1))
+              | steady_form.padding_rows(parts.rows))
+    # usable_from[k]: rows k … n_rows − 1 can all take the steady state.
+    usable_from = jnp.flip(jnp.cumprod(jnp.flip(usable).astype(jnp.int32))) > 0
+    blocks = jax.tree_util.tree_map(lambda a: a.reshape(count, every, *a.shape[1:]), parts.rows)
+
+    def going(carry):
+        block, _, _, settled = carry
+        return (block < count) & ~settled
+
+    def one_block(carry):
+        block, state, total, _ = carry
+        (state, total), _ = jax.lax.scan(step, (state, total), jax.tree_util.tree_map(lambda a: a[block], blocks))
+        k = (block + 1) * every  # rows done
+        settled = jax.lax.cond(k < n_rows, lambda cov: steady_form.newton_test(model, cov)[2] & usable_from[k],
+                               lambda cov: jnp.asarray(False), state[1])
+        return block + 1, state, total, settled
+
+    start = (jnp.asarray(0), parts.initial, jnp.zeros((), dtype=jnp.float64), jnp.asarray(False))
+    block, state, total, settled = jax.lax.while_loop(going, one_block, start)
+
+    def in_steady_state(_):
+        steady, _ = steady_form.settled_state(model, state[1], window)
+        # The rest as a window of fixed length from the row the loop stopped at: the rows past the
+        # series' end are padding (no interval, nothing observed).
+        padded = jax.tree_util.tree_map(
+            lambda a: jnp.concatenate([a, jnp.zeros((window, *a.shape[1:]), a.dtype)]), parts.rows)
+        rest = jax.tree_util.tree_map(lambda a: jax.lax.dynamic_slice_in_dim(a, block * every, window), padded)
+        outputs, _ = steady_form.steady_rows(model, steady, state[0], rest, steady_form.padding_rows(rest))
+        return jnp.sum(jax.vmap(accumulate)(outputs[3].terms))
+
+    return total + jax.lax.cond(settled, in_steady_state, lambda _: jnp.zeros(()), None)
 
 
 def scan_chunks(parts: FilterSteps, n_rows: int, step_by_step: Callable, collect, accumulate):
@@ -479,16 +533,18 @@ def scan_chunks(parts: FilterSteps, n_rows: int, step_by_step: Callable, collect
     return total if accumulate is not None else collected
 
 
-def make_summed_filter(structure: Structure, options: FilterOptions, per_step: Callable):
+def make_summed_filter(structure: Structure, options: FilterOptions, per_step: Callable,
+                       forward_only: bool = False):
     """``run(theta, data) -> Σ_k per_step(StepTerms_k)``, summed in the scan's carry.
 
     Nothing is stored per step, so the memory of the value and of its forward
-    derivatives does not grow with the length of the series.
+    derivatives does not grow with the length of the series.  ``forward_only``: the
+    sum is never differentiated in reverse mode (see :func:`scan_rows`).
     """
     build = filter_steps(structure, options)
 
     def run(theta, data: FilterInputs):
-        return scan_rows(build(theta, data), data.t.shape[0], None, accumulate=per_step)
+        return scan_rows(build(theta, data), data.t.shape[0], None, accumulate=per_step, forward_only=forward_only)
 
     return run
 

@@ -60,6 +60,9 @@ SHORT_ROWS = 128
 SHORT_REST = 1024
 #: Rows of a shorter series that run step by step before it tests whether its filter has settled.
 HEAD = 32
+#: A fit's Hessian program (forward mode) tests whether a shorter series' filter has settled after
+#: every TEST_EVERY rows, until it has (core.loop_until_settled).
+TEST_EVERY = 16
 #: A shorter series switches when the filter's predicted covariance is within this relative
 #: distance of P∞ (as TOLERANCE).  The rows after the switch then differ from the ordinary
 #: filter's by about this much each, times the few rows the filter would still take to settle:
@@ -165,24 +168,31 @@ def settled_state(model: SteadyModel, cov, rows: int):
     derivatives (:func:`steady_prediction`): those the first rows gave P still
     hold the initial state's, which P∞ has none of.
     """
-    disc, C, S = model.disc, model.C, model.noise
-    transition = disc.transition
-    P = symmetrize(small.mm(small.mm(transition, to_matrix(cov, model.form)), transition.T)
+    P, X, settled = newton_test(model, cov)
+    # Where it has not settled the steady state is not used: P keeps everything finite.
+    X = jnp.where(settled, X, P)
+    disc = model.disc
+    return steady_state(model, steady_prediction(X, disc.transition, disc.noise_covariance, model.C, model.noise),
+                        rows), settled
+
+
+def newton_test(model: SteadyModel, cov):
+    """``(P, X, settled)``: the next prediction P from the filtered covariance ``cov``, one Newton step X
+    from it, and whether the two agree (see :func:`settled_state`); values only, no derivatives."""
+    disc = model.disc
+    P = symmetrize(small.mm(small.mm(disc.transition, to_matrix(cov, model.form)), disc.transition.T)
                    + disc.noise_covariance)
-    T, noise, C_value, S_value, P = jax.lax.stop_gradient((transition, disc.noise_covariance, C, S, P))
-    gain, F = closed_loop(P, T, C_value, S_value)
+    T, noise, C, S, P = jax.lax.stop_gradient((disc.transition, disc.noise_covariance, model.C, model.noise, P))
+    gain, F = closed_loop(P, T, C, S)
     TK = small.mm(T, gain)
-    X = symmetrize(small.mm(small.mm(TK, S_value), TK.T) + noise)
+    X = symmetrize(small.mm(small.mm(TK, S), TK.T) + noise)
     for _ in range(SMITH_DOUBLINGS):
         X = symmetrize(X + small.mm(small.mm(F, X), F.T))
         F = small.mm(F, F)
     scale = jnp.sqrt(jnp.diag(X))
     difference = jnp.max(jnp.abs(P - X) / jnp.outer(scale, scale))
     # False where anything is not finite (a growing F overflows).
-    settled = (jnp.max(jnp.abs(F)) <= 1e-8) & (difference <= SETTLED_TOLERANCE)
-    # Where it has not settled the steady state is not used: P keeps everything finite.
-    X = jnp.where(settled, X, P)
-    return steady_state(model, steady_prediction(X, transition, disc.noise_covariance, C, S), rows), settled
+    return P, X, (jnp.max(jnp.abs(F)) <= 1e-8) & (difference <= SETTLED_TOLERANCE)
 
 
 def closed_loop(P, transition, C, S):
