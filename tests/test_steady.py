@@ -309,16 +309,21 @@ def test_shorter_series_with_a_missing_value_or_no_steady_state_step_through(cou
     assert float(fast(theta)[0].loglik.sum()) == float(exact(theta)[0].loglik.sum())
     assert counted_steady["steady"] == 0
 
+    fast, exact, theta = shorter_filters(*unobserved_walk())
+    assert float(fast(theta)[0].loglik.sum()) == float(exact(theta)[0].loglik.sum())
+    assert counted_steady["steady"] == 0
+
+
+def unobserved_walk():
+    """A model without a steady state (a random walk nothing observes), its parameters and 300 rows."""
     import greyid
 
     walk = greyid.Model("unobserved_walk")
     walk.add_system("dx1 = -a*x1*dt + s*dw1", "dx2 = 0*dt + s*dw2")
     walk.add_observation("y = x1", variance="r")
     walk.set_initial_state(mean={"x1": 0.0, "x2": 0.0}, covariance=[[1.0, 0.0], [0.0, 1.0]])
-    walk_frame = pd.DataFrame({"t": np.arange(300) * 0.5, "y": np.random.default_rng(6).normal(size=300)})
-    fast, exact, theta = shorter_filters(walk, dict(a=0.5, s=0.3, r=0.1), walk_frame)
-    assert float(fast(theta)[0].loglik.sum()) == float(exact(theta)[0].loglik.sum())
-    assert counted_steady["steady"] == 0
+    frame = pd.DataFrame({"t": np.arange(300) * 0.5, "y": np.random.default_rng(6).normal(size=300)})
+    return walk, dict(a=0.5, s=0.3, r=0.1), frame
 
 
 def forward_sums(model, params, frame):
@@ -357,14 +362,7 @@ def test_forward_sums_switch_where_the_filter_settles(counted_steady, missing_at
 def test_forward_sums_without_a_steady_state_step_through(counted_steady):
     """A filter that never settles (a mode neither stable nor observed): every row step by step, the
     ordinary filter's value exactly."""
-    import greyid
-
-    walk = greyid.Model("unobserved_walk")
-    walk.add_system("dx1 = -a*x1*dt + s*dw1", "dx2 = 0*dt + s*dw2")
-    walk.add_observation("y = x1", variance="r")
-    walk.set_initial_state(mean={"x1": 0.0, "x2": 0.0}, covariance=[[1.0, 0.0], [0.0, 1.0]])
-    frame = pd.DataFrame({"t": np.arange(300) * 0.5, "y": np.random.default_rng(6).normal(size=300)})
-    theta, fast, exact = forward_sums(walk, dict(a=0.5, s=0.3, r=0.1), frame)
+    theta, fast, exact = forward_sums(*unobserved_walk())
     assert float(fast(theta)) == float(exact(theta))
     assert counted_steady["steady"] == 0
 
