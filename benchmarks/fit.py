@@ -13,7 +13,8 @@ Prints, on this machine:
   ``PYTHONDONTWRITEBYTECODE`` set (as on the development machine) every
   process would otherwise compile them again, 0.4 s (``--no-bytecode`` measures that);
 * with ``--steady-state``, the same fits with ``steady_state=True`` (the fit's programs switch
-  a shorter series to the filter's steady state), interleaved with the default ones;
+  a shorter series to the filter's steady state), interleaved with the default ones, and both
+  compiled in one process, alternating in blocks of ten fits;
 * log-likelihood + gradient time of the test-cell model against series length.
 """
 
@@ -57,6 +58,47 @@ for _ in range(7):
 again.sort()
 print(f"{ready - start:.3f} {first - ready:.3f} {again[3]:.3f} {again[0]:.3f} {fit.loglik:.4f} {fit.iterations}")
 """
+
+
+BLOCKS_SCRIPT = """
+import sys, time
+import numpy as np, pandas as pd
+import greyid
+from greyid.datasets.reference import armadillo_model
+from greyid.datasets import thesis
+case, path, rounds = sys.argv[1], sys.argv[2], int(sys.argv[3])
+if case == "armadillo":
+    model, data = armadillo_model(), pd.read_csv(path).iloc[:-1]
+    base = dict(time="Time", hold="foh")
+else:
+    model, data = thesis.test_cell_model(), pd.read_csv(path)
+    base = {}
+variants = {"default": base, "steady_state=True": dict(base, steady_state=True)}
+times = {name: [] for name in variants}
+for kwargs in variants.values():
+    model.fit(data, **kwargs)
+for _ in range(rounds):
+    for name, kwargs in variants.items():
+        for _ in range(10):
+            start = time.perf_counter()
+            model.fit(data, **kwargs)
+            times[name].append(time.perf_counter() - start)
+for name, values in times.items():
+    v = np.array(values) * 1e3
+    q1, q3 = np.percentile(v, [25, 75])
+    print(f"{name}: {np.median(v):.1f} ms (quartiles {q1:.1f}–{q3:.1f}, fastest {v.min():.1f})")
+"""
+
+
+def compiled_blocks(case: str, data: Path, rounds: int) -> None:
+    """Compiled fits in one process, default and ``steady_state=True`` alternating in blocks of ten
+    (the same fit repeated, as a bootstrap or a study repeats it): the fairest comparison of the two
+    on a machine whose speed drifts."""
+    out = subprocess.run([sys.executable, "-c", BLOCKS_SCRIPT, case, str(data), str(rounds)], check=True,
+                         capture_output=True, text=True).stdout
+    print("  compiled fits in one process, blocks of 10 alternating, median over " + f"{10 * rounds} fits each:")
+    for line in out.strip().splitlines():
+        print("    " + line)
 
 
 def test_cell_data() -> Path:
@@ -161,10 +203,15 @@ def main():
     if ARMADILLO.exists():
         print("Armadillo fit (TwTi_RoRi, foh, 232 rows):")
         fit_case("armadillo", ARMADILLO, args.repeats, args.steady_state)
+        if args.steady_state:
+            compiled_blocks("armadillo", ARMADILLO, 6)
     else:
         print(f"Armadillo data not found at {ARMADILLO}; skipped")
     print("Test-cell fit (7.43, 1512 samples):")
-    fit_case("testcell", test_cell_data(), args.repeats, args.steady_state)
+    cell = test_cell_data()
+    fit_case("testcell", cell, args.repeats, args.steady_state)
+    if args.steady_state:
+        compiled_blocks("testcell", cell, 3)
     print("Test-cell log-likelihood + gradient against series length:")
     scaling([int(v) for v in args.lengths.split(",")])
 
