@@ -516,7 +516,7 @@ class Model:
         time-invariant model runs the fit's programs in the filter's steady state
         once the filter has settled (as ``likelihood`` does): later fits of the model in
         the process take about half the time, the first one compiles 2–3 times as long
-        (docs/performance.md); the same estimates to about 1e-9 in the log-likelihood.
+        (docs/performance.md); the same optimum (log-likelihood within 1e-8).
         Settings not given come from :meth:`set_options`, then
         from the defaults (time column "t", zero-order hold, ML).  Returns a
         :class:`~greyid.estimate.FitResult`.
