@@ -31,21 +31,26 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 ARMADILLO = ROOT.parent / "shared" / "data" / "armadillo_box" / "armadillo_data_H2.csv"
 
-FIT_SCRIPT = """
-import time, sys
-start = time.perf_counter()
+#: The model, data and fit settings of a case (``sys.argv[1:3]``: case, data file), in a timed process.
+CASE_SETUP = """
 import pandas as pd
 import greyid
 from greyid.datasets.reference import armadillo_model
 from greyid.datasets import thesis
-case, path, steady = sys.argv[1], sys.argv[2], sys.argv[3] == "steady"
+case, path = sys.argv[1], sys.argv[2]
 if case == "armadillo":
     model, data = armadillo_model(), pd.read_csv(path).iloc[:-1]
     kwargs = dict(time="Time", hold="foh")
 else:
     model, data = thesis.test_cell_model(), pd.read_csv(path)
     kwargs = {}
-if steady:
+"""
+
+FIT_SCRIPT = """
+import time, sys
+start = time.perf_counter()
+""" + CASE_SETUP + """
+if sys.argv[3] == "steady":
     kwargs["steady_state"] = True
 ready = time.perf_counter()
 fit = model.fit(data, **kwargs)
@@ -62,18 +67,10 @@ print(f"{ready - start:.3f} {first - ready:.3f} {again[3]:.3f} {again[0]:.3f} {f
 
 BLOCKS_SCRIPT = """
 import sys, time
-import numpy as np, pandas as pd
-import greyid
-from greyid.datasets.reference import armadillo_model
-from greyid.datasets import thesis
-case, path, rounds = sys.argv[1], sys.argv[2], int(sys.argv[3])
-if case == "armadillo":
-    model, data = armadillo_model(), pd.read_csv(path).iloc[:-1]
-    base = dict(time="Time", hold="foh")
-else:
-    model, data = thesis.test_cell_model(), pd.read_csv(path)
-    base = {}
-variants = {"default": base, "steady_state=True": dict(base, steady_state=True)}
+import numpy as np
+""" + CASE_SETUP + """
+rounds = int(sys.argv[3])
+variants = {"default": kwargs, "steady_state=True": dict(kwargs, steady_state=True)}
 times = {name: [] for name in variants}
 for kwargs in variants.values():
     model.fit(data, **kwargs)

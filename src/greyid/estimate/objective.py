@@ -164,10 +164,6 @@ def build(structure, problem: Problem) -> Programs:
     kappa = scale_consistency(problem.robust)
     forward = forward_hessian(problem.options.method, len(problem.free)) or problem.long_series
     terms, negative_at_theta = criterion_functions(structure, problem)
-    # The Hessian's program, forward over forward, lets a shorter series with the steady state switch
-    # where its filter settles (tested every few rows) rather than only after its first rows: its
-    # rows step by step are the costliest.
-    _, negative_forward = criterion_functions(structure, problem, forward_only=True) if forward else (None, None)
     kinds = problem.transform.kind
 
     def in_z(negative_at_theta):
@@ -178,6 +174,11 @@ def build(structure, problem: Problem) -> Programs:
         return negative
 
     negative = in_z(negative_at_theta)
+    for_hessian = negative
+    if forward and problem.options.steady_state:
+        # Forward over forward, a shorter series switches where its filter settles (tested every few
+        # rows) rather than only after its first rows: its rows step by step are the costliest.
+        for_hessian = in_z(criterion_functions(structure, problem, forward_only=True)[1])
 
     def contributions(z, base, lower, upper, data):
         theta = problem.theta(z, base, Transform(kinds, lower, upper), jnp)
@@ -190,8 +191,7 @@ def build(structure, problem: Problem) -> Programs:
     if problem.horizon == 1 and problem.robust is None:
         scoring = jit(expected_information(structure, problem, kinds), key=kept("scoring"))
     # Per-step scores (rows: steps, columns: ∂/∂z), forward mode: nothing stored per step.
-    return Programs(jit(hessian_rows(in_z(negative_forward) if forward else negative, forward),
-                        key=kept("derivatives")),
+    return Programs(jit(hessian_rows(for_hessian, forward), key=kept("derivatives")),
                     jit(negative, key=kept("value")),
                     jit(jax.jacfwd(contributions), key=kept("step_scores")),
                     jit(forward_value_and_grad(negative), key=kept("value_and_grad")), scoring)

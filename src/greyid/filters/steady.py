@@ -358,6 +358,12 @@ def padding_rows(rows):
     return (rows.dt == 0) & jnp.all(rows.mask == 0, axis=-1)
 
 
+def usable_rows(model: SteadyModel, rows):
+    """The rows the steady-state form can take: at the regular interval with every output observed, or
+    padding."""
+    return ((rows.dt_index == model.regular_index) & jnp.all(rows.mask > 0, axis=-1)) | padding_rows(rows)
+
+
 def steady_rows(model: SteadyModel, steady: SteadyState, x_start, rows, padding):
     """The filter over a chunk of rows in the steady state, all at once.
 
