@@ -60,7 +60,7 @@ class Problem:
         else:
             mean, chol = self.prior.mean, np.linalg.cholesky(self.prior.covariance)
         arrays = (base_theta, self.transform.lower, self.transform.upper, mean, chol)
-        return tuple(jax.device_put(np.asarray(a, dtype=np.float64)) for a in arrays)
+        return tuple(jax.device_put([np.asarray(a, dtype=np.float64) for a in arrays]))
 
     def theta(self, z, base_theta, transform: Transform | None = None, xp=np):
         """θ at z: the free parameters from z, the fixed ones from ``base_theta``.
@@ -322,7 +322,7 @@ def direction_blocks(n: int, workers: int | None = None) -> list:
     size = -(-n // workers)
     count = -(-n // size)
     directions = np.vstack([np.eye(n), np.zeros((count * size - n, n))])
-    return [jax.device_put(block) for block in np.split(directions, count)]
+    return jax.device_put(np.split(directions, count))
 
 
 class Derivatives:

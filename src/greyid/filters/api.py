@@ -97,8 +97,9 @@ def filter_inputs(series: Series, hold: str, on_device: bool = True) -> FilterIn
                   mask=mask.astype(np.float64), dt_index=index.reshape(-1).astype(np.int32), unique_dt=unique,
                   first_interval=np.float64(first), foh=np.float64(HOLDS[hold]),
                   delay_slots=np.zeros(delay_slots(series.times, regular=np.count_nonzero(unique) == 1)))
-    put = jax.device_put if on_device else np.asarray
-    return FilterInputs(**{name: put(np.asarray(a)) for name, a in arrays.items()})
+    arrays = {name: np.asarray(a) for name, a in arrays.items()}
+    # One transfer for all of them (one by one, a tenth of a shorter series' compiled fit).
+    return FilterInputs(**(jax.device_put(arrays) if on_device else arrays))
 
 
 def filter_options(structure: Structure, method: str | None, **options) -> FilterOptions:
