@@ -1,6 +1,7 @@
 """Estimation benchmarks (issue "Estimation", section Speed).
 
     python benchmarks/fit.py [--lengths 1000,10000,100000,1000000] [--steady-state]
+    python benchmarks/fit.py --against OTHER_CHECKOUT/src
 
 Prints, on this machine:
 * the Armadillo fit (pySIP's TwTi_RoRi, first-order hold, 232 rows; data from
@@ -15,6 +16,9 @@ Prints, on this machine:
 * with ``--steady-state``, the same fits with ``steady_state=True`` (the fit's programs switch
   a shorter series to the filter's steady state), interleaved with the default ones, and both
   compiled in one process, alternating in blocks of ten fits;
+* with ``--against OTHER_CHECKOUT/src`` (greyid as it was, e.g. when an issue was filed) only
+  the Armadillo model's compiled fits of that checkout beside this one's, default and
+  ``steady_state=True``: processes taking turns, thirty compiled fits each;
 * log-likelihood + gradient time of the test-cell model against series length.
 """
 
@@ -85,6 +89,45 @@ for name, values in times.items():
     q1, q3 = np.percentile(v, [25, 75])
     print(f"{name}: {np.median(v):.1f} ms (quartiles {q1:.1f}–{q3:.1f}, fastest {v.min():.1f})")
 """
+
+#: Compiled fits in one process (``sys.argv[3]``: "steady" or "default"; ``sys.argv[4]``: how many).
+WARM_SCRIPT = """
+import sys, time
+import numpy as np
+""" + CASE_SETUP + """
+if sys.argv[3] == "steady":
+    kwargs["steady_state"] = True
+fit = model.fit(data, **kwargs)
+model.fit(data, **kwargs)
+times = []
+for _ in range(int(sys.argv[4])):
+    start = time.perf_counter()
+    model.fit(data, **kwargs)
+    times.append(time.perf_counter() - start)
+print(f"{np.median(times) * 1e3:.2f} {min(times) * 1e3:.2f} {fit.loglik:.10f}")
+"""
+
+
+def warm_against(case: str, data: Path, other: Path, rounds: int, fits: int = 30) -> None:
+    """Compiled fits of another checkout (``other``: its ``src``, default settings) beside this one's,
+    default and ``steady_state=True``: one process each in turn, ``rounds`` times."""
+    variants = {f"{other} (default)": (dict(os.environ, PYTHONPATH=str(other)), "default"),
+                "this checkout (default)": (dict(os.environ), "default"),
+                "this checkout, steady_state=True": (dict(os.environ), "steady")}
+    results: dict = {name: [] for name in variants}
+    for _ in range(rounds):
+        for name, (env, variant) in variants.items():
+            out = subprocess.run([sys.executable, "-c", WARM_SCRIPT, case, str(data), variant, str(fits)], env=env,
+                                 check=True, capture_output=True, text=True).stdout.split()
+            results[name].append((float(out[0]), float(out[1]), out[2]))
+    print(f"  compiled fits, {rounds} processes each taking turns, {fits} fits per process "
+          "(median of the processes' medians; fastest single fit):")
+    medians = {name: sorted(r[0] for r in runs)[len(runs) // 2] for name, runs in results.items()}
+    reference = medians[f"{other} (default)"]
+    for name, runs in results.items():
+        print(f"    {name}: {medians[name]:.1f} ms (processes {min(r[0] for r in runs):.1f}–"
+              f"{max(r[0] for r in runs):.1f}; fastest {min(r[1] for r in runs):.1f}), "
+              f"{medians[name] / reference:.2f} of the other checkout's; loglik {runs[0][2]}")
 
 
 def compiled_blocks(case: str, data: Path, rounds: int) -> None:
@@ -192,11 +235,16 @@ def main():
     parser.add_argument("--repeats", type=int, default=3, help="fresh processes per case and cache state")
     parser.add_argument("--steady-state", action="store_true",
                         help="also fit with steady_state=True (interleaved with the default)")
+    parser.add_argument("--against", type=Path, default=None,
+                        help="another checkout's src: its compiled Armadillo fits beside this one's")
     parser.add_argument("--no-bytecode", action="store_true",
                         help="do not byte-compile greyid's modules first (see the module's docstring)")
     args = parser.parse_args()
     if not args.no_bytecode:
         byte_compile()
+    if args.against is not None:
+        warm_against("armadillo", ARMADILLO, args.against.resolve(), 5)
+        return
     if ARMADILLO.exists():
         print("Armadillo fit (TwTi_RoRi, foh, 232 rows):")
         fit_case("armadillo", ARMADILLO, args.repeats, args.steady_state)
