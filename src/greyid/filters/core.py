@@ -241,11 +241,18 @@ def filter_steps(structure: Structure, options: FilterOptions):
 
             def affine(u, t):  # f(0, u, t) = B u + c: a few products, f itself never traced per step
                 return small.mm(B, u) + c
+
+            def affine_at(u, t, theta):  # the same with θ given (the steady state's rest, steady.py)
+                _, B, c = structure.linear_drift(theta)
+                return small.mm(B, u) + c
         elif exact_linear:
             A = jac_f(zeros, data.u_cur[0], data.t[0], theta)
 
-            def affine(u, t):
+            def affine_at(u, t, theta):
                 return f(zeros, u, t, theta)
+
+            def affine(u, t):
+                return affine_at(u, t, theta)
         if delays is not None:
             step = jnp.max(data.unique_dt)
             offsets = regular_offsets(delays.taus, step) if regular else None
@@ -266,7 +273,7 @@ def filter_steps(structure: Structure, options: FilterOptions):
         if (takes_steady_state(structure, options)
                 and (n_rows >= steady_form.MIN_ROWS
                      or (options.steady_state and n_rows >= steady_form.SHORT_ROWS))):
-            steady_pieces = steady_model(theta, data, cache, affine)
+            steady_pieces = steady_model(theta, data, cache, affine, affine_at)
 
         def predict(x, cov, row: Row):
             if piece_gains is not None:
@@ -343,15 +350,18 @@ def filter_steps(structure: Structure, options: FilterOptions):
         return FilterSteps(carried_from_start(theta, x0, from_matrix(P0, form)), rows, predict, update,
                            steady_pieces)
 
-    def steady_model(theta, data, cache, affine):
+    def output_at(u, t, theta):
+        return h(zeros, u, t, theta)
+
+    def steady_model(theta, data, cache, affine, affine_at):
         """The model's time-invariant pieces at its most frequent sampling interval."""
         u0, t0 = data.u_cur[0], data.t[0]
         regular = jnp.argmax(jnp.bincount(data.dt_index, length=data.unique_dt.shape[0]))
         C = jax.jacfwd(h, argnums=0)(zeros, u0, t0, theta)
         noise = jnp.diag(S(zeros, u0, t0, theta)) if S_full is None else S_full(zeros, u0, t0, theta)
         return steady_form.SteadyModel(jax.tree_util.tree_map(lambda a: a[regular], cache), regular, C, noise,
-                                       affine, lambda u, t: h(zeros, u, t, theta),
-                                       data.foh, form)
+                                       affine, lambda u, t: output_at(u, t, theta),
+                                       data.foh, form, theta, affine_at, output_at)
 
     return steps
 
@@ -458,7 +468,8 @@ def loop_until_settled(parts: FilterSteps, n_rows: int, step: Callable, accumula
     regular and observed, and stops where they are.  So a filter that settles late (the thesis'
     test cell, after 76 rows) switches then instead of stepping through every row, with one loop
     body and one steady form in the program.  The rest — from the row where the loop stopped, a
-    window of n_rows − TEST_EVERY rows padded at the end — goes through :func:`~.steady.steady_rows`.
+    window of n_rows − TEST_EVERY rows padded at the end — goes through :func:`~.steady.summed_rest`, whose
+    own derivative rule takes the rest's gradient in reverse mode.
     """
     model, every = parts.steady, steady_form.TEST_EVERY
     count, window = n_rows // every, n_rows - every
@@ -482,14 +493,12 @@ def loop_until_settled(parts: FilterSteps, n_rows: int, step: Callable, accumula
     block, state, total, settled = jax.lax.while_loop(going, one_block, start)
 
     def in_steady_state(_):
-        steady, _ = steady_form.settled_state(model, state[1], window)
         # The rest as a window of fixed length from the row the loop stopped at: the rows past the
         # series' end are padding (no interval, nothing observed).
         padded = jax.tree_util.tree_map(
             lambda a: jnp.concatenate([a, jnp.zeros((window, *a.shape[1:]), a.dtype)]), parts.rows)
         rest = jax.tree_util.tree_map(lambda a: jax.lax.dynamic_slice_in_dim(a, block * every, window), padded)
-        outputs, _ = steady_form.steady_rows(model, steady, state[0], rest, steady_form.padding_rows(rest))
-        return jnp.sum(jax.vmap(accumulate)(outputs[3].terms))
+        return steady_form.summed_rest(accumulate, model, state[0], state[1], rest)
 
     return total + jax.lax.cond(settled, in_steady_state, lambda _: jnp.zeros(()), None)
 

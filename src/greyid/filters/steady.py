@@ -37,6 +37,7 @@ from typing import Callable, NamedTuple
 from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
 import jax
 import jax.numpy as jnp
+from jax.custom_derivatives import SymbolicZero
 
 from . import small
 from .discretize import Discretization
@@ -83,6 +84,9 @@ class SteadyModel(NamedTuple):
     affine_output: Callable  # (u, t) -> h(0, u, t)
     foh: jnp.ndarray
     form: str  # how the filter carries its covariance
+    theta: jnp.ndarray | None = None  # θ, for summed_rest (with the two below)
+    affine_drift_at: Callable | None = None  # (u, t, θ) -> f(0, u, t)
+    affine_output_at: Callable | None = None  # (u, t, θ) -> h(0, u, t)
 
 
 class SteadyState(NamedTuple):
@@ -401,3 +405,61 @@ def steady_rows(model: SteadyModel, steady: SteadyState, x_start, rows, padding)
     update = Update(filtered, each(cov_filt), innovation, each(steady.innovation_cov), terms,
                     jnp.zeros(innovation.shape[:-1]))
     return (predicted, each(cov_pred), each(disc.transition), update, y_pred), (filtered[-1], cov_filt)
+
+
+class RestRows(NamedTuple):
+    """The rows :func:`steady_rows` reads (a shorter series' rest)."""
+
+    t: jnp.ndarray
+    t_prev: jnp.ndarray
+    u_prev: jnp.ndarray
+    u_cur: jnp.ndarray
+    y: jnp.ndarray
+
+
+def summed_rest(accumulate: Callable, model: SteadyModel, x_start, cov, rows):
+    """Σ accumulate(StepTerms_r) over a shorter series' rest in the steady state, settled from the
+    filtered covariance ``cov`` that the rows before carried out (:func:`settled_state`, :func:`steady_rows`).
+
+    Its derivatives come from its own rule, which takes the gradient in reverse mode: a fit's Hessian
+    (forward over forward) then differentiates the rest forward over reverse, carrying each row's
+    seven tangents instead of the 49 of second order (the Armadillo Hessian 0.82 against 0.93 ms on
+    232 rows, 1.3 against 3.1 ms on 928).  Padding rows (no interval, nothing observed) count nothing.
+    """
+    static = (accumulate, model.form, model.affine_drift_at, model.affine_output_at)
+    diff = (model.theta, model.disc, model.C, model.noise, model.foh, x_start, cov)
+    counted = jnp.where(padding_rows(rows), 0.0, 1.0)
+    data = (RestRows(rows.t, rows.t_prev, rows.u_prev, rows.u_cur, rows.y), counted)
+    return _summed_rest(static, diff, data)
+
+
+def _rest_sum(static, diff, data):
+    accumulate, form, drift_at, output_at = static
+    theta, disc, C, noise, foh, x_start, cov = diff
+    rows, counted = data
+    model = SteadyModel(disc, None, C, noise, lambda u, t: drift_at(u, t, theta),
+                        lambda u, t: output_at(u, t, theta), foh, form)
+    steady, _ = settled_state(model, cov, rows.t.shape[0])
+    outputs, _ = steady_rows(model, steady, x_start, rows, counted == 0)
+    return jnp.sum(jax.vmap(accumulate)(outputs[3].terms))
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _summed_rest(static, diff, data):
+    return _rest_sum(static, diff, data)
+
+
+def _summed_rest_jvp(static, primals, tangents):
+    """The tangent ∇f · dθ with ∇f by reverse mode (the data have none)."""
+    diff, data = primals
+    d_diff, _ = tangents
+    value, gradient = jax.value_and_grad(lambda d: _rest_sum(static, d, data))(diff)
+    tangent = jnp.zeros_like(value)
+    is_zero = lambda a: isinstance(a, SymbolicZero)  # noqa: E731
+    for g, t in zip(jax.tree_util.tree_leaves(gradient), jax.tree_util.tree_leaves(d_diff, is_leaf=is_zero)):
+        if not is_zero(t):
+            tangent = tangent + jnp.vdot(g, t)
+    return value, tangent
+
+
+_summed_rest.defjvp(_summed_rest_jvp, symbolic_zeros=True)
