@@ -242,7 +242,7 @@ def filter_steps(structure: Structure, options: FilterOptions):
             def affine(u, t):  # f(0, u, t) = B u + c: a few products, f itself never traced per step
                 return small.mm(B, u) + c
 
-            def affine_at(u, t, theta):  # the same with θ given (the steady state's rest, steady.py)
+            def affine_at(u, t, theta):  # the same with θ given (the steady state, steady.py)
                 _, B, c = structure.linear_drift(theta)
                 return small.mm(B, u) + c
         elif exact_linear:
@@ -273,7 +273,7 @@ def filter_steps(structure: Structure, options: FilterOptions):
         if (takes_steady_state(structure, options)
                 and (n_rows >= steady_form.MIN_ROWS
                      or (options.steady_state and n_rows >= steady_form.SHORT_ROWS))):
-            steady_pieces = steady_model(theta, data, cache, affine, affine_at)
+            steady_pieces = steady_model(theta, data, cache, affine_at)
 
         def predict(x, cov, row: Row):
             if piece_gains is not None:
@@ -353,14 +353,13 @@ def filter_steps(structure: Structure, options: FilterOptions):
     def output_at(u, t, theta):
         return h(zeros, u, t, theta)
 
-    def steady_model(theta, data, cache, affine, affine_at):
+    def steady_model(theta, data, cache, affine_at):
         """The model's time-invariant pieces at its most frequent sampling interval."""
         u0, t0 = data.u_cur[0], data.t[0]
         regular = jnp.argmax(jnp.bincount(data.dt_index, length=data.unique_dt.shape[0]))
         C = jax.jacfwd(h, argnums=0)(zeros, u0, t0, theta)
         noise = jnp.diag(S(zeros, u0, t0, theta)) if S_full is None else S_full(zeros, u0, t0, theta)
         return steady_form.SteadyModel(jax.tree_util.tree_map(lambda a: a[regular], cache), regular, C, noise,
-                                       affine, lambda u, t: output_at(u, t, theta),
                                        data.foh, form, theta, affine_at, output_at)
 
     return steps
