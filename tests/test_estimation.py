@@ -7,6 +7,7 @@ import pandas as pd
 import pytest
 
 import greyid
+from greyid.estimate import estimation, objective
 from conftest import dense_reference, product_model, random_linear_parameters
 from test_kalman_dense import random_data
 
@@ -86,11 +87,35 @@ def test_standard_errors_match_central_difference_hessian(ou, method):
 def test_hessian_rows_in_parallel_threads_agree(ou, monkeypatch):
     """Blocks of Hessian rows computed in threads give the same fit as one block."""
     m, df, fit = ou
+    monkeypatch.setattr(estimation, "SPLIT_WORK", 0)  # split this small problem's Hessian too
     for threads in ("1", "3"):
         monkeypatch.setenv("GREYID_THREADS", threads)
         other = m.fit(df)
         np.testing.assert_allclose(other.cov.to_numpy(), fit.cov.to_numpy(), rtol=1e-9)
         assert other.loglik == pytest.approx(fit.loglik, rel=1e-12)
+
+
+def test_small_problem_hessian_is_one_block_whatever_the_threads(ou, monkeypatch):
+    """Below SPLIT_WORK the Hessian's rows are one block in one thread, so the fit is the same to the
+    bit whatever GREYID_THREADS (or the machine's CPU count) says."""
+    m, df, _ = ou
+    blocks = []
+    original = objective.direction_blocks
+
+    def recorded(n, workers=None):
+        out = original(n, workers)
+        blocks.append(len(out))
+        return out
+
+    monkeypatch.setattr(objective, "direction_blocks", recorded)
+    fits = {}
+    for threads in ("1", "3"):
+        monkeypatch.setenv("GREYID_THREADS", threads)
+        blocks.clear()
+        fits[threads] = m.fit(df)
+        assert blocks[0] == 1  # the exact Hessian's program (the scoring one may still split)
+    assert np.array_equal(fits["1"].cov.to_numpy(), fits["3"].cov.to_numpy())
+    assert fits["1"].loglik == fits["3"].loglik
 
 
 def test_delta_method_matches_monte_carlo(ou):

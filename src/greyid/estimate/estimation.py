@@ -44,6 +44,14 @@ OPTIMIZERS = ("auto", "scoring", "newton")
 #: 0.19 s by Newton and 0.14 s by scoring, but the first fit costs 0.4 s more; PRBS1
 #: building models (1691 rows, 10–22 parameters, ≥ 1.7e5) fit 2–5 times faster by scoring.
 SCORING_WORK = 150_000
+#: Below this (padded rows × free parameters²) a Hessian's rows are one block in one thread: split,
+#: each block repeats the value and gradient, and the threads' hand-over and the machine's other
+#: load cost more than the rows save.  Default Armadillo fits (256 × 7², 1.3e4), medians of one
+#: process alternating: 2 CPUs 49.8 ms in one thread against 59.6 ms in two; 16 CPUs 56.6 ms against
+#: 69.0 (two), 54.8 (four) and 59.5 (seven).  The test cell (9 parameters) gains from the split from
+#: about 600 rows (5.2e4: 149 against 159 ms; 300 rows, 3.1e4: 78 against 76 ms; 1512 rows: 236
+#: against 271 ms).
+SPLIT_WORK = 40_000
 
 
 #: Starts asking for the same kind of evaluation that are evaluated by one vectorised
@@ -200,9 +208,13 @@ def single_programs(structure, problem: Problem, arguments: tuple, stack: ExitSt
     while the search takes its first (scoring) steps.
     """
     programs = compiled(structure, problem)
+    rows = sum(inputs.t.shape[0] for inputs in arguments[-1])
     # With the steady state a shorter series' Hessian costs about as much as its first rows: split
     # over threads, each block would repeat them (Armadillo: 1.5 ms in two threads, 1.1 ms in one).
-    workers = 1 if problem.options.steady_state and takes_steady_state(structure, problem.options) else None
+    # A small problem's Hessian is one block whatever the machine (SPLIT_WORK), so its answer
+    # does not depend on how many CPUs there are either.
+    steady = problem.options.steady_state and takes_steady_state(structure, problem.options)
+    workers = 1 if steady or rows * len(problem.free) ** 2 < SPLIT_WORK else None
     out = {EXACT: stack.enter_context(Derivatives(programs.derivatives, len(problem.free), arguments,
                                                   workers=workers))}
     if programs.scoring is not None:
