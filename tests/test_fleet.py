@@ -179,6 +179,22 @@ def test_pad_series_changes_nothing(fleet_model, houses):
     assert float(np.sum(run(theta, member)[0].loglik)) == pytest.approx(expected, rel=1e-12)
 
 
+def test_interval_slots_of_regular_and_irregular_series(fleet_model, houses):
+    """A regular series keeps its two sampling intervals (the first row's 0 and Δ) unpadded; one with
+    a third interval is padded to four slots, and the filter reads the same intervals either way."""
+    structure = fleet_model.structure
+    data = houses["house2"]
+    regular = filter_inputs(prepare_series(data, structure.input_names, structure.output_names, "t", None), "zoh",
+                            on_device=False)
+    step = float(np.diff(data["t"])[0])
+    np.testing.assert_allclose(regular.unique_dt, [0.0, step], rtol=1e-11)  # (rounded to 12 digits)
+    gap = data.drop(index=data.index[5])  # one interval of 2Δ
+    irregular = filter_inputs(prepare_series(gap, structure.input_names, structure.output_names, "t", None), "zoh",
+                              on_device=False)
+    np.testing.assert_allclose(irregular.unique_dt, [0.0, step, 2 * step, 0.0], rtol=1e-11)
+    np.testing.assert_allclose(irregular.unique_dt[irregular.dt_index][1:len(gap)], np.diff(gap["t"]), rtol=1e-11)
+
+
 def test_relate_recovers_a_linear_relation_and_ranks_subsets():
     """WLS on covariates with weights 1/SE² (against NumPy), best subset by Mallows' C_p."""
     rng = np.random.default_rng(4)
