@@ -46,11 +46,11 @@ OPTIMIZERS = ("auto", "scoring", "newton")
 SCORING_WORK = 150_000
 #: Below this (padded rows × free parameters²) a Hessian's rows are one block in one thread: split,
 #: each block repeats the value and gradient, and the threads' hand-over and the machine's other
-#: load cost more than the rows save.  Default Armadillo fits (256 × 7², 1.3e4), medians of one
+#: load cost more than the rows save.  Default Armadillo fits (240 × 7², 1.2e4), medians of one
 #: process alternating: 2 CPUs 49.8 ms in one thread against 59.6 ms in two; 16 CPUs 56.6 ms against
 #: 69.0 (two), 54.8 (four) and 59.5 (seven).  The test cell (9 parameters) gains from the split from
-#: about 600 rows (5.2e4: 149 against 159 ms; 300 rows, 3.1e4: 78 against 76 ms; 1512 rows: 236
-#: against 271 ms).
+#: about 600 rows (two threads against one: 5.2e4, 149 against 159 ms; 300 rows, 2.6e4, 78 against
+#: 76 ms; 1512 rows, 236 against 271 ms).
 SPLIT_WORK = 40_000
 
 
