@@ -32,9 +32,9 @@ def count_steady_rows(monkeypatch):
     counts = collections.Counter()
     rows = steady.steady_rows
 
-    def counted(*args):
+    def counted(*args, **kwargs):
         jax.debug.callback(lambda: counts.update(["steady"]))
-        return rows(*args)
+        return rows(*args, **kwargs)
 
     monkeypatch.setattr(steady, "steady_rows", counted)
     return counts
@@ -79,15 +79,17 @@ def loop_recursion(F, v, start):
 
 
 RECURSIONS = {"blocks": lambda F, v, start: steady.linear_recursion(steady.recursion(F), v, start),
-              "short": steady.short_recursion}
+              "short": steady.short_recursion, "doubling": steady.doubling_recursion}
 
 
 @pytest.mark.parametrize("kind, rows", [("blocks", 5 * steady.BLOCK), ("blocks", 3 * steady.BLOCK - 7),
                                         ("blocks", 40 * steady.BLOCK), ("short", 5 * steady.BLOCK),
-                                        ("short", 3 * steady.BLOCK - 7), ("short", 1)])
+                                        ("short", 3 * steady.BLOCK - 7), ("short", 1),
+                                        ("doubling", 5 * steady.BLOCK), ("doubling", 3 * steady.BLOCK - 7),
+                                        ("doubling", 1)])
 def test_mean_recursions_are_the_loop(kind, rows):
     """Blocks carried by powers of F^BLOCK (up to a chunk's blocks) or by a scan (more), or by two
-    triangular solves (short), a partial last block; and the derivatives of first and second order (the
+    triangular solves (short), or by doubling, a partial last block; and the derivatives of first and second order (the
     recursions' own rules) and in reverse mode (the rules transposed) equal the loop's."""
     recursion = RECURSIONS[kind]
     rng = np.random.default_rng(1)
