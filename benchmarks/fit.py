@@ -1,6 +1,6 @@
 """Estimation benchmarks (issue "Estimation", section Speed).
 
-    python benchmarks/fit.py [--lengths 1000,10000,100000,1000000] [--steady-state]
+    python benchmarks/fit.py [--lengths 1000,10000,100000,1000000] [--steady-state] [--quasi-newton]
     python benchmarks/fit.py --against OTHER_CHECKOUT/src
 
 Prints, on this machine:
@@ -13,12 +13,14 @@ Prints, on this machine:
   first, as ``pip install`` does: with an editable install and
   ``PYTHONDONTWRITEBYTECODE`` set (as on the development machine) every
   process would otherwise compile them again, 0.4 s (``--no-bytecode`` measures that);
+* with ``--quasi-newton``, the same first fits with ``optimizer="quasi-newton"``, interleaved;
 * with ``--steady-state``, the same fits with ``steady_state=True`` (the fit's programs switch
   a shorter series to the filter's steady state), interleaved with the default ones, and both
   compiled in one process, alternating in blocks of ten fits;
 * with ``--against OTHER_CHECKOUT/src`` (greyid as it was, e.g. when an issue was filed) only
-  the Armadillo model's compiled fits of that checkout beside this one's, default and
-  ``steady_state=True``: processes taking turns, thirty compiled fits each;
+  the Armadillo model's compiled fits of that checkout beside this one's, default,
+  ``steady_state=True``, ``optimizer="quasi-newton"`` and both: processes taking turns, thirty
+  compiled fits each;
 * log-likelihood + gradient time of the test-cell model against series length.
 """
 
@@ -56,6 +58,8 @@ start = time.perf_counter()
 """ + CASE_SETUP + """
 if sys.argv[3] == "steady":
     kwargs["steady_state"] = True
+if sys.argv[3] == "quasi":
+    kwargs["optimizer"] = "quasi-newton"
 ready = time.perf_counter()
 fit = model.fit(data, **kwargs)
 first = time.perf_counter()
@@ -90,13 +94,16 @@ for name, values in times.items():
     print(f"{name}: {np.median(v):.1f} ms (quartiles {q1:.1f}–{q3:.1f}, fastest {v.min():.1f})")
 """
 
-#: Compiled fits in one process (``sys.argv[3]``: "steady" or "default"; ``sys.argv[4]``: how many).
+#: Compiled fits in one process (``sys.argv[3]``: "default" or settings joined by "+": "steady",
+#: "quasi"; ``sys.argv[4]``: how many).
 WARM_SCRIPT = """
 import sys, time
 import numpy as np
 """ + CASE_SETUP + """
-if sys.argv[3] == "steady":
+if "steady" in sys.argv[3]:
     kwargs["steady_state"] = True
+if "quasi" in sys.argv[3]:
+    kwargs["optimizer"] = "quasi-newton"
 fit = model.fit(data, **kwargs)
 model.fit(data, **kwargs)
 times = []
@@ -110,10 +117,13 @@ print(f"{np.median(times) * 1e3:.2f} {min(times) * 1e3:.2f} {fit.loglik:.10f}")
 
 def warm_against(case: str, data: Path, other: Path, rounds: int, fits: int = 30) -> None:
     """Compiled fits of another checkout (``other``: its ``src``, default settings) beside this one's,
-    default and ``steady_state=True``: one process each in turn, ``rounds`` times."""
+    default, ``steady_state=True``, ``optimizer="quasi-newton"`` and both: one process each in turn,
+    ``rounds`` times."""
     variants = {f"{other} (default)": (dict(os.environ, PYTHONPATH=str(other)), "default"),
                 "this checkout (default)": (dict(os.environ), "default"),
-                "this checkout, steady_state=True": (dict(os.environ), "steady")}
+                "this checkout, steady_state=True": (dict(os.environ), "steady"),
+                'this checkout, optimizer="quasi-newton"': (dict(os.environ), "quasi"),
+                'this checkout, both': (dict(os.environ), "steady+quasi")}
     results: dict = {name: [] for name in variants}
     for _ in range(rounds):
         for name, (env, variant) in variants.items():
@@ -153,10 +163,11 @@ def test_cell_data() -> Path:
     return path
 
 
-def fit_case(case: str, data: Path, repeats: int, steady_state: bool = False) -> None:
+def fit_case(case: str, data: Path, repeats: int, steady_state: bool = False, quasi_newton: bool = False) -> None:
     """First fits with an empty and a warm compilation cache, ``repeats`` times each (median, range); with
-    ``steady_state`` the same with ``fit(..., steady_state=True)``, the two interleaved."""
-    variants = ["default", "steady"] if steady_state else ["default"]
+    ``steady_state`` (``quasi_newton``) the same with ``fit(..., steady_state=True)``
+    (``optimizer="quasi-newton"``), interleaved with the default."""
+    variants = ["default"] + (["steady"] if steady_state else []) + (["quasi"] if quasi_newton else [])
     runs = {(variant, cache): [] for variant in variants for cache in ("cold cache", "warm cache")}
     for _ in range(repeats):
         for variant in variants:
@@ -164,7 +175,8 @@ def fit_case(case: str, data: Path, repeats: int, steady_state: bool = False) ->
             for cache in ("cold cache", "warm cache"):
                 run_fits(runs[variant, cache], case, data, variant, env)
     for (variant, cache), results in runs.items():
-        label = cache if variant == "default" else f"steady_state=True, {cache}"
+        label = {"default": cache, "steady": f"steady_state=True, {cache}",
+                 "quasi": f'optimizer="quasi-newton", {cache}'}[variant]
 
         def stat(key, fmt):
             values = sorted(r[key] for r in results)
@@ -235,6 +247,8 @@ def main():
     parser.add_argument("--repeats", type=int, default=3, help="fresh processes per case and cache state")
     parser.add_argument("--steady-state", action="store_true",
                         help="also fit with steady_state=True (interleaved with the default)")
+    parser.add_argument("--quasi-newton", action="store_true",
+                        help='also fit with optimizer="quasi-newton" (interleaved with the default)')
     parser.add_argument("--against", type=Path, default=None,
                         help="another checkout's src: its compiled Armadillo fits beside this one's")
     parser.add_argument("--no-bytecode", action="store_true",
@@ -247,14 +261,14 @@ def main():
         return
     if ARMADILLO.exists():
         print("Armadillo fit (TwTi_RoRi, foh, 232 rows):")
-        fit_case("armadillo", ARMADILLO, args.repeats, args.steady_state)
+        fit_case("armadillo", ARMADILLO, args.repeats, args.steady_state, args.quasi_newton)
         if args.steady_state:
             compiled_blocks("armadillo", ARMADILLO, 6)
     else:
         print(f"Armadillo data not found at {ARMADILLO}; skipped")
     print("Test-cell fit (7.43, 1512 samples):")
     cell = test_cell_data()
-    fit_case("testcell", cell, args.repeats, args.steady_state)
+    fit_case("testcell", cell, args.repeats, args.steady_state, args.quasi_newton)
     if args.steady_state:
         compiled_blocks("testcell", cell, 3)
     print("Test-cell log-likelihood + gradient against series length:")

@@ -234,3 +234,31 @@ def test_lowering_kept_programs_works_where_jax_lacks_the_private_function(monke
     assert not hasattr(_export, "_ensure_backends_initialized")
     with programs.lapack_needed(False):
         pass
+
+
+def test_greyids_quick_programs_are_kept_in_a_users_process_and_the_users_are_not(tmp_path):
+    """In a user's script JAX keeps only programs that took a second to compile; greyid's own
+    compilations are kept however quick (a thread-local setting around them), the user's are not."""
+    code = ("import os, jax, jax.numpy as jnp, numpy as np, greyid.model; from greyid import compiler; "
+            "kept = lambda: len([f for f in os.listdir(os.environ['GREYID_CACHE_DIR']) if f.startswith('jit_')]); "
+            "before = kept(); jax.jit(lambda x: jnp.cos(x) * 3.0)(np.float64(1.0)); users = kept(); "
+            "compiler.jit(lambda x: jnp.sin(x) * 2.0).executable(np.float64(0.5)); "
+            "assert (users, kept()) == (before, before + 1), (before, users, kept()); "
+            "assert jax.config.jax_persistent_cache_min_compile_time_secs == 1.0")
+    subprocess.run([sys.executable, "-c", code], check=True, env=dict(os.environ, GREYID_CACHE_DIR=str(tmp_path)))
+
+
+def test_keeping_quick_programs_works_where_jax_lacks_the_thread_local_setting(monkeypatch):
+    """Where a JAX has no thread-local minimum compile time, greyid's compilations run under JAX's
+    global threshold (no setting changed) instead of failing."""
+    import contextlib
+
+    import jax
+    from jax._src import config as jax_config
+
+    setting = jax_config.persistent_cache_min_compile_time_secs
+    with compiler.kept_however_quick():
+        assert setting.value == 0.0
+    assert setting.value == jax.config.jax_persistent_cache_min_compile_time_secs
+    monkeypatch.delattr(jax_config, "persistent_cache_min_compile_time_secs")
+    assert isinstance(compiler.kept_however_quick(), contextlib.nullcontext)

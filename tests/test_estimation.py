@@ -118,6 +118,38 @@ def test_small_problem_hessian_is_one_block_whatever_the_threads(ou, monkeypatch
     assert fits["1"].loglik == fits["3"].loglik
 
 
+def test_quasi_newton_fit_ends_at_newtons_optimum_with_fewer_exact_hessians(ou, monkeypatch):
+    """optimizer="quasi-newton" takes L-BFGS steps on value and gradient first, then exact Newton
+    steps: the optimum of Newton steps throughout (to their convergence tolerance) with fewer exact
+    Hessians, the iterations of both stages counted and reported in order."""
+    m, df, fit = ou
+    exact_calls = []
+    original = objective.Derivatives.__call__
+
+    def counted(self, z):
+        exact_calls.append(1)
+        return original(self, z)
+
+    monkeypatch.setattr(objective.Derivatives, "__call__", counted)
+    events = []
+    quasi = m.fit(df, optimizer="quasi-newton", progress=events.append)
+    quasi_exact, exact_calls[:] = len(exact_calls), []
+    newton = m.fit(df, optimizer="newton")
+    assert quasi.converged and newton.converged and newton.loglik == fit.loglik
+    assert quasi_exact <= 3 < len(exact_calls)
+    assert quasi.loglik == pytest.approx(newton.loglik, abs=1e-8)
+    shift = (quasi.params["estimate"] - newton.params["estimate"]) / newton.params["std_error"]
+    assert np.max(np.abs(shift)) < 1e-3
+    np.testing.assert_allclose(quasi.cov.to_numpy(), newton.cov.to_numpy(), rtol=1e-4)
+    steps = [e for e in events if "iteration" in e]
+    stages = [e["stage"] for e in steps]
+    assert stages[0] == "quasi-newton" and stages[-1] == "newton"
+    assert stages == sorted(stages, key=lambda s: s != "quasi-newton")  # quasi-Newton first, then Newton
+    assert [e["iteration"] for e in steps] == list(range(1, quasi.iterations + 1))
+    # Several starts run together take Newton steps (the quasi-Newton start is for a search alone).
+    assert m.fit(df, optimizer="quasi-newton", starts=2, seed=1).converged
+
+
 def test_delta_method_matches_monte_carlo(ou):
     _, _, fit = ou
     names = list(fit.cov.index)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize
 
-from greyid.estimate.optimize import newton_trust_region, trust_region_step
+from greyid.estimate.optimize import newton_trust_region, quasi_newton_start, trust_region_step
 
 
 def derivatives(f):
@@ -172,3 +172,24 @@ def test_value_expansions_save_scoring_steps_and_reach_the_same_minimum():
     np.testing.assert_allclose(np.exp(grown.z), [3.0, 0.5], rtol=0.02)
     assert grown_counts[SCORING] < plain_counts[SCORING]
     assert grown_counts[VALUE] > 0
+
+
+def test_quasi_newton_start_descends_within_its_budget_and_stops_at_a_non_finite_value():
+    """L-BFGS from the start: the best point seen (its value the function's there), near the
+    minimum given evaluations, held to its budget, and ended by the first non-finite value."""
+    value_and_grad = jax.jit(jax.value_and_grad(rosenbrock))
+    z0 = np.array([-1.2, 1.0])
+    full = quasi_newton_start(value_and_grad, z0, 200)
+    assert full.value == pytest.approx(float(rosenbrock(full.z)), rel=1e-12)
+    assert full.value < 1e-6 and full.z == pytest.approx(np.ones(2), abs=1e-2)
+    assert full.iterations < full.evaluations < 100
+    short = quasi_newton_start(value_and_grad, z0, 10)
+    assert short.evaluations <= 11 and 0 < short.iterations < 10  # SciPy may finish the line search
+    assert float(rosenbrock(z0)) > short.value > full.value
+
+    walled = jax.jit(jax.value_and_grad(lambda z: jnp.where(z[0] < -1.0, rosenbrock(z), jnp.inf)))
+    stopped = quasi_newton_start(walled, z0, 200)
+    assert stopped.evaluations < 10 and stopped.z[0] < -1.0 and np.isfinite(stopped.value)
+    assert stopped.value <= float(rosenbrock(z0))
+    nowhere = quasi_newton_start(walled, np.array([0.0, 1.0]), 200)
+    assert nowhere.evaluations == 1 and nowhere.value == np.inf and np.array_equal(nowhere.z, [0.0, 1.0])

@@ -27,6 +27,7 @@ core (:func:`import_while_compiling`).
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import importlib
 import sys
@@ -71,7 +72,7 @@ def jax_jit(fun, **kwargs):
     return jax.jit(fun, compiler_options=options, **kwargs) if options else jax.jit(fun, **kwargs)
 
 
-_pending_imports: set[str] = set()
+_pending_imports: dict[str, None] = {}  # in the order asked for
 importer: threading.Thread | None = None  # the latest thread beside a compilation
 
 
@@ -82,7 +83,7 @@ def import_while_compiling(*modules: str) -> None:
     the interpreter free; the modules a fit needs afterwards (its results:
     pandas tables, SciPy's distributions, 0.15–0.25 s) load meanwhile.
     """
-    _pending_imports.update(modules)
+    _pending_imports.update(dict.fromkeys(modules))
 
 
 def _beside_compilation(modules):
@@ -94,15 +95,36 @@ def _beside_compilation(modules):
     collect_young_garbage()
 
 
+def kept_however_quick():
+    """A context in which the programs this thread compiles go to the persistent compilation
+    cache however quickly they compile.
+
+    JAX keeps only programs that took over a second to compile (its default threshold, which
+    a user's process keeps for its own programs); a fit's value-and-gradient program takes
+    0.7–1.0 s, and compiling it again in every process made a warm first fit 0.5 s slower.
+    The threshold is one of JAX's thread-local settings, set here for greyid's own compilations
+    only; where a JAX version has no such setting, its global threshold applies.
+    """
+    try:
+        from jax._src import config as jax_config
+
+        setting = jax_config.persistent_cache_min_compile_time_secs
+        return setting(0.0)
+    except (ImportError, AttributeError, TypeError):
+        return contextlib.nullcontext()
+
+
 def compile_lowered(lowered, *options):
     """``lowered.compile(*options)``, with pending imports and the collection of what
-    tracing left behind running beside it (see :func:`collect_young_garbage`)."""
+    tracing left behind running beside it (see :func:`collect_young_garbage`), and the
+    program kept in the persistent cache however quick (:func:`kept_however_quick`)."""
     global importer
-    pending = sorted(m for m in _pending_imports if m not in sys.modules)
+    pending = [m for m in _pending_imports if m not in sys.modules]
     _pending_imports.clear()
     importer = threading.Thread(target=_beside_compilation, args=(pending,), daemon=True)
     importer.start()
-    return lowered.compile(*options)
+    with kept_however_quick():
+        return lowered.compile(*options)
 
 
 class Jitted:
@@ -146,16 +168,44 @@ class Jitted:
         first: through ``__call__`` each thread's first call would wait for (or
         repeat) the compilation.
         """
+        return self.lowered(*args)()
+
+    def lowered(self, *args) -> Callable:
+        """Trace (or load the kept trace) and lower the program now; the function returned
+        compiles it (XLA, which frees the interpreter: in another thread, if wished) and keeps
+        and returns the executable, as :meth:`executable` does (its ``compiled`` attribute: True
+        where the program was compiled already).
+
+        So two programs compile side by side after being traced one after the other, and a
+        function traced inside the first (a nested ``jit``) is not traced again for the second.
+        """
         leaves, tree = jax.tree_util.tree_flatten(args)
         signature = (tree, tuple(jax.typeof(a) for a in leaves))
-        if signature not in self.executables:
-            with collector_paused():
-                kept = programs.kept_lowering(self, args) if self.key is not None and programs.enabled() else None
-                if kept is None:
-                    self.executables[signature] = compile_lowered(self.top.lower(*args))
-                else:
-                    self.executables[signature] = kept.runner(compile_lowered(kept.lowered))
-        return self.executables[signature]
+        if signature in self.executables:
+            def ready():
+                return self.executables[signature]
+
+            ready.compiled = True  # nothing left to do: no thread needed
+            return ready
+        with collector_paused():
+            kept = programs.kept_lowering(self, args) if self.key is not None and programs.enabled() else None
+            if kept is None:
+                lowered = self.top.lower(*args)
+
+                def build():
+                    return compile_lowered(lowered)
+            else:
+                def build():
+                    return kept.runner(compile_lowered(kept.lowered))
+
+        def compiled():
+            if signature not in self.executables:
+                with collector_paused():
+                    self.executables[signature] = build()
+            return self.executables[signature]
+
+        compiled.compiled = False
+        return compiled
 
 
 def jit(fun, key=None, **kwargs) -> Jitted:

@@ -57,8 +57,9 @@ def check_options(options: Mapping) -> dict:
             raise ModelError(f"setting 'criterion' must be 'ml' or 'map', got {value!r}")
         if key == "cov_type" and value not in ("hessian", "opg", "sandwich"):
             raise ModelError(f"setting 'cov_type' must be 'hessian', 'opg' or 'sandwich', got {value!r}")
-        if key == "optimizer" and value not in ("auto", "scoring", "newton"):
-            raise ModelError(f"setting 'optimizer' must be 'auto', 'scoring' or 'newton', got {value!r}")
+        if key == "optimizer" and value not in ("auto", "scoring", "newton", "quasi-newton"):
+            raise ModelError(f"setting 'optimizer' must be 'auto', 'scoring', 'newton' or 'quasi-newton', "
+                             f"got {value!r}")
         if key in ("horizon", "starts", "substeps", "iterations", "maxiter") and not (
             isinstance(value, int) and not isinstance(value, bool) and value >= 1
         ):

@@ -11,6 +11,7 @@ mapped back to the natural parameters.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack
 from dataclasses import dataclass, replace
 
@@ -29,7 +30,8 @@ from .covariance import check_cov_type, default_cov_type, score_covariance
 from . import objective
 from .objective import Derivatives, Problem, combine_scoring, compiled, step_scores
 from .batch import BatchedPrograms, drive, prune_trailing
-from .optimize import EXACT, HANDOVER_DECREASE, MAX_STEP, SCORING, VALUE, NotFiniteError, Optimum, Search, run_alone
+from .optimize import (EXACT, GRADIENT, HANDOVER_DECREASE, MAX_STEP, QUASI_EVALUATIONS_PER_PARAMETER, SCORING, VALUE,
+                       NotFiniteError, Optimum, Search, quasi_newton_start, run_alone)
 from .starts import nested_start, space_filling
 from .transforms import NONE, Transform
 
@@ -37,8 +39,10 @@ CRITERIA = ("ml", "map")
 #: "scoring": Fisher scoring far from the optimum, exact Newton near it (Gaussian
 #: criteria; robust and k-step criteria have no scoring matrix and use Newton only);
 #: "newton": exact Newton steps throughout; "auto": scoring where a Hessian costs
-#: much more than a gradient, rows × (free parameters)² ≥ SCORING_WORK.
-OPTIMIZERS = ("auto", "scoring", "newton")
+#: much more than a gradient, rows × (free parameters)² ≥ SCORING_WORK; "quasi-newton":
+#: L-BFGS steps on value and exact gradient from each start run alone, then exact Newton
+#: steps (:func:`~.optimize.quasi_newton_start`; a fit's starts run together take Newton steps).
+OPTIMIZERS = ("auto", "scoring", "newton", "quasi-newton")
 #: Below this the exact Hessian is cheap enough that scoring does not repay the
 #: compilation of its program: the test cell (1512 rows, 9 parameters, 1.2e5) fits in
 #: 0.19 s by Newton and 0.14 s by scoring, but the first fit costs 0.4 s more; PRBS1
@@ -189,6 +193,20 @@ def uses_scoring(optimizer: str, rows: int, n_free: int) -> bool:
     return optimizer == "scoring" or (optimizer == "auto" and rows * n_free ** 2 >= SCORING_WORK)
 
 
+def uses_quasi_start(optimizer: str, problem: Problem, padded_rows: int, scoring: bool) -> bool:
+    """Whether a search alone begins with a quasi-Newton start (:func:`~.optimize.quasi_newton_start`).
+
+    Asked for by ``optimizer="quasi-newton"``.  It pays where an exact Hessian costs several
+    gradients: one block in one thread (padded rows × free parameters² below SPLIT_WORK), about
+    n/2 forward gradients (Armadillo: 2.5 against 0.7 ms; compiled fits 0.46 of Newton's steps
+    throughout at the issue's commit, against 0.70).  Above it, split over the CPUs, an exact
+    Hessian costs hardly two, and the L-BFGS steps of an ill-conditioned start cost more than
+    the Newton steps they save (test cell: 0.27 against 0.22 s).  It compiles a second program,
+    the value and gradient: a first fit with an empty cache takes about 0.4 s longer.
+    """
+    return optimizer == "quasi-newton" and not scoring
+
+
 def new_search(problem: Problem, z0, maxiter: int, report, scoring: bool, handover: float | None = None) -> Search:
     """A :class:`~.optimize.Search` from ``z0`` with this problem's settings (scoring if asked and possible)."""
     scoring = scoring and problem.horizon == 1 and problem.robust is None
@@ -201,11 +219,14 @@ def new_search(problem: Problem, z0, maxiter: int, report, scoring: bool, handov
                   expand=scoring and problem.long_series)
 
 
-def single_programs(structure, problem: Problem, arguments: tuple, stack: ExitStack, compile_at=None) -> dict:
+def single_programs(structure, problem: Problem, arguments: tuple, stack: ExitStack, compile_at=None,
+                    gradient: bool = False) -> dict:
     """``{kind: evaluate(z)}`` for one search at a time, the derivatives' directions split over threads.
 
     With ``compile_at`` (a point z), the exact program compiles in the background
-    while the search takes its first (scoring) steps.
+    while the search takes its first (scoring or quasi-Newton) steps; ``gradient`` adds
+    the value and gradient (kind GRADIENT) for a quasi-Newton start, traced first and
+    compiled in a thread while the exact program, which shares its trace, is traced.
     """
     programs = compiled(structure, problem)
     rows = sum(inputs.t.shape[0] for inputs in arguments[-1])
@@ -215,8 +236,26 @@ def single_programs(structure, problem: Problem, arguments: tuple, stack: ExitSt
     # does not depend on how many CPUs there are either.
     steady = problem.options.steady_state and takes_steady_state(structure, problem.options)
     workers = 1 if steady or rows * len(problem.free) ** 2 < SPLIT_WORK else None
-    out = {EXACT: stack.enter_context(Derivatives(programs.derivatives, len(problem.free), arguments,
-                                                  workers=workers))}
+    out = {}
+    if gradient:
+        compile_program = programs.value_and_grad.lowered(np.zeros(len(problem.free)), *arguments)
+        run = None
+        if compile_program.compiled:
+            run = compile_program()
+        else:
+            compiling = ThreadPoolExecutor(1)
+            stack.callback(compiling.shutdown)
+            pending = compiling.submit(compile_program)
+
+        def value_and_grad(z):
+            nonlocal run
+            if run is None:
+                run = pending.result()
+            return run(np.asarray(z, dtype=np.float64), *arguments)
+
+        out[GRADIENT] = value_and_grad
+    exact = programs.derivatives_sharing if gradient else programs.derivatives
+    out[EXACT] = stack.enter_context(Derivatives(exact, len(problem.free), arguments, workers=workers))
     if programs.scoring is not None:
         # One thread on long series: two concurrent scoring programs of 10⁶ rows
         # have deadlocked in XLA's CPU runtime (benchmarks/length.py).
@@ -240,14 +279,26 @@ class SearchesAlone:
     def __init__(self, structure, arguments: tuple, stack: ExitStack):
         self.structure, self.arguments, self.stack, self.programs = structure, arguments, stack, {}
 
-    def run(self, problem: Problem, search: Search) -> Optimum:
-        if problem.key() not in self.programs:
+    def run(self, problem: Problem, search: Search, quasi: bool = False) -> Optimum:
+        """``search`` to its end; with ``quasi``, from where a quasi-Newton start gets to (see
+        :func:`~.optimize.quasi_newton_start`)."""
+        key = (problem.key(), quasi)
+        if key not in self.programs:
             # Compiled ahead only where compilation, not evaluation, dominates: on long
             # series the background evaluation would cost more than it saves.
-            ahead = search.scoring and not problem.long_series
-            self.programs[problem.key()] = single_programs(self.structure, problem, self.arguments, self.stack,
-                                                           search.z if ahead else None)
-        return run_alone(search, self.programs[problem.key()])
+            ahead = (search.scoring or quasi) and not problem.long_series
+            self.programs[key] = single_programs(self.structure, problem, self.arguments, self.stack,
+                                                 search.z if ahead else None, gradient=quasi)
+        programs = self.programs[key]
+        if not quasi:
+            return run_alone(search, programs)
+        start = quasi_newton_start(programs[GRADIENT], search.z, QUASI_EVALUATIONS_PER_PARAMETER * len(search.z),
+                                   search.report)
+        search.z, report, done = start.z, search.report, start.iterations
+        search.report = lambda iteration, stage, f, g: report(done + iteration, stage, f, g)
+        optimum = run_alone(search, programs)
+        return replace(optimum, iterations=optimum.iterations + done,
+                       evaluations=optimum.evaluations + start.evaluations)
 
 
 def failed_start(z0, error: ModelError) -> Optimum:
@@ -325,7 +376,6 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
         horizon=1, starts=1, seed=0, init=None, time_unit=None, maxiter=500, progress=False, cov_type=None,
         init_from=None, optimizer="auto", **filter_settings):
     """Estimate the free parameters of ``model`` from ``data``; see :meth:`Model.fit`."""
-    import_while_compiling(f"{__package__}.optimum")  # the results' module, needed at the end
     structure = model.structure
     robust, cov_type = check_settings(criterion, prior, robust, horizon, cov_type, optimizer, starts)
     parameters = free_parameters(model, init)
@@ -344,6 +394,10 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
 
     rows = sum(series.n_rows for series, _ in prepared)
     use_scoring = uses_scoring(optimizer, rows, len(free))
+    padded_rows = sum(inputs.t.shape[0] for inputs in datasets)
+    if uses_quasi_start(optimizer, problem, padded_rows, use_scoring):
+        import_while_compiling("scipy.optimize")  # the quasi-Newton start's L-BFGS, needed first
+    import_while_compiling(f"{__package__}.optimum")  # the results' module, needed at the end
     args = problem.arguments(theta0)
     nested = None
     if init_from is not None:
@@ -373,12 +427,13 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
 
         alone = SearchesAlone(structure, (*args, datasets), open_programs)
 
-        def optimize(problem, z_start, i, exact_only=False):
+        def optimize(problem, z_start, i, exact_only=False, start=False):
             """One search alone (one start, or the refit with more sub-steps)."""
             search = new_search(problem, z_start, maxiter, reporter(i), use_scoring and not exact_only)
             shown.begin_start(i)
+            quasi = start and uses_quasi_start(optimizer, problem, padded_rows, search.scoring)
             try:
-                optimum = alone.run(problem, search)
+                optimum = alone.run(problem, search, quasi=quasi)
             except NotFiniteError:
                 raise not_finite(problem, z_start, i) from None
             finished(i, optimum)
@@ -387,7 +442,7 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
         # With the steady state each start runs alone: vectorised over starts, each start's switch
         # would run both forms.
         if len(points) == 1 or problem.long_series or problem.options.steady_state:
-            optima = [optimize(problem, z_start, i, newton_only[i]) for i, z_start in enumerate(points)]
+            optima = [optimize(problem, z_start, i, newton_only[i], start=True) for i, z_start in enumerate(points)]
         else:
             # All starts together, each request kind evaluated for all of them by one
             # vectorised program; starts that trail far behind are pruned.

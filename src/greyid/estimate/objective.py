@@ -149,6 +149,7 @@ class Programs(NamedTuple):
     step_scores: Callable  # (z, base, lower, upper, data) -> ∂(term k)/∂z
     value_and_grad: Callable  # (z, *args) -> (f, g)
     scoring: Callable | None  # (z, rows, *args) -> pieces of (f, g, F); Gaussian ML/MAP only
+    derivatives_sharing: Callable  # derivatives, sharing value_and_grad's trace (see build)
 
 
 def build(structure, problem: Problem) -> Programs:
@@ -190,11 +191,17 @@ def build(structure, problem: Problem) -> Programs:
     scoring = None
     if problem.horizon == 1 and problem.robust is None:
         scoring = jit(expected_information(structure, problem, kinds), key=kept("scoring"))
+    value_and_grad = jit(forward_value_and_grad(negative), key=kept("value_and_grad"))
+    derivatives = jit(hessian_rows(for_hessian, forward), key=kept("derivatives"))
+    sharing = derivatives
+    if forward and for_hessian is negative:
+        # The same Hessian pushing the value-and-gradient program's own jitted function along each
+        # row: JAX traces that function once for both programs, so a fit that compiles both (a
+        # quasi-Newton start) does not trace it twice; alone, the nesting costs about 0.1 s of tracing.
+        sharing = jit(hessian_rows(for_hessian, forward, value_and_grad.nested), key=kept("derivatives_sharing"))
     # Per-step scores (rows: steps, columns: ∂/∂z), forward mode: nothing stored per step.
-    return Programs(jit(hessian_rows(for_hessian, forward), key=kept("derivatives")),
-                    jit(negative, key=kept("value")),
-                    jit(jax.jacfwd(contributions), key=kept("step_scores")),
-                    jit(forward_value_and_grad(negative), key=kept("value_and_grad")), scoring)
+    return Programs(derivatives, jit(negative, key=kept("value")),
+                    jit(jax.jacfwd(contributions), key=kept("step_scores")), value_and_grad, scoring, sharing)
 
 
 def observed_innovations(innovation, innovation_cov, mask):
@@ -269,13 +276,15 @@ def forward_hessian(method: str, n_parameters: int) -> bool:
     return method == KALMAN and n_parameters <= FORWARD_HESSIAN_MAX
 
 
-def hessian_rows(fun, forward: bool):
+def hessian_rows(fun, forward: bool, value_and_grad: Callable | None = None):
     """``(x, rows, *args) -> (f, g, rows · H)`` for a scalar ``fun(x, *args)``.
 
-    The gradient — forward or reverse mode — is pushed forward along each row,
-    so a block of rows of the Hessian comes with the value and the gradient.
+    The gradient — forward or reverse mode, or ``value_and_grad`` of ``fun`` where
+    given — is pushed forward along each row, so a block of rows of the Hessian
+    comes with the value and the gradient.
     """
-    value_and_grad = forward_value_and_grad(fun) if forward else jax.value_and_grad(fun)
+    if value_and_grad is None:
+        value_and_grad = forward_value_and_grad(fun) if forward else jax.value_and_grad(fun)
 
     def evaluate(x, rows, *args):
         def gradient(x):
@@ -347,26 +356,35 @@ class Derivatives:
         return jax.block_until_ready(program(z, rows, *self.arguments))
 
     def compile_ahead(self, z) -> None:
-        """Compile (by a first evaluation at z) in a background thread, while the search runs on.
+        """Compile in a background thread, while the search runs on.
 
-        A search that scores first needs the exact Hessian only at its hand-over; its
-        program, the costliest to compile, is then ready or nearly so.  The first
-        call waits for it rather than compile it a second time.
+        A search that scores first (or starts quasi-Newton) needs the exact Hessian
+        only at its hand-over; its program, the costliest to compile, is then ready
+        or nearly so.  The first call waits for it rather than compile it a second time.
         """
+        # Traced here, compiled in the thread: a program that this thread compiles next (the value
+        # and gradient) then finds the functions they share already traced.
+        compile_program = self.program.lowered(np.asarray(z, dtype=np.float64), self.blocks[0], *self.arguments)
+        if compile_program.compiled:  # a later fit of the model in this process: nothing to wait for
+            self.pinned = compile_program()
+            return
         self.ahead = ThreadPoolExecutor(1)
-        self.pending = self.ahead.submit(self.__call__, z)
+        self.pending = self.ahead.submit(compile_program)
 
-    def __call__(self, z):
-        pending, self.pending = getattr(self, "pending", None), None
-        if pending is not None:
-            pending.result()
-            self.ahead.shutdown()
-        z = np.asarray(z, dtype=np.float64)  # transferred by the call, without a compiled conversion
+    def _pin(self, z):
         # Compiled once, before any thread starts, and kept for the search: the program's own
         # call would look it up again each time (its arguments' tree and types, 0.2–0.4 ms).
         if self.pinned is None:
             self.pinned = self.program.executable(z, self.blocks[0], *self.arguments)
-        run = self.pinned
+        return self.pinned
+
+    def __call__(self, z):
+        pending, self.pending = getattr(self, "pending", None), None
+        if pending is not None:
+            self.pinned = pending.result()
+            self.ahead.shutdown()
+        z = np.asarray(z, dtype=np.float64)  # transferred by the call, without a compiled conversion
+        run = self._pin(z)
         if self.pool is None:
             parts = [self._block(run, z, rows) for rows in self.blocks]
         else:

@@ -201,7 +201,7 @@ def _optimise_chunk(structure, problem, args, members, chunk, s, shown):
     searches, owner, labels_of = [], [], []
     for position, i in enumerate(chunk):
         m = members[i]
-        scoring = s["optimizer"] != "newton"
+        scoring = s["optimizer"] not in ("newton", "quasi-newton")  # searches driven together: Newton steps
         points, labels, newton_only = estimation.start_points(m["parameters"], s["starts"], s["seed"],
                                                               scoring and s["optimizer"] == "auto")
         labels_of.append(labels)
