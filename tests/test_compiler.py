@@ -124,6 +124,19 @@ def test_pending_modules_are_imported_while_a_program_compiles():
     assert not compiler._pending_imports  # a module that does not exist is left for its real import to raise
 
 
+def test_a_compilation_aside_leaves_the_pending_imports_to_the_next_one():
+    """A program compiled in a thread while the interpreter traces the next (compiling_aside) does not
+    start the imports, which would hold the interpreter beside the tracing; the next compilation does."""
+    sys.modules.pop("colorsys", None)
+    compiler.import_while_compiling("colorsys")
+    with compiler.compiling_aside():
+        compiler.jit(lambda x: jnp.cos(x) * 4.0).executable(np.float64(0.5))
+    assert "colorsys" not in sys.modules and "colorsys" in compiler._pending_imports
+    compiler.jit(lambda x: jnp.cos(x) * 5.0).executable(np.float64(0.5))
+    compiler.importer.join(10)
+    assert "colorsys" in sys.modules and not compiler._pending_imports
+
+
 def test_what_tracing_left_is_collected_beside_the_compilation_unless_the_user_switched_off():
     def collections_beside(program, x):
         seen = []

@@ -114,15 +114,34 @@ def kept_however_quick():
         return contextlib.nullcontext()
 
 
+_compiling_aside = threading.local()
+
+
+@contextlib.contextmanager
+def compiling_aside():
+    """Compilations in this block (in this thread) leave the pending imports to the next one.
+
+    For a program compiled in a thread while the interpreter traces the next one: imports
+    hold the interpreter, so beside the tracing they would only slow it down.
+    """
+    _compiling_aside.active = True
+    try:
+        yield
+    finally:
+        _compiling_aside.active = False
+
+
 def compile_lowered(lowered, *options):
     """``lowered.compile(*options)``, with pending imports and the collection of what
-    tracing left behind running beside it (see :func:`collect_young_garbage`), and the
-    program kept in the persistent cache however quick (:func:`kept_however_quick`)."""
+    tracing left behind running beside it (see :func:`collect_young_garbage`; not inside
+    :func:`compiling_aside`), and the program kept in the persistent cache however quick
+    (:func:`kept_however_quick`)."""
     global importer
-    pending = [m for m in _pending_imports if m not in sys.modules]
-    _pending_imports.clear()
-    importer = threading.Thread(target=_beside_compilation, args=(pending,), daemon=True)
-    importer.start()
+    if not getattr(_compiling_aside, "active", False):
+        pending = [m for m in _pending_imports if m not in sys.modules]
+        _pending_imports.clear()
+        importer = threading.Thread(target=_beside_compilation, args=(pending,), daemon=True)
+        importer.start()
     with kept_however_quick():
         return lowered.compile(*options)
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..compiler import import_while_compiling
+from ..compiler import compiling_aside, import_while_compiling
 from ..data.prepare import as_frames
 from ..errors import DataError, ModelError
 from ..filters.accuracy import LOGLIK_TOLERANCE, MAX_SUBSTEPS, SubstepChoice, needs_substeps
@@ -202,7 +202,7 @@ def uses_quasi_start(optimizer: str, problem: Problem, padded_rows: int, scoring
     throughout at the issue's commit, against 0.70).  Above it, split over the CPUs, an exact
     Hessian costs hardly two, and the L-BFGS steps of an ill-conditioned start cost more than
     the Newton steps they save (test cell: 0.27 against 0.22 s).  It compiles a second program,
-    the value and gradient: a first fit with an empty cache takes about 0.4 s longer.
+    the value and gradient: a first fit with an empty cache takes 0.2–0.35 s longer.
     """
     return optimizer == "quasi-newton" and not scoring
 
@@ -243,9 +243,13 @@ def single_programs(structure, problem: Problem, arguments: tuple, stack: ExitSt
         if compile_program.compiled:
             run = compile_program()
         else:
+            def compile_aside():
+                with compiling_aside():  # the imports wait for the exact program's compilation
+                    return compile_program()
+
             compiling = ThreadPoolExecutor(1)
             stack.callback(compiling.shutdown)
-            pending = compiling.submit(compile_program)
+            pending = compiling.submit(compile_aside)
 
         def value_and_grad(z):
             nonlocal run
