@@ -198,8 +198,8 @@ def uses_quasi_start(optimizer: str, problem: Problem, padded_rows: int, scoring
 
     Asked for by ``optimizer="quasi-newton"``.  It pays where an exact Hessian costs several
     gradients: one block in one thread (padded rows × free parameters² below SPLIT_WORK), about
-    n/2 forward gradients (Armadillo: 2.5 against 0.7 ms; compiled fits 0.46 of Newton's steps
-    throughout at the issue's commit, against 0.70).  Above it, split over the CPUs, an exact
+    n/2 forward gradients (Armadillo: 2.5 against 0.8 ms; compiled fits 20.0 against 33.5 ms with
+    Newton's steps throughout, ``benchmarks/fit.py --against``).  Above it, split over the CPUs, an exact
     Hessian costs hardly two, and the L-BFGS steps of an ill-conditioned start cost more than
     the Newton steps they save (test cell: 0.27 against 0.22 s).  It compiles a second program,
     the value and gradient: a first fit with an empty cache takes 0.2–0.35 s longer.
