@@ -32,6 +32,7 @@ import functools
 import importlib
 import sys
 import threading
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Callable
 
 from . import _jax  # noqa: F401  (64-bit JAX before any JAX work)
@@ -144,6 +145,25 @@ def compile_lowered(lowered, *options):
         importer.start()
     with kept_however_quick():
         return lowered.compile(*options)
+
+
+def compile_in_background(compile_program: Callable, aside: bool = False) -> Future:
+    """The executable of ``compile_program`` (from :meth:`Jitted.lowered`) as a future: compiled
+    in a thread while the caller goes on, or at once where it was compiled already (no thread).
+    ``aside``: the compilation leaves the pending imports to the next one (:func:`compiling_aside`)."""
+    if compile_program.compiled:
+        done: Future = Future()
+        done.set_result(compile_program())
+        return done
+
+    def run():
+        with compiling_aside() if aside else contextlib.nullcontext():
+            return compile_program()
+
+    pool = ThreadPoolExecutor(1)
+    future = pool.submit(run)
+    pool.shutdown(wait=False)  # the thread ends with its one task
+    return future
 
 
 class Jitted:

@@ -11,13 +11,13 @@ mapped back to the natural parameters.
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import wait
 from contextlib import ExitStack
 from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..compiler import compiling_aside, import_while_compiling
+from ..compiler import compile_in_background, import_while_compiling
 from ..data.prepare import as_frames
 from ..errors import DataError, ModelError
 from ..filters.accuracy import LOGLIK_TOLERANCE, MAX_SUBSTEPS, SubstepChoice, needs_substeps
@@ -193,7 +193,7 @@ def uses_scoring(optimizer: str, rows: int, n_free: int) -> bool:
     return optimizer == "scoring" or (optimizer == "auto" and rows * n_free ** 2 >= SCORING_WORK)
 
 
-def uses_quasi_start(optimizer: str, problem: Problem, padded_rows: int, scoring: bool) -> bool:
+def uses_quasi_start(optimizer: str, scoring: bool) -> bool:
     """Whether a search alone begins with a quasi-Newton start (:func:`~.optimize.quasi_newton_start`).
 
     Asked for by ``optimizer="quasi-newton"``.  It pays where an exact Hessian costs several
@@ -238,24 +238,13 @@ def single_programs(structure, problem: Problem, arguments: tuple, stack: ExitSt
     workers = 1 if steady or rows * len(problem.free) ** 2 < SPLIT_WORK else None
     out = {}
     if gradient:
-        compile_program = programs.value_and_grad.lowered(np.zeros(len(problem.free)), *arguments)
-        run = None
-        if compile_program.compiled:
-            run = compile_program()
-        else:
-            def compile_aside():
-                with compiling_aside():  # the imports wait for the exact program's compilation
-                    return compile_program()
-
-            compiling = ThreadPoolExecutor(1)
-            stack.callback(compiling.shutdown)
-            pending = compiling.submit(compile_aside)
+        # Aside: the imports a fit needs wait for the exact program's compilation.
+        pending = compile_in_background(programs.value_and_grad.lowered(np.zeros(len(problem.free)), *arguments),
+                                        aside=True)
+        stack.callback(wait, [pending])
 
         def value_and_grad(z):
-            nonlocal run
-            if run is None:
-                run = pending.result()
-            return run(np.asarray(z, dtype=np.float64), *arguments)
+            return pending.result()(np.asarray(z, dtype=np.float64), *arguments)
 
         out[GRADIENT] = value_and_grad
     exact = programs.derivatives_sharing if gradient else programs.derivatives
@@ -398,8 +387,7 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
 
     rows = sum(series.n_rows for series, _ in prepared)
     use_scoring = uses_scoring(optimizer, rows, len(free))
-    padded_rows = sum(inputs.t.shape[0] for inputs in datasets)
-    if uses_quasi_start(optimizer, problem, padded_rows, use_scoring):
+    if uses_quasi_start(optimizer, use_scoring):
         import_while_compiling("scipy.optimize")  # the quasi-Newton start's L-BFGS, needed first
     import_while_compiling(f"{__package__}.optimum")  # the results' module, needed at the end
     args = problem.arguments(theta0)
@@ -435,7 +423,7 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
             """One search alone (one start, or the refit with more sub-steps)."""
             search = new_search(problem, z_start, maxiter, reporter(i), use_scoring and not exact_only)
             shown.begin_start(i)
-            quasi = start and uses_quasi_start(optimizer, problem, padded_rows, search.scoring)
+            quasi = start and uses_quasi_start(optimizer, search.scoring)
             try:
                 optimum = alone.run(problem, search, quasi=quasi)
             except NotFiniteError:

@@ -9,7 +9,7 @@ set of similar length or new starting values reuse the compiled code.
 from __future__ import annotations
 
 import os
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from typing import Callable, NamedTuple
 
@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..compiler import jit, kept_key
+from ..compiler import compile_in_background, jit, kept_key
 from ..filters import small
 from ..filters.api import compiled_filter
 from ..filters.core import KALMAN, FilterOptions, make_ahead, make_summed_filter
@@ -351,6 +351,7 @@ class Derivatives:
         self.n, self.program, self.arguments, self.combine = n, program, arguments, combine
         self.pool = ThreadPoolExecutor(len(self.blocks)) if len(self.blocks) > 1 else None
         self.pinned = None
+        self.pending = None  # a compilation ahead (compile_ahead)
 
     def _block(self, program, z, rows):
         return jax.block_until_ready(program(z, rows, *self.arguments))
@@ -362,14 +363,10 @@ class Derivatives:
         only at its hand-over; its program, the costliest to compile, is then ready
         or nearly so.  The first call waits for it rather than compile it a second time.
         """
-        # Traced here, compiled in the thread: a program that this thread compiles next (the value
-        # and gradient) then finds the functions they share already traced.
-        compile_program = self.program.lowered(np.asarray(z, dtype=np.float64), self.blocks[0], *self.arguments)
-        if compile_program.compiled:  # a later fit of the model in this process: nothing to wait for
-            self.pinned = compile_program()
-            return
-        self.ahead = ThreadPoolExecutor(1)
-        self.pending = self.ahead.submit(compile_program)
+        # Traced here (reusing what an earlier program traced: the value and gradient of a
+        # quasi-Newton start), compiled in the thread.
+        self.pending = compile_in_background(
+            self.program.lowered(np.asarray(z, dtype=np.float64), self.blocks[0], *self.arguments))
 
     def _pin(self, z):
         # Compiled once, before any thread starts, and kept for the search: the program's own
@@ -379,10 +376,9 @@ class Derivatives:
         return self.pinned
 
     def __call__(self, z):
-        pending, self.pending = getattr(self, "pending", None), None
+        pending, self.pending = self.pending, None
         if pending is not None:
             self.pinned = pending.result()
-            self.ahead.shutdown()
         z = np.asarray(z, dtype=np.float64)  # transferred by the call, without a compiled conversion
         run = self._pin(z)
         if self.pool is None:
@@ -394,8 +390,8 @@ class Derivatives:
     def close(self):
         if self.pool is not None:
             self.pool.shutdown()
-        if getattr(self, "ahead", None) is not None:  # a compilation ahead never waited for
-            self.ahead.shutdown()
+        if self.pending is not None:  # a compilation ahead never waited for
+            wait([self.pending])
 
     def __enter__(self):
         return self
