@@ -1,6 +1,6 @@
 """The likelihood's cost per call, beside a plain JAX scan of the same filter (issue "public likelihood").
 
-    python benchmarks/likelihood.py [--rounds 5] [--source OTHER_CHECKOUT/src]
+    python benchmarks/likelihood.py [--rounds 10] [--calls 100] [--source OTHER_CHECKOUT/src]
 
 The Armadillo model (pySIP's TwTi_RoRi, first-order hold, 232 rows, seven free
 parameters; data from ../shared/data or ``greyid.datasets``) at its fitted
@@ -15,9 +15,12 @@ optimum and at its starting values:
   with JAX's default compiler options;
 * the warm fit: ``model.fit`` again in the same process (median and fastest of 15).
 
-Each figure is the fastest of 300 calls, taken ``--rounds`` times in turn (the
-machine's speed drifts by 10–30 % between minutes); printed is the fastest
-round.  The values and gradients of both are checked against each other first.
+The calls take turns in ``--rounds`` rounds of ``--calls`` calls each; a
+figure is the fastest call of all.  The machine's speed drifts by 10–30 %
+between minutes, and more on a shared one, so the ratio to the plain scan is
+also taken round by round (the fastest call of each in the same round): its
+median and range are printed beside the ratio of the fastest calls.  The
+values and gradients of both are checked against each other first.
 ``--source`` runs another checkout's greyid in the same way (the figures before
 a change), its own plain scan beside it.
 """
@@ -84,7 +87,8 @@ def plain_scan(data, names):
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--rounds", type=int, default=10)
+    parser.add_argument("--calls", type=int, default=100, help="calls of each function per round")
     parser.add_argument("--source", help="another checkout's src folder, measured instead of this one's")
     args = parser.parse_args(argv)
     if args.source:
@@ -112,18 +116,19 @@ def main(argv=None) -> None:
               f"{abs(value - plain_value):.1e}); gradient × |x| differs by "
               f"{np.max(np.abs((gradient - plain_gradient) * x)) / scale:.1e} of its largest element")
     rows = len(data)
-    figures: dict[str, float] = {}
-    for _ in range(args.rounds):
-        for name, call in (("value and gradient", lambda: nll.value_and_grad(optimum)),
-                           ("plain scan, value and gradient", lambda: jax.block_until_ready(plain(optimum))),
-                           ("value", lambda: nll.value(optimum)),
-                           ("value and gradient at the starting values", lambda: nll.value_and_grad(nll.start())),
-                           ("Hessian", lambda: nll.hessian(optimum))):
-            figures[name] = min(figures.get(name, float("inf")), fastest(call, 100 if name == "Hessian" else 300))
-    for name, seconds in figures.items():
+    calls = {"value and gradient": lambda: nll.value_and_grad(optimum),
+             "plain scan, value and gradient": lambda: jax.block_until_ready(plain(optimum)),
+             "value": lambda: nll.value(optimum),
+             "value and gradient at the starting values": lambda: nll.value_and_grad(nll.start()),
+             "Hessian": lambda: nll.hessian(optimum)}
+    rounds = [{name: fastest(call, args.calls) for name, call in calls.items()} for _ in range(args.rounds)]
+    for name in calls:
+        seconds = min(r[name] for r in rounds)
         print(f"  {name}: {seconds * 1e3:.3f} ms per call ({seconds * 1e6 / rows:.2f} µs per row)")
-    ratio = figures["value and gradient"] / figures["plain scan, value and gradient"]
-    print(f"  value and gradient / plain scan: {ratio:.2f}")
+    vg, scan = "value and gradient", "plain scan, value and gradient"
+    each = sorted(r[vg] / r[scan] for r in rounds)
+    print(f"  value and gradient / plain scan: {min(r[vg] for r in rounds) / min(r[scan] for r in rounds):.2f} "
+          f"(round by round: median {np.median(each):.2f}, range {each[0]:.2f}–{each[-1]:.2f})")
     fits, again = durations(lambda: model.fit(data, time="Time", hold="foh"), 15)
     print(f"  warm fit: median {np.median(fits) * 1e3:.1f} ms, fastest {min(fits) * 1e3:.1f} ms "
           f"(log L {again.loglik:.6f}, {again.iterations} iterations)")
