@@ -513,8 +513,8 @@ class Model:
         (Fisher scoring far from the optimum where a Hessian is costly, then exact
         Newton steps), ``"scoring"``, ``"newton"`` or ``"quasi-newton"`` (L-BFGS steps on
         the value and exact gradient, then exact Newton steps: the same optimum, compiled
-        fits of small models in about two thirds of the time, a first fit compiling one
-        program more; see :mod:`greyid.estimate.optimize`).
+        fits of small models in half to 0.6 of the default's time (Armadillo), a first fit
+        compiling one program more; see :mod:`greyid.estimate.optimize`).
         ``steady_state=True``: a regular series of 128 rows or more of a linear
         time-invariant model runs the fit's programs in the filter's steady state
         once the filter has settled (as ``likelihood`` does): later fits of the model in
