@@ -30,15 +30,26 @@ def test_write_atomic_leaves_the_old_file_whole_when_the_write_fails(tmp_path, m
     assert sorted(p.name for p in tmp_path.iterdir()) == ["fit.json"]  # no temporary left
 
 
-def test_a_generation_is_all_new_or_all_old(tmp_path, monkeypatch):
-    folder = tmp_path / "out"
-    write_generation(folder, {"fit.json": "1", "summary.txt": "1", "parameters.csv": "1"})
-    # Killed while writing the new files (before the journal): the old generation stays.
-    calls = {"n": 0}
-    real_write = Path.write_bytes
+def _generation(folder: Path) -> dict:
+    """The folder's files as one reader sees them: listed and read through one open handle of the folder."""
+    handle = os.open(folder, os.O_RDONLY)
+    try:
+        files = {}
+        for name in os.listdir(handle):
+            with open(os.open(name, os.O_RDONLY, dir_fd=handle)) as file:
+                files[name] = file.read()
+        return files
+    finally:
+        os.close(handle)
 
+
+def test_a_killed_write_leaves_the_old_generation_and_a_users_files_stay(tmp_path, monkeypatch):
     import greyid.outputs as outputs
 
+    folder = tmp_path / "out"
+    write_generation(folder, {"fit.json": "1", "summary.txt": "1", "parameters.csv": "1"})
+    (folder / "notes.txt").write_text("mine")
+    calls = {"n": 0}
     real_new = outputs._write_new
 
     def dies_on_second(path, blob):
@@ -51,10 +62,53 @@ def test_a_generation_is_all_new_or_all_old(tmp_path, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         write_generation(folder, {"fit.json": "2", "summary.txt": "2", "parameters.csv": "2"})
     monkeypatch.undo()
-    complete_generation(folder)
-    assert {p.name: p.read_text() for p in folder.iterdir()} == {"fit.json": "1", "summary.txt": "1",
-                                                                 "parameters.csv": "1"}
-    # Killed while moving them into place (after the journal): the next reader completes it.
+    assert _generation(folder) == {"fit.json": "1", "summary.txt": "1", "parameters.csv": "1", "notes.txt": "mine"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # nothing left beside it
+    write_generation(folder, {"fit.json": "3", "summary.txt": "3"})
+    assert _generation(folder) == {"fit.json": "3", "summary.txt": "3", "parameters.csv": "1", "notes.txt": "mine"}
+
+
+def test_a_reader_sees_one_whole_generation_at_every_moment(tmp_path, monkeypatch):
+    """While a generation is written (each file slowed), the folder read over and over shows the old
+    files or the new ones, never some of each nor a file missing."""
+    import threading
+
+    import greyid.outputs as outputs
+
+    folder = tmp_path / "out"
+    names = ("fit.json", "summary.txt", "parameters.csv", "report.html")
+    write_generation(folder, {n: "1" for n in names})
+    real_new = outputs._write_new
+
+    def slow(path, blob):
+        time.sleep(0.05)
+        real_new(path, blob)
+
+    monkeypatch.setattr(outputs, "_write_new", slow)
+    writer = threading.Thread(target=lambda: [write_generation(folder, {n: str(g) for n in names})
+                                              for g in (2, 3, 4)])
+    writer.start()
+    seen = set()
+    while writer.is_alive():
+        state = _generation(folder)
+        assert set(state) == set(names), state
+        assert len(set(state.values())) == 1, state
+        seen.add(next(iter(state.values())))
+    writer.join()
+    assert _generation(folder) == {n: "4" for n in names}
+    assert len(seen) >= 2  # the reader did see the folder change
+
+
+def test_without_folder_exchange_the_journal_completes_a_generation(tmp_path, monkeypatch):
+    """Where folders cannot be exchanged (another system), the files move behind a journal that the
+    next reader or writer carries out."""
+    import greyid.outputs as outputs
+
+    monkeypatch.setattr(outputs, "_exchange", lambda first, second: False)
+    folder = tmp_path / "out"
+    write_generation(folder, {"fit.json": "1", "summary.txt": "1"})
+    write_generation(folder, {"fit.json": "2", "summary.txt": "2"})
+    assert _generation(folder) == {"fit.json": "2", "summary.txt": "2"}
     real_replace = os.replace
     moved = {"n": 0}
 
@@ -68,31 +122,45 @@ def test_a_generation_is_all_new_or_all_old(tmp_path, monkeypatch):
 
     monkeypatch.setattr(os, "replace", dies_after_first_move)
     with pytest.raises(KeyboardInterrupt):
-        write_generation(folder, {"fit.json": "3", "summary.txt": "3", "parameters.csv": "3"})
-    monkeypatch.undo()
+        write_generation(folder, {"fit.json": "3", "summary.txt": "3"})
+    monkeypatch.setattr(os, "replace", real_replace)
     assert (folder / JOURNAL).exists()
     complete_generation(folder)
-    assert {p.name: p.read_text() for p in folder.iterdir()} == {"fit.json": "3", "summary.txt": "3",
-                                                                 "parameters.csv": "3"}
-    del real_write
+    assert _generation(folder) == {"fit.json": "3", "summary.txt": "3"}
+
+
+def test_the_folder_exchange_is_used_on_linux(tmp_path):
+    from greyid.outputs import _exchange
+
+    if not sys.platform.startswith("linux"):
+        pytest.skip("renameat2 is Linux's")
+    a, b = tmp_path / "a", tmp_path / "b"
+    a.mkdir()
+    b.mkdir()
+    (a / "x").write_text("a")
+    (b / "x").write_text("b")
+    assert _exchange(a, b)
+    assert (a / "x").read_text() == "b" and (b / "x").read_text() == "a"
 
 
 SLOW_FIT = """
-import os, sys, time
-real = os.replace
-def slow(source, destination):  # a slowed write: the process is killed in the middle
-    if not str(destination).endswith('.greyid-generation.json'):
-        time.sleep(1.0)
-    return real(source, destination)
-os.replace = slow
+import sys, time
+import greyid.outputs as outputs
+real = outputs._write_new
+def slow(path, blob):  # a slowed write: the process is killed in the middle of the files
+    time.sleep(0.4)
+    open(sys.argv[-1], 'a').close()
+    real(path, blob)
+outputs._write_new = slow
 from greyid.cli import main
-sys.exit(main(sys.argv[1:]))
+sys.exit(main(sys.argv[1:-1]))
 """
 
 
 def test_a_killed_fit_leaves_one_generation(tmp_path):
-    """`greyid fit --out DIR` killed while moving its files into place: DIR then holds the previous
-    run's files or (once any greyid command reads it) the new run's, never a mixture."""
+    """`greyid fit --out DIR` killed while it writes its files: DIR holds the previous run's files, whole,
+    as anyone who opens it sees them (no greyid command needs to read it first), and a later run
+    leaves nothing of the killed one behind."""
     data = ROOT / "src" / "greyid" / "datasets"
     model = data / "building.toml"
     out = tmp_path / "out"
@@ -101,32 +169,30 @@ def test_a_killed_fit_leaves_one_generation(tmp_path):
                            env=env, capture_output=True, text=True)
     assert first.returncode in (0, 1), first.stderr
     before = {p.name: p.read_bytes() for p in out.iterdir()}
-    # A second run of other data (the first 500 rows): its files differ from the first run's.
     import pandas as pd
 
     frame = pd.read_csv(data / "building.csv").iloc[:500]
     short = tmp_path / "short.csv"
     frame.to_csv(short, index=False)
+    writing = tmp_path / "writing"
     process = subprocess.Popen([sys.executable, "-c", SLOW_FIT, "fit", str(model), str(short), "--out", str(out),
-                                "-q"], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                                "-q", str(writing)], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 300
-    while not (out / JOURNAL).exists() and time.time() < deadline and process.poll() is None:
+    while not writing.exists() and time.time() < deadline and process.poll() is None:
         time.sleep(0.02)
-    assert (out / JOURNAL).exists(), "the run reached its moves"
-    time.sleep(0.3)
+    assert writing.exists(), "the run reached its writes"
+    time.sleep(0.6)  # inside the second file's write
     process.send_signal(signal.SIGKILL)
     process.wait()
-    # The previous fit is whole in the folder, or the journal completes the new one.
-    assert json.loads((out / "fit.json").read_text()) is not None
-    shown = subprocess.run([sys.executable, "-m", "greyid", "validate", str(out / "fit.json")], env=env,
-                           capture_output=True, text=True)
-    assert shown.returncode in (0, 1), shown.stderr
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    again = subprocess.run([sys.executable, "-m", "greyid", "fit", str(model), str(short), "--out", str(out), "-q"],
+                           env=env, capture_output=True, text=True)
+    assert again.returncode in (0, 1), again.stderr
     after = {p.name: p.read_bytes() for p in out.iterdir()}
-    assert set(after) == set(before)
+    assert set(after) == set(before) and after != before
     fit = json.loads(after["fit.json"])
-    summary = after["summary.txt"].decode()
-    assert f"observations: {fit['n_obs']}" in summary  # fit.json and summary.txt of the same run
-    assert fit["n_obs"] == 500 and after != before
+    assert fit["n_obs"] == 500 and f"observations: {fit['n_obs']}" in after["summary.txt"].decode()
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []  # no leftovers
 
 
 def test_output_paths_are_refused_before_any_work(tmp_path):

@@ -22,8 +22,10 @@ _LAZY = {"Model": "model", "FitResult": "estimate", "FitWarning": "estimate", "l
          "PopulationResult": "population"}
 
 
-#: Subpackages reachable as attributes after ``import greyid`` alone (``greyid.datasets.fetch``).
-_SUBPACKAGES = ("datasets", "library")
+#: Subpackages reachable as attributes after ``import greyid`` alone (``greyid.datasets.fetch``,
+#: ``greyid.design.identifiability``), imported when first named.
+_SUBPACKAGES = ("datasets", "library", "data", "model", "filters", "estimate", "simulate", "uncertainty",
+                "validation", "design", "report", "fleet", "population")
 
 
 def __getattr__(name):

@@ -30,14 +30,34 @@ def cache_dir() -> str | None:
     return None if path.lower() in ("off", "0", "none", "") else path
 
 
+def cache_folder_problem(path: str) -> str | None:
+    """Why ``path`` cannot be greyid's cache folder (a file, a broken or looping link, not writable),
+    or None where it can (it may not exist yet: it is made when first needed)."""
+    if os.path.islink(path) and not os.path.exists(path):
+        return "is a symbolic link that leads nowhere (a loop or a missing target)"
+    if os.path.exists(path) and not os.path.isdir(path):
+        return "is a file, not a folder"
+    if os.path.isdir(path) and not os.access(path, os.W_OK | os.X_OK):
+        return "is not writable"
+    return None
+
+
 def _enable_compilation_cache() -> None:
     path = cache_dir()
     if path is None:
         return
-    try:
-        os.makedirs(path, exist_ok=True)
-    except OSError:
-        return  # a read-only home: run without the cache
+    problem = cache_folder_problem(path)
+    if problem is None:
+        try:
+            os.makedirs(path, exist_ok=True)
+        except OSError as error:  # a read-only home, a file on the way
+            problem = f"cannot be made ({error.strerror or error})"
+    if problem is not None:
+        from .errors import CacheWarning, warn
+
+        warn(f"greyid's cache folder '{path}' {problem}: compiled programs are not kept between processes "
+             "(set GREYID_CACHE_DIR to a writable folder, or to off)", CacheWarning)
+        return
     if jax.config.jax_compilation_cache_dir is None:  # respect a cache the user configured
         jax.config.update("jax_compilation_cache_dir", path)
         if owned():

@@ -31,7 +31,7 @@ from .errors import DataError, ModelError
 
 OK, VERDICT, BAD_INPUT = 0, 1, 2
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False, rich_markup_mode=None,
                   help="Grey-box identification of physical systems with stochastic differential equations.")
 out = Console(highlight=False, soft_wrap=True, markup=False)
 err = Console(stderr=True, highlight=False, soft_wrap=True, markup=False)
@@ -141,22 +141,45 @@ def load_data(model, data: Optional[Path], fit=None, time: Optional[str] = None)
     frame = read_data(model, data, time)
     name = time or model.options.get("time", "t")
     if name in frame.columns and pd.api.types.is_datetime64_any_dtype(frame[name]):
+        from .data.timestamps import READ_AS
+
         unit = model.options.get("time_unit") or "s"
-        err.print(f"time column '{name}': timestamps from {frame[name].iloc[0]} read as elapsed time in "
+        read_as = frame.attrs.get(READ_AS)
+        how = f" (dates read {read_as})" if read_as in ("day-first", "month-first") else ""
+        err.print(f"time column '{name}': timestamps from {frame[name].iloc[0]}{how} read as elapsed time in "
                   f"'{unit}' since the first row (set [data] time_unit to change it)")
     return frame, data_origin(model, data)
 
 
-def _run(command) -> None:
+def _fit_warning():
+    """FitWarning, whose module imports JAX (and with it sets up the cache): imported inside ``_run``'s
+    handling of warnings, so that the cache's own warning is handled too."""
+    from .estimate.results import FitWarning
+
+    return FitWarning
+
+
+def _run(command, quiet_cache: bool = False) -> None:
     """Run a command; turn bad input into a plain message and exit code 2."""
     import warnings
 
-    from .estimate import FitWarning
+    from . import errors
+
+    def plainly(message, category, *where, **more):
+        # greyid's own warnings as the command's lines; others (a dependency's) as Python prints them.
+        if category.__module__.startswith("greyid"):
+            err.print(f"warning: {message}")
+        else:
+            shown(message, category, *where, **more)
 
     try:
         with warnings.catch_warnings():
+            shown = warnings.showwarning
+            warnings.showwarning = plainly
+            if quiet_cache:  # the command itself says what is wrong with the cache folder
+                warnings.simplefilter("ignore", errors.CacheWarning)
             # A fit's warnings are printed once, at the end of its summary.
-            warnings.simplefilter("ignore", FitWarning)
+            warnings.simplefilter("ignore", _fit_warning())
             code = command()
     except (InputProblem, ModelError, DataError, ImportError) as problem:
         # ImportError: an optional dependency a command needs is missing (its message says what to install).
@@ -171,15 +194,20 @@ def _run(command) -> None:
 
 # ---------------------------------------------------------------------- commands
 @app.command()
-def fit(model: str = typer.Argument(..., help="model file (.toml) or library model name"),
-        data: Optional[Path] = typer.Argument(None, help="CSV data or dataset:NAME (default: the fit's data, the "
-                                              "model file's [data] file or dataset)"),
-        out_dir: Optional[Path] = typer.Option(None, "--out", help="folder for fit.json, summary.txt, parameters.csv"),
-        method: Optional[str] = typer.Option(None, help="filter: kalman, ekf, iekf, ekf2, ukf, gaussian2, truncated2"),
-        hold: Optional[str] = typer.Option(None, help="input hold between samples: zoh or foh"),
-        time_column: Optional[str] = typer.Option(None, "--time", help="name of the time column"),
-        starts: Optional[int] = typer.Option(None, help="number of starting points (random ones inside the bounds)"),
-        seed: Optional[int] = typer.Option(None, help="seed of the random starting points"),
+def fit(model: str = typer.Argument(..., metavar="MODEL", help="model file (.toml) or library model name"),
+        data: Optional[Path] = typer.Argument(None, metavar="DATA",
+                                              help="CSV data or dataset:NAME (default: the fit's data, the "
+                                                   "model file's [data] file or dataset)"),
+        out_dir: Optional[Path] = typer.Option(None, "--out", metavar="DIR",
+                                               help="folder for fit.json, summary.txt, parameters.csv"),
+        method: Optional[str] = typer.Option(None, metavar="NAME",
+                                             help="filter: kalman, ekf, iekf, ekf2, ukf, gaussian2, truncated2"),
+        hold: Optional[str] = typer.Option(None, metavar="zoh|foh", help="input hold between samples: zoh or foh"),
+        time_column: Optional[str] = typer.Option(None, "--time", metavar="COLUMN", help="name of the time column"),
+        starts: Optional[int] = typer.Option(None, min=1, metavar="N",
+                                             help="number of starting points (random ones inside the "
+                                                  "bounds)"),
+        seed: Optional[int] = typer.Option(None, min=0, metavar="N", help="seed of the random starting points"),
         report: bool = typer.Option(False, "--report", help="also write report.html into --out"),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress output")):
     """Estimate the parameters of MODEL from DATA and print the summary."""
@@ -256,8 +284,9 @@ def _population_data(paths: list[Path]) -> dict:
 
 @app.command(name="population")
 def population_command(
-        model: str = typer.Argument(..., help="model file (.toml) or library model name"),
-        data: list[Path] = typer.Argument(..., help="a folder of CSV files (a data set each) or several CSV files"),
+        model: str = typer.Argument(..., metavar="MODEL", help="model file (.toml) or library model name"),
+        data: list[Path] = typer.Argument(..., metavar="DATA...",
+                                          help="a folder of CSV files (a data set each) or several CSV files"),
         random: list[str] = typer.Option([], "--random", help="PARAMETER:normal or PARAMETER:lognormal (repeat; "
                                                               "default: the model file's [population] random)"),
         covariates: Optional[Path] = typer.Option(None, help="CSV with a row per data set (first column: the "
@@ -265,11 +294,13 @@ def population_command(
         effect: list[str] = typer.Option([], "--effect", help="PARAMETER:COVARIATE, a covariate effect (repeat)"),
         omega: Optional[str] = typer.Option(None, help="diagonal or full (correlated random effects; default: "
                                                        "the model file's, else diagonal)"),
-        method: Optional[str] = typer.Option(None, help="filter: kalman, ekf, iekf, ekf2, ukf, gaussian2, truncated2"),
-        hold: Optional[str] = typer.Option(None, help="input hold between samples: zoh or foh"),
-        time_column: Optional[str] = typer.Option(None, "--time", help="name of the time column"),
-        out_dir: Optional[Path] = typer.Option(None, "--out", help="folder for population.json, summary.txt, "
-                                                                   "parameters.csv, random_effects.csv"),
+        method: Optional[str] = typer.Option(None, metavar="NAME",
+                                             help="filter: kalman, ekf, iekf, ekf2, ukf, gaussian2, truncated2"),
+        hold: Optional[str] = typer.Option(None, metavar="zoh|foh", help="input hold between samples: zoh or foh"),
+        time_column: Optional[str] = typer.Option(None, "--time", metavar="COLUMN", help="name of the time column"),
+        out_dir: Optional[Path] = typer.Option(None, "--out", metavar="DIR",
+                                               help="folder for population.json, summary.txt, "
+                                                    "parameters.csv, random_effects.csv"),
         report: bool = typer.Option(False, "--report", help="also write report.html (the population report) "
                                                             "into --out"),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress output")):
@@ -326,9 +357,12 @@ def population_command(
 
 
 @app.command()
-def simulate(model: str = typer.Argument(..., help="model file, fit file (.json) or library model name"),
-             data: Optional[Path] = typer.Argument(None, help="CSV with the time column and the inputs"),
-             out_file: Optional[Path] = typer.Option(None, "--out", help="CSV to write (default: print)"),
+def simulate(model: str = typer.Argument(..., metavar="MODEL",
+                                         help="model file, fit file (.json) or library model name"),
+             data: Optional[Path] = typer.Argument(None, metavar="DATA",
+                                                   help="CSV with the time column and the inputs"),
+             out_file: Optional[Path] = typer.Option(None, "--out", metavar="DIR",
+                                                     help="CSV to write (default: print)"),
              paths: int = typer.Option(1, help="number of sample paths"),
              seed: int = typer.Option(0, help="random seed"),
              method: str = typer.Option("euler", help="euler, milstein, heun or exact (linear models)"),
@@ -373,8 +407,9 @@ def _fit_with_data(fit_file: Path, data: Optional[Path]):
 
 
 @app.command()
-def validate(fit_file: Path = typer.Argument(..., help="fit file written by 'greyid fit --out'"),
-             data: Optional[Path] = typer.Argument(None, help="the data (default: the data the fit used)"),
+def validate(fit_file: Path = typer.Argument(..., metavar="FIT", help="fit file written by 'greyid fit --out'"),
+             data: Optional[Path] = typer.Argument(None, metavar="DATA",
+                                                   help="the data (default: the data the fit used)"),
              level: float = typer.Option(0.05, help="significance level of the tests")):
     """Run the residual tests of chapter 5 on a saved fit; exit code 1 if any test rejects."""
 
@@ -387,8 +422,9 @@ def validate(fit_file: Path = typer.Argument(..., help="fit file written by 'gre
 
 
 @app.command()
-def report(fit_file: Path = typer.Argument(..., help="fit file written by 'greyid fit --out'"),
-           data: Optional[Path] = typer.Argument(None, help="the data (default: the data the fit used)"),
+def report(fit_file: Path = typer.Argument(..., metavar="FIT", help="fit file written by 'greyid fit --out'"),
+           data: Optional[Path] = typer.Argument(None, metavar="DATA",
+                                                 help="the data (default: the data the fit used)"),
            out_file: Path = typer.Option(Path("report.html"), "--out", help="HTML file to write"),
            level: float = typer.Option(0.05, help="significance level of the tests"),
            steps: int = typer.Option(4, help="prediction horizon shown beside 1-step predictions")):
@@ -423,9 +459,11 @@ def _read_plan(m, path: Path):
 
 
 @app.command(name="design")
-def design_command(model: str = typer.Argument(..., help="model file, fit file (.json) or library model name"),
-                   plan: Path = typer.Argument(..., help="CSV with the time column and the inputs (measured "
-                                                         "outputs in it are left out, with a notice)"),
+def design_command(model: str = typer.Argument(..., metavar="MODEL",
+                                               help="model file, fit file (.json) or library model name"),
+                   plan: Path = typer.Argument(..., metavar="PLAN",
+                                               help="CSV with the time column and the inputs (measured "
+                                                    "outputs in it are left out, with a notice)"),
                    candidates: Optional[list[Path]] = typer.Option(None, "--compare", "--candidate",
                                                                   help="another plan to rank against PLAN "
                                                                        "(repeatable)"),
@@ -433,7 +471,8 @@ def design_command(model: str = typer.Argument(..., help="model file, fit file (
                                                                  help="D, A, C or E (repeatable; default all)"),
                    method: Optional[str] = typer.Option(None, help="exact (linear models) or montecarlo"),
                    paths: int = typer.Option(100, help="simulated data sets for montecarlo"),
-                   hold: Optional[str] = typer.Option(None, help="input hold between samples: zoh or foh")):
+                   hold: Optional[str] = typer.Option(None, metavar="zoh|foh",
+                                                      help="input hold between samples: zoh or foh")):
     """The Fisher information of a planned experiment, its criteria and Cramér–Rao bounds (chapter 6)."""
 
     def command() -> int:
@@ -443,6 +482,7 @@ def design_command(model: str = typer.Argument(..., help="model file, fit file (
         import pandas as pd
 
         from . import design
+        from .errors import UndefinedCriterionWarning
         from .errors import UndeterminedWarning as design_warning
 
         m, saved = load_model_or_fit(model)
@@ -460,6 +500,7 @@ def design_command(model: str = typer.Argument(..., help="model file, fit file (
             plans[path.stem] = _read_plan(m, path)
         with warnings.catch_warnings():  # printed below, as the command's own lines
             warnings.simplefilter("ignore", design_warning)
+            warnings.simplefilter("ignore", UndefinedCriterionWarning)
             table = design.compare_inputs(m, params, plans, criteria={c: c for c in names}, **options)
             info = table.attrs["information"][plan.stem]
             bound = design.cramer_rao_bound(info)
@@ -473,6 +514,8 @@ def design_command(model: str = typer.Argument(..., help="model file, fit file (
         out.print()
         out.print("criteria (smaller is better):")
         out.print(table.rename_axis("plan").reset_index().to_string(index=False, float_format=lambda v: f"{v:.5g}"))
+        for label, message in table.attrs["undefined"].items():
+            out.print(f"{label} not computed: {message}")
         flat = design.local_identifiability(info)
         for name, direction in table.attrs["undetermined"].items():
             out.print(f"not determined by plan '{name}': the direction {direction} (scaled parameters)")
@@ -482,7 +525,8 @@ def design_command(model: str = typer.Argument(..., help="model file, fit file (
 
 
 @app.command(name="identifiability")
-def identifiability_command(model: str = typer.Argument(..., help="model file, fit file (.json) or library model name"),
+def identifiability_command(model: str = typer.Argument(..., metavar="MODEL",
+                                                        help="model file, fit file (.json) or library model name"),
                            plan: Optional[Path] = typer.Option(None, "--plan",
                                                                help="CSV plan (needed for nonlinear models)")):
     """Which parameters any experiment can determine (section 6.1); exit code 1 if some cannot."""
@@ -578,14 +622,18 @@ def cache_info():
         if usage["folder"] is None:
             out.print("greyid's cache is switched off (GREYID_CACHE_DIR=off)")
             return OK
-        out.print(f"folder: {usage['folder']} (GREYID_CACHE_DIR)")
+        if usage["problem"]:
+            raise InputProblem(f"greyid's cache folder '{usage['folder']}' (GREYID_CACHE_DIR) {usage['problem']}; "
+                               "programs are not kept")
+        exists = "" if Path(usage["folder"]).is_dir() else " (not made yet: made by the first fit)"
+        out.print(f"folder: {usage['folder']} (GREYID_CACHE_DIR){exists}")
         files, size = usage["programs"]
         out.print(f"traced programs: {files} files, {_size(size)} (programs/)")
         files, size = usage["compiled"]
         out.print(f"compiled programs (JAX's persistent cache): {files} files, {_size(size)}")
         return OK
 
-    _run(command)
+    _run(command, quiet_cache=True)
 
 
 @cache_app.command(name="clear")
@@ -595,11 +643,15 @@ def cache_clear():
     def command() -> int:
         from . import programs
 
+        usage = programs.usage()
+        if usage["problem"]:
+            raise InputProblem(f"greyid's cache folder '{usage['folder']}' (GREYID_CACHE_DIR) {usage['problem']}; "
+                               "nothing to clear")
         removed = programs.clear()
         out.print(f"removed {removed} files from {programs.usage()['folder'] or 'nothing (cache off)'}")
         return OK
 
-    _run(command)
+    _run(command, quiet_cache=True)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -4,19 +4,26 @@
   flushed to disk, then renamed over the target (a rename within a folder is
   atomic), so a reader sees the old file or the new one, never a part.
 * :func:`write_generation` writes a run's files into a folder as one
-  generation: every file is written under a temporary name first, then a
-  journal naming them is written (atomically), then each is renamed into place
-  and the journal removed.  A process killed before the journal leaves the
-  previous generation untouched (its temporary files are removed next time); one
-  killed after it leaves a journal that :func:`complete_generation` — called by
-  every reader and writer of the folder — carries out.  So a folder never shows
-  files of two runs side by side.
+  generation.  On Linux the files are written into a new sibling folder, with
+  any other files of the old folder linked into it, and the two folders are
+  exchanged in one step (``renameat2`` with ``RENAME_EXCHANGE``): at every moment
+  the folder's path holds the previous run's files or the new run's, as any
+  program that opens it sees them.  Where the exchange is not available (another
+  system, a file system without it) every file is written under a temporary name
+  first, then a journal naming them is written (atomically), then each is
+  renamed into place and the journal removed; a run killed after the journal
+  leaves it for :func:`complete_generation`, which every reader and writer of the
+  folder calls.  Leftovers of a killed run are removed by the next write.
 """
 
 from __future__ import annotations
 
+import ctypes
+import errno
 import json
 import os
+import shutil
+import sys
 import tempfile
 import uuid
 from pathlib import Path
@@ -88,12 +95,95 @@ def complete_generation(folder) -> None:
             leftover.unlink(missing_ok=True)
 
 
+def _exchange(first: Path, second: Path) -> bool:
+    """Swap two folders in one step (Linux ``renameat2(RENAME_EXCHANGE)``); False where the system or
+    the file system cannot."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        renameat2 = ctypes.CDLL(None, use_errno=True).renameat2
+    except (OSError, AttributeError):  # a C library without renameat2 (glibc before 2.28, musl)
+        return False
+    renameat2.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    renameat2.restype = ctypes.c_int
+    here, exchange = -100, 2  # AT_FDCWD, RENAME_EXCHANGE
+    if renameat2(here, os.fsencode(first), here, os.fsencode(second), exchange) == 0:
+        return True
+    code = ctypes.get_errno()
+    if code in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP, errno.ENOTSUP):
+        return False
+    raise OSError(code, os.strerror(code), str(second))
+
+
+def _carry_over(old: Path, new: Path, names) -> None:
+    """Link (or copy) into ``new`` what ``old`` holds besides this generation's files: a user's
+    own files in the output folder are kept, not dropped."""
+    for entry in old.iterdir():
+        if entry.name in names or entry.name == JOURNAL or entry.name.endswith(PARTIAL):
+            continue
+        target = new / entry.name
+        if entry.is_symlink():
+            os.symlink(os.readlink(entry), target)
+        elif entry.is_dir():
+            shutil.copytree(entry, target, symlinks=True, copy_function=_link_or_copy)
+        else:
+            _link_or_copy(entry, target)
+
+
+def _link_or_copy(source, target) -> None:
+    try:
+        os.link(source, target)
+    except OSError:
+        shutil.copy2(source, target)
+
+
+def _sibling(folder: Path, kind: str, tag: str) -> Path:
+    return folder.parent / f".{folder.name}.{tag}.{kind}{PARTIAL}"
+
+
+def _remove_leftovers(folder: Path) -> None:
+    """The sibling folders of a run killed before or after its exchange."""
+    if folder.parent.is_dir():
+        for leftover in folder.parent.glob(f".{folder.name}.*{PARTIAL}"):
+            if leftover.is_dir() and not leftover.is_symlink():
+                shutil.rmtree(leftover, ignore_errors=True)
+
+
 def write_generation(folder, files: dict) -> None:
     """Write ``files`` (name → text or bytes) into ``folder`` as one generation (see the module doc)."""
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    complete_generation(folder)
+    if folder.is_symlink():  # a link to the user's output folder: the folder itself is replaced, not the link
+        folder = folder.resolve()
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    _remove_leftovers(folder)
+    if folder.is_dir():
+        complete_generation(folder)
     tag = uuid.uuid4().hex[:12]
+    new = _sibling(folder, "new", tag)
+    new.mkdir()
+    try:
+        for name, content in files.items():
+            _write_new(new / name, _as_bytes(content))
+        if folder.is_dir():
+            _carry_over(folder, new, files)
+        _sync_folder(new)
+        if not folder.exists():
+            os.rename(new, folder)
+            _sync_folder(folder.parent)
+            return
+        if _exchange(new, folder):
+            _sync_folder(folder.parent)
+            shutil.rmtree(new, ignore_errors=True)  # the previous generation, now under the new one's name
+            return
+    except BaseException:
+        shutil.rmtree(new, ignore_errors=True)
+        raise
+    shutil.rmtree(new, ignore_errors=True)
+    _write_by_journal(folder, files, tag)
+
+
+def _write_by_journal(folder: Path, files: dict, tag: str) -> None:
+    """The generation renamed file by file behind a journal, where folders cannot be exchanged."""
     moves = {}
     try:
         for name, content in files.items():

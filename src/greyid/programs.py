@@ -48,7 +48,8 @@ FORMAT = 3
 def folder() -> Path | None:
     """Where programs are kept, or None where greyid's cache is switched off."""
     base = _jax.cache_dir()
-    return None if base is None else Path(base) / "programs"
+    # A folder that cannot be used (said once, when JAX is set up): nothing is kept.
+    return None if base is None or _jax.cache_folder_problem(base) else Path(base) / "programs"
 
 
 def enabled() -> bool:
@@ -273,11 +274,13 @@ def write(path: Path, blob: bytes) -> None:
 
 
 def usage() -> dict:
-    """What greyid's cache folder holds: ``{"folder", "programs": (files, bytes), "compiled": (files, bytes)}``
-    (compiled: JAX's persistent cache entries in the folder)."""
+    """What greyid's cache folder holds: ``{"folder", "programs": (files, bytes), "compiled": (files, bytes),
+    "problem"}`` (compiled: JAX's persistent cache entries in the folder; problem: why the folder cannot be
+    used, or None)."""
     base = _jax.cache_dir()
-    out = {"folder": base, "programs": (0, 0), "compiled": (0, 0)}
-    if base is None or not Path(base).is_dir():
+    out = {"folder": base, "programs": (0, 0), "compiled": (0, 0),
+           "problem": None if base is None else _jax.cache_folder_problem(base)}
+    if base is None or out["problem"] or not Path(base).is_dir():
         return out
     kept = [p for p in (Path(base) / "programs").glob("*") if p.is_file()]
     compiled = [p for p in Path(base).iterdir() if p.is_file()]
@@ -290,7 +293,7 @@ def clear() -> int:
     """Remove what greyid's cache folder holds (kept programs and JAX's compiled entries); returns the
     number of files removed.  A process using them meanwhile falls back to tracing and compiling."""
     base = _jax.cache_dir()
-    if base is None or not Path(base).is_dir():
+    if base is None or _jax.cache_folder_problem(base) or not Path(base).is_dir():
         return 0
     removed = 0
     for path in list((Path(base) / "programs").glob("*")) + list(Path(base).iterdir()):

@@ -66,8 +66,8 @@ def check_options(options: Mapping) -> dict:
             raise ModelError(f"setting '{key}' must be a positive integer, got {value!r}")
         if key == "steady_state" and not isinstance(value, bool):
             raise ModelError(f"setting 'steady_state' must be true or false, got {value!r}")
-        if key == "seed" and not (isinstance(value, int) and not isinstance(value, bool)):
-            raise ModelError(f"setting 'seed' must be an integer, got {value!r}")
+        if key == "seed" and not (isinstance(value, int) and not isinstance(value, bool) and value >= 0):
+            raise ModelError(f"setting 'seed' must be a non-negative integer, got {value!r}")
         if key == "robust":
             value = tuple(value) if isinstance(value, list) else value
         if key == "columns":

@@ -14,7 +14,7 @@ from typing import Mapping
 
 import pandas as pd
 
-from ..errors import DataError, ModelError, UndeterminedWarning
+from ..errors import DataError, ModelError, UndefinedCriterionWarning, UndeterminedWarning, warn
 from ..scaled import ScaledInformation
 from .criteria import criterion
 from .information import fisher_information
@@ -53,7 +53,7 @@ def compare_inputs(model, params, candidates: Mapping[str, pd.DataFrame], criter
     specs = {label: _spec(label, spec) for label, spec in criteria.items()}
     values = model.parameter_vector(params)
     point = dict(zip(model.structure.parameter_names, values))
-    rows, matrices, undetermined = {}, {}, {}
+    rows, matrices, undetermined, undefined = {}, {}, {}, {}
     for name, plan in candidates.items():
         if not isinstance(plan, pd.DataFrame):
             raise DataError(f"plan '{name}' is not a DataFrame of times and inputs")
@@ -66,24 +66,33 @@ def compare_inputs(model, params, candidates: Mapping[str, pd.DataFrame], criter
         scaled = ScaledInformation.of(info.to_numpy(), list(info.index))
         if scaled.singular:
             undetermined[name] = scaled.describe()
-            warnings.warn(f"plan '{name}' does not determine the direction {undetermined[name]} (scaled "
-                          "parameters): its criteria of it are +inf", UndeterminedWarning, stacklevel=2)
+            warn(f"plan '{name}' does not determine the direction {undetermined[name]} (scaled "
+                          "parameters): its criteria of it are +inf", UndeterminedWarning)
         for label, spec in specs.items():
             options = {k: v for k, v in spec.items() if k != "name"}
             if spec["name"] == "Ds" and "interest" not in options:
                 if interest is None:
                     raise ModelError(f"criterion '{label}' (Ds) needs interest=, the parameters of interest")
                 options["interest"] = interest
-            with warnings.catch_warnings():  # said once per candidate, above
+            with warnings.catch_warnings(record=True) as caught:  # said once per candidate, above
                 warnings.simplefilter("ignore", UndeterminedWarning)
+                warnings.simplefilter("always", UndefinedCriterionWarning)
                 row[label] = criterion(info, spec["name"], params=point, **options)
+            for said in caught:
+                if issubclass(said.category, UndefinedCriterionWarning):
+                    undefined.setdefault(label, str(said.message))
+                else:
+                    warnings.warn_explicit(said.message, said.category, said.filename, said.lineno)
         rows[name] = row
+    for label, message in undefined.items():
+        warn(f"{label}: {message}; its column is NaN and its rank empty", UndefinedCriterionWarning)
     table = pd.DataFrame.from_dict(rows, orient="index")
-    for label in specs:
-        table[f"{label} rank"] = table[label].rank(method="min").astype(int)
+    for label in specs:  # an undefined criterion (NaN) has no rank: pandas' nullable integers
+        table[f"{label} rank"] = table[label].rank(method="min").astype("Int64")
     table = table[[c for label in specs for c in (label, f"{label} rank")]]
     table.attrs["information"] = matrices
     table.attrs["undetermined"] = undetermined
+    table.attrs["undefined"] = undefined
     return table
 
 

@@ -18,13 +18,12 @@ a prior distribution of θ (J₃, 6.36–6.38) or its worst case over a box (6.3
 
 from __future__ import annotations
 
-import warnings
 from itertools import product
 
 import numpy as np
 import pandas as pd
 
-from ..errors import ModelError, UndeterminedWarning
+from ..errors import ModelError, UndefinedCriterionWarning, UndeterminedWarning, warn
 from ..scaled import ScaledInformation
 
 CRITERIA = ("D", "A", "C", "E", "L", "Ds")
@@ -58,8 +57,8 @@ def with_prior(info, prior) -> pd.DataFrame:
 
 def _undetermined(scaled: ScaledInformation, what: str) -> float:
     """+inf, with a warning naming the direction the information does not determine."""
-    warnings.warn(f"the information does not determine the direction {scaled.describe()} "
-                  f"(scaled parameters): {what} is +inf", UndeterminedWarning, stacklevel=3)
+    warn(f"the information does not determine the direction {scaled.describe()} "
+                  f"(scaled parameters): {what} is +inf", UndeterminedWarning)
     return float("inf")
 
 
@@ -138,6 +137,11 @@ def criterion(info, name: str, params=None, interest=None, V=None, k: float = 1.
         if params is None:
             raise ModelError("criterion 'C' needs params (V = diag(1/θ))")
         theta = np.array([float(params[n]) for n in names])
+        zero = [n for n, value in zip(names, theta) if value == 0.0]
+        if zero:  # relative variances of a parameter whose value is 0 do not exist
+            warn(f"criterion C (variances relative to θ², V = diag(1/θ)) is undefined: "
+                          f"{', '.join(zero)} {'is' if len(zero) == 1 else 'are'} 0", UndefinedCriterionWarning)
+            return float("nan")
         Vc = np.diag(1.0 / theta)
         return float(np.trace(Vc @ cov @ Vc) / p)
     W = np.eye(p) if V is None else np.asarray(V, dtype=np.float64)
@@ -185,8 +189,8 @@ def cramer_rao_bound(info, params=None, derived=None) -> pd.Series:
         J, labels, _ = _derived_jacobian(names, params, derived)
         out = pd.concat([out, pd.Series(scaled.variances(J), index=labels)]).rename("variance bound")
     if scaled.singular:
-        warnings.warn(f"the information does not determine the direction {scaled.describe()} (scaled "
-                      "parameters): the bounds along it are +inf", UndeterminedWarning, stacklevel=2)
+        warn(f"the information does not determine the direction {scaled.describe()} (scaled "
+                      "parameters): the bounds along it are +inf", UndeterminedWarning)
     return out
 
 

@@ -336,22 +336,50 @@ GENERIC_ROWS = 240
 GENERIC_LEVELS = 16
 
 
-def generic_plan(model, point, seed: int = 0) -> tuple[pd.DataFrame, str]:
+def input_ranges(model) -> dict:
+    """``{input: (low, high)}`` from the data the model file names (``[data] file`` or ``dataset``), or
+    ``{}`` where it names none or they cannot be read."""
+    from ..errors import DataError, ModelError
+    from ..model.files import read_data
+    from ..model.options import rename_columns
+
+    options = getattr(model, "options", {}) or {}
+    if not (options.get("file") or options.get("dataset")):
+        return {}
+    try:
+        frame = rename_columns(read_data(model), options.get("columns"))
+    except (DataError, ModelError, OSError, ImportError):
+        return {}
+    ranges = {}
+    for name in model.structure.input_names:
+        if name in frame.columns:
+            values = pd.to_numeric(frame[name], errors="coerce").to_numpy(dtype=float)
+            values = values[np.isfinite(values)]
+            if len(values):
+                ranges[name] = (float(values.min()), float(values.max()))
+    return ranges
+
+
+def generic_plan(model, point, seed: int = 0, ranges: dict | None = None) -> tuple[pd.DataFrame, str]:
     """A rich experiment for a model that no transfer function describes, and its description.
 
-    The drift linearised at the initial state (inputs at 1) gives the model's
-    rates; the plan covers five of the slowest time constants, sampled at least
-    four times per fastest one (at most :data:`GENERIC_ROWS` rows), with each
-    input held at :data:`GENERIC_LEVELS` random levels in [0.5, 1.5] (seeded).
+    The drift linearised at the initial state (inputs at their ranges' middle, else 1)
+    gives the model's rates; the plan covers five of the slowest time constants,
+    sampled at least four times per fastest one (at most :data:`GENERIC_ROWS` rows),
+    with each input held at :data:`GENERIC_LEVELS` random levels (seeded) within
+    ``ranges[input]`` (the model file's data: :func:`input_ranges`), else in [0.5, 1.5].
     """
     import jax
     import jax.numpy as jnp
 
     s = model.structure
+    ranges = {name: ranges[name] for name in s.input_names if name in (ranges or {})}
+    bounds = [ranges.get(name, (0.5, 1.5)) for name in s.input_names]
     theta = jnp.asarray(model.parameter_vector(point), dtype=jnp.float64)
     x0 = s.initial_mean(theta)
-    ones = jnp.ones(s.n_inputs)
-    A = np.asarray(jax.jacfwd(s.drift, argnums=0)(x0, ones, jnp.asarray(0.0), theta), dtype=float)
+    middle = jnp.asarray([0.5 * (lo + hi) if name in ranges else 1.0
+                          for name, (lo, hi) in zip(s.input_names, bounds)], dtype=jnp.float64)
+    A = np.asarray(jax.jacfwd(s.drift, argnums=0)(x0, middle, jnp.asarray(0.0), theta), dtype=float)
     rates = _rates(A)
     slow, fast = (rates.min(), rates.max()) if rates.size else (1.0, 1.0)
     span = 5.0 / slow
@@ -360,12 +388,41 @@ def generic_plan(model, point, seed: int = 0) -> tuple[pd.DataFrame, str]:
     rng = np.random.default_rng(seed)
     plan = {"t": np.arange(rows) * step}
     hold = max(1, rows // GENERIC_LEVELS)
-    for name in s.input_names:
-        levels = rng.uniform(0.5, 1.5, -(-rows // hold))
+    for name, (lo, hi) in zip(s.input_names, bounds):
+        levels = rng.uniform(lo, hi, -(-rows // hold))
         plan[name] = np.repeat(levels, hold)[:rows]
+    where = ("within the ranges of the model file's data" if ranges and len(ranges) == s.n_inputs else
+             "within the ranges of the model file's data where it has the input, else in [0.5, 1.5]" if ranges
+             else "in [0.5, 1.5]")
     text = (f"{rows} samples every {step:.4g} time units (five of the slowest time constants), "
-            + (f"inputs held at {GENERIC_LEVELS} random levels in [0.5, 1.5]" if s.n_inputs else "no inputs"))
+            + (f"inputs held at {GENERIC_LEVELS} random levels {where}" if s.n_inputs else "no inputs"))
     return pd.DataFrame(plan), text
+
+
+def _check_plan_finite(model, point, plan: pd.DataFrame, text: str) -> None:
+    """Name the equation a plan's inputs make not finite at the initial state, before simulating it."""
+    import jax
+    import jax.numpy as jnp
+
+    from ..errors import ModelError
+
+    s = model.structure
+    theta = jnp.asarray(model.parameter_vector(point), dtype=jnp.float64)
+    x0 = s.initial_mean(theta)
+    u = jnp.asarray(plan[list(s.input_names)].to_numpy(dtype=float).reshape(len(plan), s.n_inputs))
+    t = jnp.asarray(plan["t"].to_numpy(dtype=float))
+    f = np.asarray(jax.vmap(lambda u, t: s.drift(x0, u, t, theta))(u, t))
+    h = np.asarray(jax.vmap(lambda u, t: s.observation(x0, u, t, theta))(u, t))
+    for what, values, names in (("drift of", f, [f"d{x}" for x in s.state_names]),
+                                ("observation", h, list(s.output_names))):
+        bad = np.argwhere(~np.isfinite(values))
+        if len(bad):
+            row, j = bad[0]
+            equation = list(s.equations["drift" if what == "drift of" else "observation"])[j]
+            inputs = ", ".join(f"{n} = {plan[n].iloc[row]:.4g}" for n in s.input_names)
+            raise ModelError(f"{text}: at its row {row} ({inputs}) the {what} '{names[j]}' ({equation}) is not "
+                             "finite at the initial state; give a plan with the inputs of a real experiment "
+                             "(plan=DataFrame of times and inputs, or --plan FILE.csv on the command line)")
 
 
 def _by_information(model, names, points, plan, seed):
@@ -375,7 +432,8 @@ def _by_information(model, names, points, plan, seed):
 
     notes = ["a rank judged on one plan: another experiment may determine more"]
     if plan is None:
-        plan, text = generic_plan(model, points[0], seed)
+        plan, text = generic_plan(model, points[0], seed, input_ranges(model))
+        _check_plan_finite(model, points[0], plan, f"the generic plan ({text})")
         notes = [f"no plan given: judged on a generic plan, {text}; another experiment may determine more"]
     best = None
     for k, point in enumerate(points):

@@ -21,7 +21,7 @@ from ..compiler import compile_in_background, import_while_compiling
 from ..data.prepare import as_frames
 from ..errors import DataError, ModelError
 from ..filters.accuracy import LOGLIK_TOLERANCE, MAX_SUBSTEPS, SubstepChoice, needs_substeps
-from ..filters.api import check_at_parameters, filter_options, prepare_datasets
+from ..filters.api import check_at_parameters, check_equations_finite, filter_options, prepare_datasets
 from ..filters.core import takes_steady_state
 from ..model.delays import delay_parameters
 from ..progress import FitProgress
@@ -99,7 +99,7 @@ def _describe(names, theta, free) -> str:
     return ", ".join(f"{names[i]}={theta[i]:.6g}" for i in free)
 
 
-def check_settings(criterion, prior, robust, horizon, cov_type, optimizer, starts):
+def check_settings(criterion, prior, robust, horizon, cov_type, optimizer, starts, seed=0):
     """The estimation settings, checked; returns ``(robust, cov_type)`` in their normal form."""
     if criterion not in CRITERIA:
         raise ModelError(f"unknown criterion '{criterion}'; use 'ml' or 'map'")
@@ -113,6 +113,8 @@ def check_settings(criterion, prior, robust, horizon, cov_type, optimizer, start
         raise ModelError(f"unknown optimizer {optimizer!r}; use one of {list(OPTIMIZERS)}")
     if not isinstance(starts, int) or starts < 1:
         raise ModelError(f"starts must be a positive integer, got {starts!r}")
+    if seed is not None and (not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0):
+        raise ModelError(f"seed must be a non-negative integer (the random starts' seed), got {seed!r}")
     return robust, cov_type
 
 
@@ -370,7 +372,7 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
         init_from=None, optimizer="auto", **filter_settings):
     """Estimate the free parameters of ``model`` from ``data``; see :meth:`Model.fit`."""
     structure = model.structure
-    robust, cov_type = check_settings(criterion, prior, robust, horizon, cov_type, optimizer, starts)
+    robust, cov_type = check_settings(criterion, prior, robust, horizon, cov_type, optimizer, starts, seed)
     parameters = free_parameters(model, init)
     names, theta0, free = parameters.names, parameters.theta0, parameters.free
     transform = parameters.transform
@@ -403,6 +405,7 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
         theta_start = problem.theta(z_start, theta0)
         for series, inputs in prepared:
             check_at_parameters(structure, theta_start, series, inputs)
+            check_equations_finite(structure, theta_start, series, inputs)
         return ModelError("the criterion or its derivatives are not finite at the "
                           f"{labels[i] if i < len(labels) else 'refit'} (start {i + 1}) "
                           f"({_describe(names, theta_start, free)}); check the initial parameter values")

@@ -9,12 +9,11 @@ error, and a fit converges only at a minimum (:func:`honest_convergence`).
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 import pandas as pd
 from scipy import special
 
+from ..errors import warn as warn_user
 from ..model.parameters import log_parametrised
 from .covariance import FEW_STEPS, parameter_covariance
 from .results import FitResult, FitWarning, filter_settings
@@ -49,6 +48,37 @@ def honest_convergence(best, ill, free_names, inner, g_theta, se) -> tuple[bool,
     return True, best.message
 
 
+def why_undetermined(model, name: str, frames) -> str:
+    """``"; it enters the equations only with the input 'u', which is 0 in every row"`` where the
+    inputs that are constant in the data make every equation independent of parameter ``name``,
+    else ``""``."""
+    import sympy as sp
+
+    structure = model.structure
+    constant = {}
+    for column in structure.input_names:
+        values = np.concatenate([np.asarray(df[column], dtype=float) for df in frames if column in df])
+        values = values[np.isfinite(values)]
+        if len(values) and np.all(values == values[0]):
+            constant[column] = float(values[0])
+    if not constant:
+        return ""
+    entries = [e for key in ("drift", "diffusion", "observation", "variance", "covariance")
+               for e in list(structure.equations.get(key, sp.Matrix()))]
+    symbol = next((s for e in entries for s in e.free_symbols if s.name == name), None)
+    if symbol is None:
+        return ""
+    slopes = [sp.diff(e, symbol) for e in entries]
+    with_inputs = sorted({s.name for d in slopes for s in d.free_symbols if s.name in constant})
+    if not with_inputs:
+        return ""
+    values = {s: sp.nsimplify(constant[s.name]) for d in slopes for s in d.free_symbols if s.name in constant}
+    if any(sp.simplify(d.subs(values)) != 0 for d in slopes):
+        return ""
+    said = ", ".join(f"'{n}' ({constant[n]:g} in every row)" for n in with_inputs)
+    return f"; it enters the equations only with the constant input{'s' if len(with_inputs) > 1 else ''} {said}"
+
+
 def build_result(model, frames, theta, problem, best, optima, settings, scores=None) -> FitResult:
     """Map the optimum back to natural parameters and compute the uncertainty.
 
@@ -71,9 +101,17 @@ def build_result(model, frames, theta, problem, best, optima, settings, scores=N
     Hz = 0.5 * (best.hessian + best.hessian.T)
     Jinv = 1.0 / d1[inner]
     H = Hz[np.ix_(inner, inner)] * np.outer(Jinv, Jinv)
-    for i in np.flatnonzero(at_bound):
+    # At a bound, a criterion that does not depend on a parameter at all has exactly zero slope and
+    # curvature in it (JAX differentiates an absent term to 0.0): the bound did not hold it back, the
+    # data simply do not determine it.
+    independent = at_bound & (best.gradient == 0.0) & np.all(best.hessian == 0.0, axis=1)
+    for i in np.flatnonzero(at_bound & ~independent):
         warn.append(f"parameter '{free_names[i]}' is at a bound ({theta_free[i]:.6g}); "
                     "its standard error is not given")
+    for i in np.flatnonzero(independent):
+        warn.append(f"the likelihood does not depend on '{free_names[i]}' (its slope and curvature are 0)"
+                    f"{why_undetermined(model, free_names[i], frames)}: the data do not determine it, and its "
+                    f"estimate ({theta_free[i]:.6g}, at a bound) means nothing")
 
     k = int(inner.sum())
     cov_inner = np.full((k, k), np.nan)
@@ -95,8 +133,9 @@ def build_result(model, frames, theta, problem, best, optima, settings, scores=N
             for name in loading:
                 reliable[free_names.index(name)] = False
             desc = ", ".join(f"{v:+.3f}·{n}" for n, v in loading.items())
+            why = why_undetermined(model, next(iter(loading)), frames) if len(loading) == 1 else ""
             warn.append(f"the Hessian is {'singular' if w[j] > -1e-12 else 'not positive definite'} in the "
-                        f"direction {desc}: these parameters are not determined by the data, "
+                        f"direction {desc}{why}: these parameters are not determined by the data, "
                         "their standard errors are unreliable (greyid.design.identifiability(model) says "
                         "whether any experiment could determine them, and which combination it can)")
         J = None if scores is None else scores.matrix[np.ix_(inner, inner)] * np.outer(Jinv, Jinv)
@@ -135,6 +174,10 @@ def build_result(model, frames, theta, problem, best, optima, settings, scores=N
         tval = np.where(se > 0, theta_free / np.where(se > 0, se, 1.0), np.nan)
     pval = 2 * special.stdtr(dof, -np.abs(tval))  # two-sided Student-t p-value
     converged, message = honest_convergence(best, ill, free_names, inner, g_theta, se)
+    if converged and independent.any():
+        converged = False
+        message = ("the data do not determine " + ", ".join(f"'{free_names[i]}'" for i in np.flatnonzero(independent))
+                   + " (the likelihood does not depend on it)")
     if not converged:
         warn.append(f"the fit did not converge: {message}")
     if settings.get("substeps_accurate") is False:
@@ -175,7 +218,7 @@ def build_result(model, frames, theta, problem, best, optima, settings, scores=N
         loglik = model.loglik(dict(zip(names, theta)), frames if len(frames) > 1 else frames[0],
                               **filter_settings(settings))
     for text in warn:  # printed plainly once, and kept on the fit
-        warnings.warn(f"{model.name}: {text}", FitWarning, stacklevel=4)
+        warn_user(f"{model.name}: {text}", FitWarning)
     return FitResult(model=model, params=params, cov=pd.DataFrame(cov, index=free_names, columns=free_names),
                      loglik=float(loglik), criterion_value=float(criterion_value), n_obs=n_obs,
                      converged=converged, message=message, iterations=best.iterations,

@@ -18,7 +18,7 @@ import pandas as pd
 
 from ..compiler import structure_program
 from ..data.prepare import Series, as_frames, prepare_series
-from ..errors import DataError, FilterWarning, ModelError
+from ..errors import DataError, FilterWarning, ModelError, warn
 from ..model.structure import Structure
 from .accuracy import choose_substeps, needs_substeps
 from .core import EKF, KALMAN, FilterInputs, FilterOptions, initial_state, make_ahead, make_filter
@@ -186,6 +186,66 @@ def check_at_parameters(structure: Structure, theta: np.ndarray, series: Series,
         )
 
 
+def check_equations_finite(structure: Structure, theta: np.ndarray, series: Series, data: FilterInputs) -> None:
+    """Name the equation and row where the model's functions are not finite at the initial state.
+
+    Called where a fit's criterion is not finite at its start, to say why: an equation
+    that is infinite at a time or an input value of the data (``1/t``, ``log(t)`` at
+    t = 0) cannot be mended by any parameter value, and the message says so.
+    """
+    def values(theta, data):
+        data = with_delayed_inputs(structure, theta, data)
+        x0, _ = initial_state(structure, theta, data)
+        at = jax.vmap(lambda u, t: (structure.drift(x0, u, t, theta), structure.diffusion(x0, u, t, theta),
+                                    structure.observation(x0, u, t, theta)))
+        return x0, at(data.u_cur, data.t)
+
+    x0, (f, G, h) = structure_program(structure, ("equations finite",), lambda: values)(jnp.asarray(theta), data)
+    rows = series.n_rows
+    states, outputs = structure.state_names, structure.output_names
+    named = [("drift", f, lambda i: f"d{states[i[0]]}", "drift"),
+             ("diffusion", G, lambda i: f"d{states[i[0]]}", "diffusion"),
+             ("observation", h, lambda i: f"{outputs[i[0]]}", "observation")]
+    for what, array, equation_of, key in named:
+        array = np.asarray(array)[:rows]
+        bad = np.argwhere(~np.isfinite(array.reshape(rows, -1)))
+        if not len(bad):
+            continue
+        row, flat = bad[0]
+        index = np.unravel_index(flat, array.shape[1:])
+        matrix = structure.equations.get(key)
+        expression = list(matrix)[flat] if matrix is not None and len(list(matrix)) == array[0].size else None
+        text = str(expression) if expression is not None else "its expression"
+        t = float(np.asarray(data.t)[row])
+        where = {"t": t, **{n: float(np.asarray(data.u_cur)[row, j]) for j, n in enumerate(structure.input_names)}}
+        shown = ", ".join(f"{n} = {v:.6g}" for n, v in where.items())
+        hopeless = _infinite_whatever_the_parameters(expression, where,
+                                                     dict(zip(states, np.asarray(x0))))
+        cause = ("; it is infinite there whatever the parameters' values (an expression such as 1/t or log(t) "
+                 "at t = 0): shift the time column, leave that row out or change the equation") if hopeless else (
+            "; check the equation and the initial parameter values")
+        raise ModelError(f"the {what} of '{equation_of(index)}' ({text}) is not finite at row {row} of the data "
+                         f"({shown}; states at their initial values){cause}")
+
+
+def _infinite_whatever_the_parameters(expression, where: dict, states: dict) -> bool:
+    """Whether ``expression`` with the row's time, inputs and initial states put in is infinite or
+    undefined for every value of the parameters (SymPy's ``zoo``, ``oo``, ``nan``)."""
+    if expression is None:
+        return False
+    import sympy as sp
+
+    given = {**where, **states}
+    # The model's symbols carry assumptions (real=True): match them by name.
+    values = {symbol: sp.Float(given[symbol.name]) if given[symbol.name] != 0 else sp.Integer(0)
+              for symbol in expression.free_symbols if symbol.name in given}
+    try:
+        reduced = expression.subs(values)
+    except (TypeError, ValueError):
+        return False
+    return bool(reduced.has(sp.zoo, sp.oo, -sp.oo, sp.nan))
+
+
 def prepare_datasets(structure: Structure, theta: np.ndarray, data, time, hold, time_unit, check: bool = True,
                      on_device: bool = True):
     """Check every data set against the model (and, with ``check``, at θ); ``[(series, filter inputs), ...]``."""
@@ -194,7 +254,9 @@ def prepare_datasets(structure: Structure, theta: np.ndarray, data, time, hold, 
         series = prepare_series(df, structure.input_names, structure.output_names, time, time_unit)
         inputs = filter_inputs(series, hold, on_device)
         if structure.initial_covariance.kind == "process" and series.n_rows < 2:
-            raise DataError("a data set with one row has no sampling interval for the 'process' initial covariance")
+            raise DataError(f"the data have one row (t = {series.times[0]:g}): the model's initial covariance "
+                            "\"process\" is the process noise over the first sampling interval, and one row has "
+                            "no interval; give the data of at least two times (or an initial covariance matrix)")
         if check:
             check_at_parameters(structure, theta, series, inputs)
         prepared.append((series, inputs))
@@ -237,13 +299,12 @@ def _result(structure: Structure, method: str, series: Series, terms, outputs) -
 def _guarded(method: str, series: Series, guarded: np.ndarray) -> pd.Series:
     """The rows whose update was guarded, with a warning that names the first."""
     if guarded.any():
-        import warnings
 
         first = int(np.flatnonzero(guarded)[0])
-        warnings.warn(f"filter '{method}': at {int(guarded.sum())} row(s), first row {first} "
+        warn(f"filter '{method}': at {int(guarded.sum())} row(s), first row {first} "
                       f"({series.time_name} = {series.times[first]:g}), the measurement update's covariance "
                       "P − K R Kᵀ was not positive semi-definite (the approximation's moments are "
-                      "inconsistent there); the Joseph form replaced it", FilterWarning, stacklevel=4)
+                      "inconsistent there); the Joseph form replaced it", FilterWarning)
     return pd.Series(guarded, index=series.index, name="guarded")
 
 

@@ -56,6 +56,7 @@ from typing import Mapping
 
 import numpy as np
 
+from ..data.timestamps import parse_timestamps
 from ..errors import DataError, ModelError
 from ..schema import MODEL_SECTIONS, check_model_document, observation_entry, parameter_entry
 
@@ -361,13 +362,14 @@ def read_data(model, path=None, time: str | None = None):
                             model.options.get("time_zone"), str(path) if name is None else where)
 
 
-def read_csv_file(path, separator=None, decimal=None):
+def read_csv_file(path, separator=None, decimal=None, text_columns: int = 0):
     """A CSV file as a DataFrame, with a named error for every way it can fail to be one.
 
     The separator is detected where not given (``,`` ``;`` tab ...).  A file that
     is empty, not UTF-8 text, or has two columns of the same name is refused;
     ``;``-separated numbers with decimal commas are read as such (``decimal``,
-    detected where not given).
+    detected where not given).  The first ``text_columns`` columns are read as
+    text as written (names such as ``001``).
     """
     import csv
     import warnings
@@ -402,51 +404,8 @@ def read_csv_file(path, separator=None, decimal=None):
     try:
         with warnings.catch_warnings():  # pandas' own warnings would be printed before greyid's message
             warnings.simplefilter("ignore")
-            frame = pd.read_csv(io.StringIO(text), sep=separator, decimal=decimal)
+            frame = pd.read_csv(io.StringIO(text), sep=separator, decimal=decimal,
+                                dtype={k: str for k in range(text_columns)} or None)
     except (pd.errors.ParserError, pd.errors.EmptyDataError, ValueError, csv.Error) as err:
         raise DataError(f"data file '{path}' could not be read as CSV: {err}") from None
     return frame
-
-
-def parse_timestamps(frame, time: str, time_format=None, time_zone=None, where: str = "the data"):
-    """A time column of text turned into timestamps (``time_format``, else ISO 8601 or inferred).
-
-    Naive timestamps are read in ``time_zone`` when given (so elapsed times cross
-    daylight-saving changes correctly), aware ones converted to it.  A column of
-    numbers is left as it is; text that is not a time names its row.
-    """
-    import pandas as pd
-
-    if time not in frame.columns or not (pd.api.types.is_object_dtype(frame[time])
-                                         or pd.api.types.is_string_dtype(frame[time])):
-        return frame
-    column = frame[time]
-    numbers = pd.to_numeric(column, errors="coerce").notna()
-    if numbers.mean() >= 0.5:
-        # Numbers (perhaps with a bad row): read as numbers, whose check names the first bad row.
-        return frame
-    import warnings
-
-    with warnings.catch_warnings():  # pandas' own warnings would be printed before greyid's message
-        warnings.simplefilter("ignore")
-        try:
-            parsed = pd.to_datetime(column, format=time_format, errors="coerce")
-        except ValueError:
-            # Several UTC offsets (a daylight-saving change within the data): each timestamp is an
-            # exact instant, and in UTC the elapsed times across the change are right.
-            parsed = pd.to_datetime(column, format=time_format, errors="coerce", utc=True)
-        if parsed.dtype == object:  # mixed offsets parsed one by one (older pandas)
-            parsed = pd.to_datetime(column, format=time_format, errors="coerce", utc=True)
-    if parsed.isna().all():
-        return frame  # not timestamps at all: the numeric check names the first bad row
-    bad = np.flatnonzero(parsed.isna().to_numpy())
-    if len(bad):
-        raise DataError(f"time column '{time}' in {where}: row {bad[0]} holds {column.iloc[bad[0]]!r}, which is not "
-                        f"a time{f' in the format {time_format!r}' if time_format else ''}")
-    if time_zone:
-        try:
-            parsed = (parsed.dt.tz_localize(time_zone, ambiguous="raise", nonexistent="raise")
-                      if parsed.dt.tz is None else parsed.dt.tz_convert(time_zone))
-        except Exception as err:  # unknown zone, or a local time that DST makes ambiguous
-            raise DataError(f"time column '{time}' in {where}: time zone {time_zone!r}: {err}") from None
-    return frame.assign(**{time: parsed})

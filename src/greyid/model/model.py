@@ -488,7 +488,10 @@ class Model:
         """The data renamed to model names and this call's settings (given, else the model's)."""
         settings = resolve(self._options, given, keys)
         columns = settings.pop("columns", None)
-        return rename_columns(data, columns), settings
+        data = rename_columns(data, columns)
+        # How text in the time column is read: used here, where the data meet the model, not by the filter.
+        time_format, time_zone = settings.pop("time_format", None), settings.pop("time_zone", None)
+        return _read_times(data, settings.get("time", "t"), time_format, time_zone), settings
 
     def fit(self, data, time: str | None = None, hold: str | None = None, method: str | None = None,
             criterion: str | None = None, prior=None, robust=None, horizon: int | None = None,
@@ -651,3 +654,16 @@ def _rectangular(value) -> bool:
         return False
     rows = [r for r in value if isinstance(r, (list, tuple, np.ndarray))]
     return not rows or (len(rows) == len(value) and len({len(r) for r in rows}) == 1)
+
+
+def _read_times(data, time: str, time_format, time_zone):
+    """Text in the time column of ``data`` (a frame or a list of frames) read as timestamps."""
+    import pandas as pd
+
+    from ..data.timestamps import parse_timestamps
+
+    if isinstance(data, (list, tuple)):
+        return [_read_times(d, time, time_format, time_zone) for d in data]
+    if not isinstance(data, pd.DataFrame):
+        return data
+    return parse_timestamps(data, time, time_format, time_zone)

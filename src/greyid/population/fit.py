@@ -25,7 +25,7 @@ import numpy as np
 import pandas as pd
 
 from ..data.prepare import as_frames
-from ..errors import DataError, ModelError
+from ..errors import DataError, ModelError, warn
 from ..estimate.batch import pad_series
 from ..estimate.estimation import check_observed
 from ..estimate.objective import worker_count
@@ -86,8 +86,7 @@ def _prepare_members(model, names, sources, spec: PopulationSpec, raw_covariates
     if minimum is not None and len(kept) < minimum:
         raise DataError(f"the data set cannot be used: {next(iter(left_out.values()))}")
     for name, why in left_out.items():
-        warnings.warn(f"data set '{name}' is left out of the population fit: {why}", PopulationWarning,
-                      stacklevel=3)
+        warn(f"data set '{name}' is left out of the population fit: {why}", PopulationWarning)
     if minimum is None and len(kept) <= max(spec.n_random, 1):
         raise DataError(f"{len(kept)} data set(s) can be fitted, too few for a population with {spec.n_random} "
                         "random effect(s): a population fit needs more data sets than random effects")
@@ -197,13 +196,13 @@ def population_programs(structure, spec: PopulationSpec, options) -> laplace.Lap
 
 
 def read_covariates(path) -> pd.DataFrame:
-    """A covariates CSV file: a row per data set, its first column the data sets' names."""
+    """A covariates CSV file: a row per data set, its first column the data sets' names (read as text)."""
     from ..model.files import read_csv_file
 
     path = Path(path)
     if not path.is_file():
         raise DataError(f"covariates file '{path}' not found")
-    table = read_csv_file(path)
+    table = read_csv_file(path, text_columns=1)  # names such as "001" stay text, as the files' stems are
     table = table.set_index(table.columns[0])
     table.index = table.index.map(str)
     return table

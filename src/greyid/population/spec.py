@@ -234,6 +234,11 @@ def make_spec(model, random, covariates, effects, omega, names_of_datasets, init
         if missing:
             raise DataError(f"the covariates table has no row for data set '{missing[0]}' (its index must be the "
                             "data sets' names)")
+        for n in names_of_datasets:  # a member's covariates must be one row, not the first of several
+            places = [k for k, i in enumerate(index) if i == str(n)]
+            if len(places) > 1:
+                raise DataError(f"the covariates table has {len(places)} rows for data set '{n}' (rows "
+                                f"{', '.join(str(k + 1) for k in places)} below the header); keep one")
         rows = [index.index(str(n)) for n in names_of_datasets]
         table = covariates.iloc[rows][columns]
         for column in columns:

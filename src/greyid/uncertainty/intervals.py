@@ -13,13 +13,12 @@ different θ_j each.
 
 from __future__ import annotations
 
-import warnings
 
 import numpy as np
 import pandas as pd
 from scipy import special
 
-from ..errors import ModelError
+from ..errors import ModelError, warn
 from ..estimate.results import FitWarning
 from ..estimate.transforms import Transform
 
@@ -47,9 +46,9 @@ def parameter_draws(fit, draws: int = 200, seed: int = 0, posterior=None) -> np.
     usable = [n for n in cov.index if np.isfinite(cov.loc[n, n]) and cov.loc[n, n] > 0]
     missing = [n for n in cov.index if n not in usable]
     if missing:
-        warnings.warn(f"{fit.model.name}: {', '.join(missing)} ha{'s' if len(missing) == 1 else 've'} no standard "
+        warn(f"{fit.model.name}: {', '.join(missing)} ha{'s' if len(missing) == 1 else 've'} no standard "
                       "error (at a bound or not determined); held at the estimate in the parameter draws",
-                      FitWarning, stacklevel=3)
+                      FitWarning)
     if not usable:
         return out
     rows = fit.params.loc[usable]

@@ -11,13 +11,12 @@ with exact gradients).  For a MAP fit the profile is that of the log-posterior.
 
 from __future__ import annotations
 
-import warnings
 
 import numpy as np
 import pandas as pd
 from scipy import optimize, stats
 
-from ..errors import ModelError
+from ..errors import ModelError, warn
 from ..estimate.refit import Refit
 from ..estimate.results import FitWarning
 from ..estimate.transforms import Transform
@@ -268,7 +267,7 @@ def _regula_falsi(fun, a, fa, b, fb, tolerance: float = 1e-5, iterations: int = 
 
 def _say(message: str, notes: list | None) -> None:
     if notes is None:
-        warnings.warn(message, FitWarning, stacklevel=5)
+        warn(message, FitWarning)
     else:
         notes.append(message)
 
