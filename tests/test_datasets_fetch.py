@@ -36,8 +36,41 @@ def test_an_unknown_name_and_a_missing_mirror_file_are_named(monkeypatch, tmp_pa
     with pytest.raises(greyid.DataError, match="no data set named 'armadilo'.*armadillo"):
         fetching.fetch("armadilo")
     monkeypatch.setenv(fetching.MIRROR, str(tmp_path))
-    with pytest.raises(greyid.DataError, match="not found in the mirror"):
+    with pytest.raises(greyid.DataError, match=r"put the file armadillo_data_H2.csv from https://\S+ in it"):
         fetching.fetch("armadillo")
+
+
+def test_a_plain_folder_of_the_sources_files_serves_as_the_mirror(monkeypatch, tmp_path):
+    """What a user has without the network: the files as their sources serve them, side by side."""
+    if not (DATA / fetching.SOURCES["armadillo"].mirror).is_file():
+        pytest.skip(f"the mirror {DATA} has no Armadillo file")
+    shutil.copy(DATA / fetching.SOURCES["armadillo"].mirror, tmp_path / fetching.source_file("armadillo"))
+    monkeypatch.setenv(fetching.MIRROR, str(tmp_path))
+    assert fetching.fetch("armadillo").shape == SHAPES["armadillo"]
+
+
+def test_an_offline_download_says_which_file_to_put_where(server, tmp_path, monkeypatch):
+    """No network (here: a port nobody listens on): no HTTP library's message, but the file and the variable."""
+    pytest.importorskip("pooch")
+    _, url = server
+    closed = url.rsplit(":", 1)[0] + ":9"  # the discard port: refused
+    monkeypatch.delenv(fetching.MIRROR, raising=False)
+    source = fetching.Source(f"{closed}/houses/data.csv", "0" * 64, "none/data.csv", fetching._read_csv(),
+                             fetching._read_csv(), "test", "test")
+    monkeypatch.setitem(fetching.SOURCES, "local", source)
+    with pytest.raises(greyid.DataError) as refused:
+        fetching.fetch("local", data_home=tmp_path / "cache")
+    message = str(refused.value)
+    assert "could not be downloaded" in message and "put data.csv in a folder and set GREYID_DATA_MIRROR" in message
+    assert "urllib3" not in message and "HTTPConnection" not in message and "Max retries" not in message
+
+
+def test_the_data_guide_lists_every_data_set_with_its_file():
+    guide = (Path(__file__).resolve().parents[1] / "docs" / "guide" / "data.md").read_text(encoding="utf-8")
+    for name, source in fetching.SOURCES.items():
+        row = next((line for line in guide.splitlines() if line.startswith(f"| `{name}` ")), None)
+        assert row is not None, name
+        assert f"`{fetching.source_file(name)}`" in row and f"`{source.mirror}`" in row, row
 
 
 @pytest.fixture

@@ -5,6 +5,7 @@ in kWh/K, K/kW, kW and hours; and a model whose parameters span 1e-6 to 1e9 agai
 the same model with every parameter of order one.
 """
 
+import os
 import warnings
 from pathlib import Path
 
@@ -17,7 +18,8 @@ from greyid import design
 from greyid.model.files import read_model
 
 ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT.parent / "shared" / "data" / "armadillo_box" / "armadillo_data_H2.csv"
+MIRROR = Path(os.environ.get("GREYID_DATA_MIRROR", ROOT.parent / "shared" / "data"))  # as conftest.py sets it
+DATA = MIRROR / "armadillo_box" / "armadillo_data_H2.csv"
 
 # θ_SI = FACTOR · θ_kWh (time: 3600 s per hour; power: 1000 W per kW).
 FACTOR = {"Cw": 3.6e6, "Ci": 3.6e6, "Ri": 1e-3, "Ro": 1e-3, "sigw": 1.0 / 60.0, "sigv": 1.0, "Tw0": 1.0}

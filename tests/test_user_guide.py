@@ -6,6 +6,7 @@ Estimates the fit marks unreliable (at a bound, in a flat direction) must be
 marked so in the guide, not matched digit for digit.
 """
 
+import os
 import warnings
 from pathlib import Path
 
@@ -15,7 +16,7 @@ import greyid
 
 ROOT = Path(__file__).resolve().parents[1]
 GUIDE = (ROOT / "docs" / "user-guide.md").read_text(encoding="utf-8")
-SHARED = ROOT.parent / "shared" / "data"
+SHARED = Path(os.environ.get("GREYID_DATA_MIRROR", ROOT.parent / "shared" / "data"))
 
 
 def output_block(after: str) -> list[str]:

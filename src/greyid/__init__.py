@@ -3,7 +3,7 @@
 ``import greyid`` is light: JAX, SymPy and the rest load when a model is first
 used (``greyid.Model``, ``greyid.load_fit``, ...).  Then greyid switches JAX to
 64-bit floats, which the filters need, and turns on JAX's persistent
-compilation cache (see :mod:`greyid._jax`; ``GREYID_CACHE_DIR=off`` keeps it off).
+compilation cache (see [`greyid._jax`][greyid._jax]; ``GREYID_CACHE_DIR=off`` keeps it off).
 """
 
 import sys

@@ -6,14 +6,14 @@ automatic full collection among them walks the whole heap of JAX, SymPy and
 pandas: 0.2–0.25 s of an Armadillo first fit in a fresh process went to it
 (``benchmarks/fit.py``), 0.03 s with the collector paused.  What tracing leaves
 behind is collected while XLA compiles, which frees the interpreter
-(:func:`collect_young_garbage`, 0.03 s of the same fit), or else after the
+([`collect_young_garbage()`][greyid._collector.collect_young_garbage], 0.03 s of the same fit), or else after the
 block, as usual.
 
 Importing JAX, SymPy and pandas creates about 240 000 objects that live as
 long as the process; the automatic full collections among them took 0.1 s of
 the same fit, and every later one would walk them all again.  They are imported
 with the collector paused, and in greyid's own command-line processes then
-frozen (:func:`imports_frozen`); a user's process keeps its collector's state.
+frozen ([`imports_frozen()`][greyid._collector.imports_frozen]); a user's process keeps its collector's state.
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ def collector_paused():
 @contextlib.contextmanager
 def imports_frozen():
     """The collector paused while the block imports modules; in greyid's own processes
-    (:func:`greyid._process.take_over`) every object tracked so far is then frozen.
+    ([`greyid._process.take_over()`][greyid._process.take_over]) every object tracked so far is then frozen.
 
     ``gc.freeze`` moves the objects to a permanent generation that later
     collections skip: modules, classes and functions, which live on anyway.

@@ -2,10 +2,10 @@
 
 greyid changes process-wide state only as far as its own programs need it.  Two
 changes that speed up a command but would reach a user's own objects and
-programs are made only in greyid's own processes (:func:`take_over`, called by
+programs are made only in greyid's own processes ([`take_over()`][greyid._process.take_over], called by
 the command line before anything else): freezing the objects of the imports
-(``gc.freeze``, :mod:`greyid._collector`) and keeping every compiled program in
-JAX's persistent cache however quick it was to compile (:mod:`greyid._jax`).
+(``gc.freeze``, [`greyid._collector`][greyid._collector]) and keeping every compiled program in
+JAX's persistent cache however quick it was to compile ([`greyid._jax`][greyid._jax]).
 """
 
 _owned = {"on": False}

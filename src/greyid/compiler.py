@@ -1,6 +1,6 @@
 """How greyid compiles its functions.
 
-Every jitted function of the package goes through :func:`jit`, so compiler
+Every jitted function of the package goes through [`jit()`][greyid.compiler.jit], so compiler
 settings live in one place.  On CPUs, XLA's newer fusion emitters take about
 twice as long to compile a filter's scan as the classic ones and run it no
 faster (measured on the test-cell and Armadillo models, ``benchmarks/fit.py``),
@@ -15,14 +15,14 @@ Hessian 2.09 instead of 2.35 ms (``benchmarks/likelihood.py``).
 
 A function given a ``key`` — a description of everything its program depends
 on besides its arguments' shapes — also keeps its traced program on disk
-(:mod:`greyid.programs`), so that a later process skips tracing it.  Every
+([`greyid.programs`][greyid.programs]), so that a later process skips tracing it.  Every
 program is compiled with the same options, whichever process or cache state
 compiles it first, so that no answer depends on the cache.
 
 Python's garbage collector is paused while a program is traced and compiled
-(:mod:`greyid._collector`).  XLA's compilation frees the interpreter, so
+([`greyid._collector`][greyid._collector]).  XLA's compilation frees the interpreter, so
 modules needed later (a fit's results) are imported meanwhile on the other
-core (:func:`import_while_compiling`).
+core ([`import_while_compiling()`][greyid.compiler.import_while_compiling]).
 """
 
 from __future__ import annotations
@@ -43,14 +43,14 @@ from ._collector import collect_young_garbage, collector_paused
 
 
 #: The XLA options greyid asks for on CPUs (see the module doc).  Some are experimental: each is
-#: passed only where this jaxlib's XLA accepts it (:func:`compiler_options`).
+#: passed only where this jaxlib's XLA accepts it ([`compiler_options()`][greyid.compiler.compiler_options]).
 CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_cpu_experimental_ynn_fusion_type": "",
                "xla_cpu_scheduler_type": "CPU_SCHEDULER_TYPE_MEMORY_OPTIMIZED"}
 
 
 @functools.cache
 def compiler_options() -> dict:
-    """The options of :data:`CPU_OPTIONS` this JAX and XLA accept (none elsewhere, or on a JAX
+    """The options of [`CPU_OPTIONS`][greyid.compiler.CPU_OPTIONS] this JAX and XLA accept (none elsewhere, or on a JAX
     whose ``jit`` takes no compiler options): an upgrade that drops or renames one compiles
     with XLA's default for it instead of failing."""
     if jax.default_backend() != "cpu":
@@ -134,9 +134,10 @@ def compiling_aside():
 
 def compile_lowered(lowered, *options):
     """``lowered.compile(*options)``, with pending imports and the collection of what
-    tracing left behind running beside it (see :func:`collect_young_garbage`; not inside
-    :func:`compiling_aside`), and the program kept in the persistent cache however quick
-    (:func:`kept_however_quick`)."""
+    tracing left behind running beside it (see [`collect_young_garbage()`][greyid._collector.collect_young_garbage];
+    not inside
+    [`compiling_aside()`][greyid.compiler.compiling_aside]), and the program kept in the persistent cache however quick
+    ([`kept_however_quick()`][greyid.compiler.kept_however_quick])."""
     global importer
     if not getattr(_compiling_aside, "active", False):
         pending = [m for m in _pending_imports if m not in sys.modules]
@@ -148,9 +149,11 @@ def compile_lowered(lowered, *options):
 
 
 def compile_in_background(compile_program: Callable, aside: bool = False) -> Future:
-    """The executable of ``compile_program`` (from :meth:`Jitted.lowered`) as a future: compiled
+    """The executable of ``compile_program`` (from [`Jitted.lowered()`][greyid.compiler.Jitted.lowered]) as a future:
+    compiled
     in a thread while the caller goes on, or at once where it was compiled already (no thread).
-    ``aside``: the compilation leaves the pending imports to the next one (:func:`compiling_aside`)."""
+    ``aside``: the compilation leaves the pending imports to the next one
+    ([`compiling_aside()`][greyid.compiler.compiling_aside])."""
     if compile_program.compiled:
         done: Future = Future()
         done.set_result(compile_program())
@@ -172,7 +175,7 @@ class Jitted:
     JAX accepts compiler options only on an outermost ``jit``; called inside
     another traced function (its arguments are tracers), the plain jitted
     function is used and the outer one's options apply.  With a ``key``, a
-    top-level call runs the program of :meth:`executable`, loaded from disk
+    top-level call runs the program of `executable()`, loaded from disk
     where an earlier process kept it.
     """
 
@@ -212,7 +215,7 @@ class Jitted:
     def lowered(self, *args) -> Callable:
         """Trace (or load the kept trace) and lower the program now; the function returned
         compiles it (XLA, which frees the interpreter: in another thread, if wished) and keeps
-        and returns the executable, as :meth:`executable` does (its ``compiled`` attribute: True
+        and returns the executable, as `executable()` does (its ``compiled`` attribute: True
         where the program was compiled already).
 
         So two programs compile side by side after being traced one after the other, and a

@@ -1,9 +1,9 @@
 """Files written so that a killed process loses nothing.
 
-* :func:`write_atomic` writes one file: to a temporary file in the same folder,
+* [`write_atomic()`][greyid.outputs.write_atomic] writes one file: to a temporary file in the same folder,
   flushed to disk, then renamed over the target (a rename within a folder is
   atomic), so a reader sees the old file or the new one, never a part.
-* :func:`write_generation` writes a run's files into a folder as one
+* [`write_generation()`][greyid.outputs.write_generation] writes a run's files into a folder as one
   generation.  On Linux the files are written into a new sibling folder, with
   any other files of the old folder linked into it, and the two folders are
   exchanged in one step (``renameat2`` with ``RENAME_EXCHANGE``): at every moment
@@ -12,7 +12,7 @@
   system, a file system without it) every file is written under a temporary name
   first, then a journal naming them is written (atomically), then each is
   renamed into place and the journal removed; a run killed after the journal
-  leaves it for :func:`complete_generation`, which every reader and writer of the
+  leaves it for [`complete_generation()`][greyid.outputs.complete_generation], which every reader and writer of the
   folder calls.  Leftovers of a killed run are removed by the next write.
 """
 

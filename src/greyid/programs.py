@@ -10,7 +10,7 @@ process with the same key loads it instead of tracing.
 A kept program must be the one tracing would give, or answers would be
 silently wrong: its file name is a hash of the key (the model's equations and
 every setting the program closes over, see
-:attr:`greyid.model.structure.Structure.fingerprint`), the arguments' shapes
+[`greyid.model.structure.Structure.fingerprint`][greyid.model.structure.Structure.fingerprint]), the arguments' shapes
 and types, greyid's source files and JAX's version and backend.  A process
 that replaces greyid's functions or constants at run time (the test suite
 does) must set ``GREYID_PROGRAMS=off``: the key does not see such changes.  A
@@ -123,7 +123,8 @@ def encode_tree(tree) -> object:
 
 
 def decode_tree(spec):
-    """The tree structure :func:`encode_tree` wrote (named tuples only from greyid's modules)."""
+    """The tree structure [`encode_tree()`][greyid.programs.encode_tree] wrote (named tuples only from greyid's
+    modules)."""
     def decode(node):
         if node == "leaf":
             return 0
@@ -243,7 +244,7 @@ def lapack_needed(needed: bool):
 
 def _install_lapack_guard() -> None:
     """Wrap JAX's set-up of an exported program's backends (once) so that it asks
-    :data:`_lapack_needed`; where JAX has no such function the set-up always runs."""
+    [`_lapack_needed`][greyid.programs._lapack_needed]; where JAX has no such function the set-up always runs."""
     try:
         from jax._src.export import _export
     except ImportError:

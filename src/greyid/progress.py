@@ -80,7 +80,7 @@ class FitProgress:
 class CountProgress:
     """A bar over a known number of pieces of work (the data sets of a fleet), advanced as each ends.
 
-    ``progress`` as for :func:`track`: true for a bar on standard error, a callable
+    ``progress`` as for [`track()`][greyid.progress.track]: true for a bar on standard error, a callable
     for ``(done, total)``, false for nothing.
     """
 

@@ -10,7 +10,7 @@ to unit diagonal,
 
 whose eigenvalues do not change with the units (M_s is the information of
 θ_i/S_ii, a unit-free coordinate).  An eigenvalue of M_s below
-:data:`RANK_TOLERANCE` times the largest is a direction the information does
+[`RANK_TOLERANCE`][greyid.scaled.RANK_TOLERANCE] times the largest is a direction the information does
 not determine; results go back to the user's units through S:
 M⁻¹ = S M_s⁻¹ S and log det M = log det M_s − 2 Σ log S_ii.
 """
@@ -35,7 +35,7 @@ def diagonal_scale(M: np.ndarray) -> np.ndarray:
 
 
 def loadings(vector: np.ndarray, names) -> dict:
-    """A direction as {name: loading}, largest loading +1, those under :data:`LOADING` left out."""
+    """A direction as {name: loading}, largest loading +1, those under [`LOADING`][greyid.scaled.LOADING] left out."""
     vector = vector / vector[np.argmax(np.abs(vector))]
     return {names[i]: float(vector[i]) for i in np.argsort(-np.abs(vector)) if abs(vector[i]) > LOADING}
 
@@ -115,7 +115,7 @@ class ScaledInformation:
 
     def covariance(self) -> np.ndarray:
         """M⁻¹ = S M_s⁻¹ S on the determined subspace (a pseudo-inverse where singular; see
-        :meth:`undetermined` for which entries are then meaningless)."""
+        `undetermined()` for which entries are then meaningless)."""
         keep = ~self.null_mask
         V = self.eigenvectors[:, keep]
         inner = (V / self.eigenvalues[keep]) @ V.T
@@ -131,7 +131,7 @@ class ScaledInformation:
 
 def scaled_inverse(M, pseudo: bool = False) -> np.ndarray:
     """M⁻¹ taken as S (S M S)⁻¹ S with S = diag(1/√|M_ii|): the same in any units; with ``pseudo``
-    the pseudo-inverse of the scaled matrix (relative cutoff :data:`RANK_TOLERANCE`), for a
+    the pseudo-inverse of the scaled matrix (relative cutoff [`RANK_TOLERANCE`][greyid.scaled.RANK_TOLERANCE]), for a
     singular M."""
     M = np.asarray(M, dtype=np.float64)
     scale = diagonal_scale(M)

@@ -2,13 +2,13 @@
 
 Each kind of document has its schema here — the sections and keys it may
 hold, the type of every value (booleans as booleans, lists as lists) — and the
-functions that check a document against it, raising a :class:`ModelError` that
+functions that check a document against it, raising a [`ModelError`][greyid.errors.ModelError] that
 names the file, section, key or parameter.  The API and the command line call
 the same checks: ``Model.set_options`` and model files (settings),
-:func:`greyid.model.files.read_model` (model files),
-:func:`greyid.estimate.results.load_fit` and ``fit_from_dict`` (saved fits).
+[`greyid.model.files.read_model()`][greyid.model.files.read_model] (model files),
+[`greyid.estimate.results.load_fit()`][greyid.estimate.results.load_fit] and ``fit_from_dict`` (saved fits).
 Data are checked against a model where they meet it, column by column and row
-by row (:func:`greyid.data.prepare.prepare_series`).
+by row ([`greyid.data.prepare.prepare_series()`][greyid.data.prepare.prepare_series]).
 """
 
 from __future__ import annotations
@@ -21,9 +21,9 @@ from .errors import ModelError
 #: Data settings: time column, hold order, time unit of datetime columns, and the
 #: mapping from model names (inputs, outputs) to the data's column names.
 DATA_KEYS = ("time", "hold", "time_unit", "columns", "time_format", "time_zone")
-#: Filter settings (see :func:`greyid.filters.api.filter_options`).
+#: Filter settings (see [`greyid.filters.api.filter_options()`][greyid.filters.api.filter_options]).
 FILTER_KEYS = ("method", "form", "substeps", "iterations", "alpha", "beta", "kappa", "steady_state")
-#: Estimation settings of :meth:`Model.fit`.
+#: Estimation settings of [`Model.fit()`][greyid.model.model.Model.fit].
 ESTIMATION_KEYS = ("criterion", "robust", "horizon", "starts", "seed", "maxiter", "prior_correlation", "cov_type",
                    "optimizer")
 #: Where the data live, for the command line: a CSV file (relative to the model

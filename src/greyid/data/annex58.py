@@ -3,7 +3,7 @@
 The course's R code (marcohv/exercises_ts_dtu, ``Ex_3/r``: ``readSeries("X5", Ts=10,
 nlags=NA)`` then ``prepare_data(..., samples_after_Qi_step=5)``) turns the
 1-minute series ``X5.rda`` into the 10-minute one the exercise fits.
-:func:`ten_minutes` does the same, step by step, so that the data set can be
+[`ten_minutes()`][greyid.data.annex58.ten_minutes] does the same, step by step, so that the data set can be
 derived from its public source; it reproduces the course's file (the project's
 ``shared/data/annex58_test_box/ce4_10min.csv``) to rounding.
 """

@@ -6,15 +6,16 @@
 Each data set is downloaded once (pooch) from the repository and file its
 provenance names, verified against the SHA-256 kept here, cached in the user's
 cache folder (``pooch.os_cache("greyid")``) and read into a DataFrame.  The
-environment variable ``GREYID_DATA_MIRROR`` names a local folder laid out like
-the project's ``shared/data`` (a data set's CSV at :attr:`Source.mirror`): where
-it is set, the file is read from there and nothing is downloaded (tests and CI
-use it).  The data are not greyid's: their licences are in :data:`SOURCES`.
+environment variable ``GREYID_DATA_MIRROR`` names a local folder to read instead,
+with nothing downloaded: a plain folder of the files as their sources serve them,
+or a mirror laid out as the table of the data guide shows (each data set's CSV in
+its own sub-folder; tests and CI use one).  The data are not greyid's: their
+licences are in ``SOURCES``.
 
 Downloading needs the ``data`` extra (``pip install "greyid[data]"``: pooch, and
 rdata for R's .rda files); the mirror needs neither.  The Annex 58 test box's 10-minute data are derived
 from the course's 1-minute .rda as the course's R code derives them
-(:mod:`greyid.data.annex58`).
+([`greyid.data.annex58`][greyid.data.annex58]).
 """
 
 from __future__ import annotations
@@ -156,24 +157,79 @@ SOURCES: dict[str, Source] = {
 }
 
 
+def source_file(name: str) -> str:
+    """The file name of data set ``name`` at its source (the last part of its address)."""
+    return SOURCES[name].url.rsplit("/", 1)[-1]
+
+
+def _from_mirror(name: str, mirror: str) -> pd.DataFrame:
+    """The data set from a local folder: the mirror's layout, the mirror's file alone, or the source's file."""
+    source, folder = SOURCES[name], Path(mirror)
+    places = [(folder / source.mirror, source.read_mirror), (folder / Path(source.mirror).name, source.read_mirror),
+              (folder / source_file(name), source.read)]
+    for path, read in places:
+        if path.is_file():
+            return read(path)
+    raise DataError(f"data set '{name}' is not in the folder {MIRROR}={mirror}: put the file "
+                    f"{source_file(name)} from {source.url} in it (or the mirror's {Path(source.mirror).name} "
+                    f"at {folder / source.mirror})")
+
+
 def fetch(name: str, data_home=None) -> pd.DataFrame:
-    """The data set ``name`` (one of :data:`SOURCES`) as a DataFrame: from ``$GREYID_DATA_MIRROR`` where
-    set, else downloaded once from its source into ``data_home`` (default: the user's cache folder) and
-    checked against its SHA-256."""
+    """A real data set by name, as a DataFrame.
+
+    Parameters
+    ----------
+    name : str
+        One of the names in ``greyid.datasets.SOURCES``: ``"armadillo"``,
+        ``"prbs1"``, ``"ornstein_1d"``, ``"ornstein_2d"``, ``"theophylline"``,
+        ``"annex58_ce4_1min"``, ``"annex58_ce4_10min"``.
+    data_home : str or pathlib.Path, optional
+        Where downloads are kept (default: the user's cache folder,
+        ``pooch.os_cache("greyid")``).
+
+    Returns
+    -------
+    pandas.DataFrame
+        The data set's columns as its description in ``SOURCES`` gives them.
+
+    Raises
+    ------
+    DataError
+        An unknown name; a file not found in the folder ``GREYID_DATA_MIRROR`` names
+        (the message says which file to put there); a download that failed or whose
+        SHA-256 differs from the one kept here.
+    ImportError
+        Downloading needs pooch (``pip install "greyid[data]"``).
+
+    Notes
+    -----
+    Where the environment variable ``GREYID_DATA_MIRROR`` names a folder, nothing is
+    downloaded: the data set is read from that folder, which may hold either the file
+    as its source serves it (``armadillo_data_H2.csv``, ``Ornstein.rda``, ...: see the
+    table in the data guide) or the mirror's CSV file, alone or in the mirror's
+    sub-folder (``armadillo_box/armadillo_data_H2.csv``).
+
+    Examples
+    --------
+    >>> import greyid
+    >>> frame = greyid.datasets.fetch("armadillo")  # doctest: +SKIP
+    >>> list(frame.columns)  # doctest: +SKIP
+    ['Time', 'T_ext', 'P_hea', 'I_sol', 'T_int']
+    """
     if name not in SOURCES:
         raise DataError(f"no data set named '{name}'; the data sets are {', '.join(SOURCES)}")
     source = SOURCES[name]
     mirror = os.environ.get(MIRROR)
     if mirror:
-        path = Path(mirror) / source.mirror
-        if not path.is_file():
-            raise DataError(f"data set '{name}': {path} not found in the mirror {MIRROR}={mirror}")
-        return source.read_mirror(path)
+        return _from_mirror(name, mirror)
     try:
         import pooch
     except ImportError:
-        raise ImportError('downloading data sets needs pooch: pip install "greyid[data]" (or set '
-                          f"{MIRROR} to a local copy laid out like shared/data)") from None
+        raise ImportError(f'downloading data sets needs pooch: pip install "greyid[data]" (or put '
+                          f"{source_file(name)} from {source.url} in a folder and set {MIRROR} to it)") from None
+    offline = (f"without the network, download {source.url} elsewhere, put {source_file(name)} in a folder and set "
+               f"{MIRROR} to that folder")
     try:
         path = pooch.retrieve(source.url, known_hash=f"sha256:{source.sha256}",
                               path=data_home or pooch.os_cache("greyid"), progressbar=False)
@@ -181,6 +237,21 @@ def fetch(name: str, data_home=None) -> pd.DataFrame:
         raise DataError(f"data set '{name}' downloaded from {source.url} does not match its SHA-256 "
                         f"({error})") from None
     except OSError as error:
-        raise DataError(f"data set '{name}' could not be downloaded from {source.url} ({error}); set {MIRROR} "
-                        "to a local copy laid out like shared/data") from None
+        raise DataError(f"data set '{name}' could not be downloaded from {source.url} "
+                        f"({_short_reason(error)}); {offline}") from None
     return source.read(path)
+
+
+def _short_reason(error: OSError) -> str:
+    """What went wrong with a download, in a few words instead of the HTTP library's nested message."""
+    text = str(error)
+    for words, said in (("Name or service not known", "the host could not be found: no network?"),
+                        ("Temporary failure in name resolution", "the host could not be found: no network?"),
+                        ("Failed to resolve", "the host could not be found: no network?"),
+                        ("Connection refused", "the connection was refused"),
+                        ("timed out", "the connection timed out"),
+                        ("Max retries exceeded", "no connection: no network?"),
+                        ("404", "the file is not at that address (HTTP 404)")):
+        if words in text:
+            return said
+    return type(error).__name__

@@ -101,7 +101,7 @@ def prepare_series(
     time_unit: str | None = None,
     require_outputs: bool = True,
 ) -> Series:
-    """Check one DataFrame and return it as a :class:`Series`."""
+    """Check one DataFrame and return it as a [`Series`][greyid.data.prepare.Series]."""
     if not isinstance(df, pd.DataFrame):
         raise DataError(f"data must be a pandas DataFrame, got {type(df).__name__}")
     if len(df) == 0:

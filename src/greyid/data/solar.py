@@ -7,7 +7,7 @@ the surface are pvlib's, the library of the solar-energy field.
 
 The direct transmittance of glazing as a function of θ_inc is the model
 function ``glazing_transmittance(theta, N)`` in equations
-(:mod:`greyid.model.physics`).
+([`greyid.model.physics`][greyid.model.physics]).
 """
 
 from __future__ import annotations

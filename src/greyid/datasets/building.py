@@ -2,7 +2,7 @@
 
 Units: time in hours, temperatures in °C, heat in kW, solar irradiance in kW/m²,
 capacities in kWh/K, resistances in K/kW.  The data in ``building.csv`` were
-simulated from this model at :data:`TRUE_PARAMETERS` by
+simulated from this model at [`TRUE_PARAMETERS`][greyid.datasets.building.TRUE_PARAMETERS] by
 ``scripts/make_bundled_data.py`` (one week at 10-minute sampling, PRBS heating).
 """
 

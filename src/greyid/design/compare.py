@@ -2,7 +2,7 @@
 
 ``compare_inputs(model, params, {"prbs 1 h": plan_a, "step": plan_b, ...})``
 computes the information of every candidate plan (exact for linear models, by
-Monte Carlo otherwise, see :func:`~.information.fisher_information`) and the
+Monte Carlo otherwise, see [`fisher_information()`][greyid.design.information.fisher_information]) and the
 chosen criteria on it, each minimised, with the rank of every candidate per
 criterion (1 = best).
 """
@@ -41,10 +41,10 @@ def compare_inputs(model, params, candidates: Mapping[str, pd.DataFrame], criter
     (``interest=``, ``derived=`` expressions of the parameters, ``V=``, ``k=``),
     e.g. ``{"UA": {"name": "A", "derived": {"UA": "Hi*Hm/(Hi+Hm)"}}}``; default
     D, Ds, C and E (Ds with ``interest``).  Other keyword arguments go to
-    :func:`fisher_information` (``time``, ``hold``, ``free``, ``method``,
+    [`fisher_information()`][greyid.design.information.fisher_information] (``time``, ``hold``, ``free``, ``method``,
     ``n_paths``, ``seed``).  ``attrs["information"]`` holds each candidate's matrix,
     ``attrs["undetermined"]`` the directions a candidate does not determine (its
-    criteria of them are +inf; one :class:`~greyid.errors.UndeterminedWarning` per candidate).
+    criteria of them are +inf; one `UndeterminedWarning` per candidate).
     """
     if not isinstance(candidates, Mapping) or not candidates:
         raise DataError("candidates must be a non-empty mapping name → plan DataFrame")

@@ -12,7 +12,8 @@
   Gauss' formula (6.35), J M⁻¹ Jᵀ with J = ∂f/∂θ, e.g. the model's UA;
 * ``prior``: any of these of the posterior information M + Σ_prior⁻¹ (6.53).
 
-:func:`average_criterion` and :func:`minimax_criterion` take the criterion over
+[`average_criterion()`][greyid.design.criteria.average_criterion] and
+[`minimax_criterion()`][greyid.design.criteria.minimax_criterion] take the criterion over
 a prior distribution of θ (J₃, 6.36–6.38) or its worst case over a box (6.39).
 """
 
@@ -88,9 +89,9 @@ def criterion(info, name: str, params=None, interest=None, V=None, k: float = 1.
     MAP fits) adds its precision first: the MAP criteria (6.53).
 
     Ranks, inverses and determinants are taken on M scaled to unit diagonal
-    (:mod:`greyid.scaled`), so that units alone never make M singular; a
+    (`greyid.scaled`), so that units alone never make M singular; a
     criterion of quantities that M does not determine is +inf (6.32), with an
-    :class:`~greyid.errors.UndeterminedWarning` naming the direction.
+    `UndeterminedWarning` naming the direction.
     """
     if name not in CRITERIA:
         raise ModelError(f"unknown criterion {name!r}; use one of {list(CRITERIA)}")
@@ -176,10 +177,10 @@ def cramer_rao_bound(info, params=None, derived=None) -> pd.Series:
     """The Cramér–Rao bound: the least variance of an unbiased estimate of each parameter (the
     diagonal of M⁻¹, 6.30) and of each ``derived`` quantity (J M⁻¹ Jᵀ by Gauss' formula, 6.35).
 
-    M is inverted scaled to unit diagonal (:mod:`greyid.scaled`), so the bounds
+    M is inverted scaled to unit diagonal (`greyid.scaled`), so the bounds
     convert between unit systems by the units' factors.  An infinite bound marks
     a parameter or quantity along a direction the experiment does not determine
-    (a singular M, see :func:`~.information.local_identifiability`); the others
+    (a singular M, see [`local_identifiability()`][greyid.design.information.local_identifiability]); the others
     keep their finite bounds.
     """
     M, names = _matrix(info)
@@ -259,8 +260,9 @@ def average_criterion(model, plan, name: str, prior, draws: int = 20, seed: int 
     criterion averaged; with
     ``map_prior=True`` each draw's information includes the prior's precision
     (J₄).  Returns ``{"value", "standard_error", "values"}``; ``options`` go to
-    :func:`criterion` (``interest``, ``derived`` ...) and
-    :func:`~.information.fisher_information` (``time``, ``hold``, ``free``, ``method`` ...).
+    [`criterion()`][greyid.design.criteria.criterion] (``interest``, ``derived`` ...) and
+    [`fisher_information()`][greyid.design.information.fisher_information] (``time``, ``hold``, ``free``, ``method``
+    ...).
     """
     from ..estimate.criteria import GaussianPrior
     from .information import fisher_information

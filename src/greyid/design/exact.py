@@ -12,7 +12,7 @@ the p sensitivities ∂x̂ form one linear system driven by the process and
 measurement noise; its mean and covariance propagate exactly, step by step, and
 E[∂_iεᵀS⁻¹∂_jε] = μ_iᵀS⁻¹μ_j + tr(S⁻¹ Cov(∂_jε, ∂_iε)).  Nothing is sampled.
 
-The filter is the exact Kalman filter of :mod:`greyid.filters.core` (the one
+The filter is the exact Kalman filter of [`greyid.filters.core`][greyid.filters.core] (the one
 estimation uses); its per-step affine maps are taken from it by automatic
 differentiation, so the initial transient, irregular sampling, zero- and
 first-order holds and missing data are handled as the filter handles them.

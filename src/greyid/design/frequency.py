@@ -169,7 +169,8 @@ def frequency_information(model, params, omega: float, input: str, sampling_inte
 
 
 def frequency_information_grid(model, params, omegas, input: str, sampling_interval: float, free=None):
-    """``(M_u, M_c, names)``: :func:`frequency_information` on a grid of frequencies at once.
+    """``(M_u, M_c, names)``: [`frequency_information()`][greyid.design.frequency.frequency_information] on a grid of
+    frequencies at once.
 
     ``M_u`` has one p × p matrix per frequency (unit power), ``M_c`` is the
     input-independent part; both NumPy arrays over the parameters ``names``.
@@ -183,7 +184,8 @@ def frequency_information_grid(model, params, omegas, input: str, sampling_inter
 
 def frequency_information_points(model, points, omegas, input: str, sampling_interval: float, free=None,
                                  input_independent: bool = True):
-    """``(M_u, M_c, names)`` of :func:`frequency_information_grid` at several parameter points at once.
+    """``(M_u, M_c, names)`` of [`frequency_information_grid()`][greyid.design.frequency.frequency_information_grid] at
+    several parameter points at once.
 
     ``points`` a list of parameter mappings; ``M_u`` has shape (points,
     frequencies, p, p) and ``M_c`` (points, p, p), or ``None`` without

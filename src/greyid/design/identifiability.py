@@ -3,7 +3,8 @@
 For a linear time-invariant model, what the data can reveal is the transfer
 function from the inputs to the outputs, G(p) = C(pI − A)⁻¹B + D (6.15), the
 noise model H(p) = C(pI − A)⁻¹K + I with the stationary Kalman gain K, and the
-innovations' covariance Σ (6.16, 6.18).  :func:`identifiability` writes G(p)
+innovations' covariance Σ (6.16, 6.18).  [`identifiability()`][greyid.design.identifiability.identifiability] writes
+G(p)
 with SymPy (each element a ratio of polynomials in p, the denominator monic:
 its coefficients are what the data determine, (6.17)) and decides:
 
@@ -18,9 +19,9 @@ its coefficients are what the data determine, (6.17)) and decides:
   product enters).
 
 For other models the local rank of the Fisher information of a plan
-(Monte Carlo, :func:`~.information.fisher_information`) at random points
+(Monte Carlo, [`fisher_information()`][greyid.design.information.fisher_information]) at random points
 inside the bounds decides, on the information scaled to unit diagonal: the
-``plan=`` given, or a generic rich one (:func:`generic_plan`, said in the
+``plan=`` given, or a generic rich one ([`generic_plan()`][greyid.design.identifiability.generic_plan], said in the
 result's notes).
 """
 
@@ -215,7 +216,8 @@ def identifiability(model, params=None, plan=None, seed: int = 0, free=None) -> 
     ``params`` centres the generic points (default: the declared initial values);
     ``free`` names the parameters to judge (default: the non-fixed ones).  For a
     model that is not linear time-invariant, ``plan`` (times and inputs) is the
-    experiment judged; without it a generic rich plan is used (:func:`generic_plan`).
+    experiment judged; without it a generic rich plan is used
+    ([`generic_plan()`][greyid.design.identifiability.generic_plan]).
     """
     from ..model.parameters import in_dynamics
     from .information import _free_names
@@ -365,9 +367,12 @@ def generic_plan(model, point, seed: int = 0, ranges: dict | None = None) -> tup
 
     The drift linearised at the initial state (inputs at their ranges' middle, else 1)
     gives the model's rates; the plan covers five of the slowest time constants,
-    sampled at least four times per fastest one (at most :data:`GENERIC_ROWS` rows),
-    with each input held at :data:`GENERIC_LEVELS` random levels (seeded) within
-    ``ranges[input]`` (the model file's data: :func:`input_ranges`), else in [0.5, 1.5].
+    sampled at least four times per fastest one (at most [`GENERIC_ROWS`][greyid.design.identifiability.GENERIC_ROWS]
+    rows),
+    with each input held at [`GENERIC_LEVELS`][greyid.design.identifiability.GENERIC_LEVELS] random levels (seeded)
+    within
+    ``ranges[input]`` (the model file's data: [`input_ranges()`][greyid.design.identifiability.input_ranges]), else in
+    [0.5, 1.5].
     """
     import jax
     import jax.numpy as jnp
@@ -426,7 +431,8 @@ def _check_plan_finite(model, point, plan: pd.DataFrame, text: str) -> None:
 
 
 def _by_information(model, names, points, plan, seed):
-    """Local rank of the Fisher information of ``plan`` (or of :func:`generic_plan`) at generic points
+    """Local rank of the Fisher information of ``plan`` (or of
+    [`generic_plan()`][greyid.design.identifiability.generic_plan]) at generic points
     (models other than LTI), decided on the scaled information; combinations from its null space."""
     from .information import fisher_information
 

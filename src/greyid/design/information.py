@@ -8,7 +8,7 @@ the prediction-error decomposition are martingale differences), with the Monte
 Carlo standard error of every entry.  It serves linear and nonlinear models.
 ``method="exact"`` (the default for linear models) computes the expected
 information of the finite experiment exactly, in O(N), from the filter
-augmented with its parameter sensitivities (:mod:`.exact`).
+augmented with its parameter sensitivities ([`exact`][greyid.design.exact]).
 """
 
 from __future__ import annotations
@@ -99,13 +99,13 @@ def fisher_information(model, params, plan: pd.DataFrame, time: str = "t", hold:
 def local_identifiability(info: pd.DataFrame, tolerance: float = RANK_TOLERANCE) -> pd.DataFrame:
     """Which parameters the planned experiment determines, from the information matrix.
 
-    The matrix is scaled to unit diagonal (:mod:`greyid.scaled`: the verdict does
+    The matrix is scaled to unit diagonal (`greyid.scaled`: the verdict does
     not depend on the parameters' units); eigenvalues below ``tolerance`` times
     the largest are flat directions, whose loadings (above 0.05 of the largest)
     name the parameters involved.  Returns one row per flat direction
     (``eigenvalue``, ``parameters``, ``loadings``); an empty table means locally
     identifiable at these values.  The same directions make
-    :func:`~.criteria.cramer_rao_bound` infinite.
+    [`cramer_rao_bound()`][greyid.design.criteria.cramer_rao_bound] infinite.
     """
     scaled = ScaledInformation.of(info.to_numpy(dtype=np.float64), list(info.index), tolerance)
     eigenvalues = scaled.eigenvalues[scaled.null_mask]

@@ -5,7 +5,7 @@ information per sample at parameter values θ is
 
     M(ξ; θ) = M̄_c(θ) + P Σ_l α_l M_u(ω_l; θ)                    (6.47–6.49)
 
-(:mod:`.frequency`).  The criterion Φ (D or A) of M is convex in α, and so are
+([`frequency`][greyid.design.frequency]).  The criterion Φ (D or A) of M is convex in α, and so are
 
 * the local design: Φ(M(ξ; θ₀)) at the assumed values;
 * the Bayesian design (J₃ of 6.36–6.38): Σ_j π_j Φ(M(ξ; θ_j)) over draws or
@@ -105,7 +105,7 @@ class _Problem:
     """The information of every candidate frequency at every parameter point, scaled for the criterion.
 
     Each point's matrices are scaled to the unit diagonal of the uniform design's
-    information, S M S (:mod:`greyid.scaled`): the same optimum in better
+    information, S M S (`greyid.scaled`): the same optimum in better
     conditioned numbers, whatever the parameters' units.  D's offset 2 Σ log S_ii
     and A's weights S_ii² give back each point's value in the model's units.
     """

@@ -2,7 +2,7 @@
 
 The results' module (pandas tables, SciPy's distributions) loads when first
 used, so that a fit's programs are traced before it is imported: a fit imports
-it while XLA compiles (:func:`greyid.compiler.import_while_compiling`).
+it while XLA compiles ([`greyid.compiler.import_while_compiling()`][greyid.compiler.import_while_compiling]).
 """
 
 from .criteria import GaussianPrior, log_criterion, squared_norm

@@ -1,8 +1,8 @@
 """Many searches at once: the starts of one fit, the data sets of a fleet.
 
-Each member is an :class:`~.optimize.Search` with its own trust region, stage
+Each member is an [`Search`][greyid.estimate.optimize.Search] with its own trust region, stage
 and convergence; a member that has converged asks for nothing more.  In each
-round the driver (:func:`drive`) gathers the members' pending requests,
+round the driver ([`drive()`][greyid.estimate.batch.drive]) gathers the members' pending requests,
 evaluates those of one kind — value, scoring or exact derivatives — together in
 one program vectorised over the members (``jax.vmap``), and hands each member
 its answer.  The programs are those a single fit compiles, so a batch computes
@@ -56,7 +56,8 @@ def _scoring_matrix(scoring):
 
 
 def _with_prior(value, slopes, F, prior):
-    """(f, g, F) with the prior's terms, as :func:`~.objective.combine_scoring` forms them."""
+    """(f, g, F) with the prior's terms, as [`combine_scoring()`][greyid.estimate.objective.combine_scoring] forms
+    them."""
     prior_value, prior_gradient, prior_hessian = prior
     return value + prior_value, slopes + prior_gradient, F + prior_hessian
 
@@ -72,11 +73,11 @@ class _Done:
 class BatchedPrograms:
     """``evaluate(groups)``: the requests of many members, each kind by one vectorised program.
 
-    ``programs`` are a problem's compiled :class:`~.objective.Programs`;
+    ``programs`` are a problem's compiled [`Programs`][greyid.estimate.objective.Programs];
     ``arguments`` the arguments they share (θ base, bounds, prior moments);
     ``data`` either the data sets all members share (the starts of a fit) or,
     with ``per_member=True``, a list with one stacked series (padded to a common
-    length, see :func:`pad_series`) whose row ``data_index[member]`` a member
+    length, see [`pad_series()`][greyid.estimate.batch.pad_series]) whose row ``data_index[member]`` a member
     uses (several starts of a fleet's data set share a row).  Calls are split over up to
     ``workers`` threads, each a power-of-two number of members.  Exact Hessians, and
     every kind when fewer than ``vectorise_from`` members ask for it, are evaluated
@@ -152,7 +153,7 @@ class BatchedPrograms:
 
     def compile_exact_ahead(self, z) -> None:
         """Compile the exact program (by a first evaluation at z) in a background thread; see
-        :meth:`~.objective.Derivatives.compile_ahead`."""
+        [`compile_ahead()`][greyid.estimate.objective.Derivatives.compile_ahead]."""
         self.pending = self.pool.submit(lambda: [self._block(EXACT, 0, z, rows) for rows in self.blocks])
 
     def __call__(self, groups: list[tuple[str, list[int], np.ndarray]]) -> list[list]:
@@ -237,10 +238,11 @@ def prune_trailing(searches: Sequence[Search], running: set[int]) -> dict[int, s
 
 def drive(searches: Sequence[Search], evaluate: Callable, prune: Callable | None = None,
           finished: Callable | None = None) -> list[Optimum | ModelError]:
-    """Run all ``searches`` together; ``evaluate(groups)`` as :class:`BatchedPrograms`.
+    """Run all ``searches`` together; ``evaluate(groups)`` as
+    [`BatchedPrograms`][greyid.estimate.batch.BatchedPrograms].
 
     A member whose search fails (a criterion not finite at its start) gets its
-    :class:`ModelError` in place of an optimum; the others go on.  ``prune(searches,
+    [`ModelError`][greyid.errors.ModelError] in place of an optimum; the others go on.  ``prune(searches,
     running) -> {member: reason}`` may stop members early; ``finished(member,
     result)`` is called as each member ends.
     """
@@ -285,7 +287,7 @@ def pad_series(series: Sequence, length: int, unique: int):
     """Stack filter inputs of several series, each padded to ``length`` rows and ``unique`` intervals.
 
     Padding rows repeat the last time and input, carry no observation and an
-    interval of length 0 (as :func:`~greyid.filters.api.filter_inputs` pads), so
+    interval of length 0 (as [`filter_inputs()`][greyid.filters.api.filter_inputs] pads), so
     they change nothing.
     """
     padded = []

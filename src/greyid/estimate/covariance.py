@@ -80,7 +80,8 @@ def score_covariance(scores: list[np.ndarray], horizon: int = 1) -> ScoreCovaria
 def parameter_covariance(H: np.ndarray, J: np.ndarray | None, cov_type: str, singular: bool) -> np.ndarray:
     """The covariance of the estimates from H (and J); pseudo-inverses where H is ``singular``.
 
-    Inverses are taken scaled to unit diagonal (:func:`greyid.scaled.scaled_inverse`): capacities
+    Inverses are taken scaled to unit diagonal ([`greyid.scaled.scaled_inverse()`][greyid.scaled.scaled_inverse]):
+    capacities
     in J/K beside resistances in K/W give H a condition number of 1e20 from the units alone.
     """
     if cov_type == "hessian":

@@ -5,7 +5,7 @@
   replaced by ρ(r) — Huber's 2c|r| − c² for |r| ≥ c (CTSM's convention) or
   Tukey's bisquare (c²/3)(1 − (1 − (r/c)²)³), capped at c²/3 for |r| ≥ c; both
   equal r² for small r — and log det R by κ log det R, κ = E[Zρ'(Z)]/2 (see
-  :func:`scale_consistency`), so that variances estimated with the other
+  [`scale_consistency()`][greyid.estimate.criteria.scale_consistency]), so that variances estimated with the other
   parameters are consistent on Gaussian data (the default); ``(norm, c, "ctsm")``
   keeps log det R unweighted, CTSM-R's convention, to reproduce its numbers;
 * MAP (3.46): the log-likelihood plus the log-density of a multivariate
@@ -87,9 +87,11 @@ def scale_consistency(robust) -> float:
 
 
 def step_criterion(terms, robust=None, kappa: float = 1.0):
-    """−½(s_k log 2π + κ log det R_k + Σ_i ρ(r_ki)) for each step k: the summands of :func:`log_criterion`.
+    """−½(s_k log 2π + κ log det R_k + Σ_i ρ(r_ki)) for each step k: the summands of
+    [`log_criterion()`][greyid.estimate.criteria.log_criterion].
 
-    κ is :func:`scale_consistency` of the norm (1 for the Gaussian log-likelihood).
+    κ is [`scale_consistency()`][greyid.estimate.criteria.scale_consistency] of the norm (1 for the Gaussian
+    log-likelihood).
     """
     return -0.5 * (terms.n_obs * LOG_2PI + kappa * terms.logdet
                    + jnp.sum(squared_norm(terms.whitened, robust), -1))
@@ -148,7 +150,7 @@ def loglik(model, params, data, time="t", hold="zoh", method=None, time_unit=Non
     """Sum over data sets of the Gaussian log-likelihood (3.18), or its robust version.
 
     With ``robust=("huber", c)`` or ``("tukey", c)`` the squared normalised
-    innovations are replaced as in :mod:`greyid.estimate.criteria` (CTSM's
+    innovations are replaced as in [`greyid.estimate.criteria`][greyid.estimate.criteria] (CTSM's
     convention for Huber).
     """
     robust = check_robust(robust)

@@ -4,7 +4,7 @@
 robust or k-step version of it, or the posterior with a Gaussian prior (3.46) —
 over the free parameters.  Bounds are handled by smooth transforms; the
 optimiser (Newton steps on the exact Hessian in a trust region, see
-:mod:`.optimize`) treats a non-finite evaluation as a rejected step.  The uncertainty
+`optimize`) treats a non-finite evaluation as a rejected step.  The uncertainty
 comes from the exact Hessian of the negative log-posterior at the optimum,
 mapped back to the natural parameters.
 """
@@ -41,7 +41,8 @@ CRITERIA = ("ml", "map")
 #: "newton": exact Newton steps throughout; "auto": scoring where a Hessian costs
 #: much more than a gradient, rows × (free parameters)² ≥ SCORING_WORK; "quasi-newton":
 #: L-BFGS steps on value and exact gradient from each start run alone, then exact Newton
-#: steps (:func:`~.optimize.quasi_newton_start`; a fit's starts run together take Newton steps).
+#: steps ([`quasi_newton_start()`][greyid.estimate.optimize.quasi_newton_start]; a fit's starts run together take
+#: Newton steps).
 OPTIMIZERS = ("auto", "scoring", "newton", "quasi-newton")
 #: Below this the exact Hessian is cheap enough that scoring does not repay the
 #: compilation of its program: the test cell (1512 rows, 9 parameters, 1.2e5) fits in
@@ -175,7 +176,8 @@ def free_parameters(model, init=None) -> FreeParameters:
 
 
 def make_problem(structure, parameters: FreeParameters, method, criterion_settings, filter_settings) -> Problem:
-    """The :class:`~.objective.Problem` of these parameters and settings (``(robust, horizon, prior)``)."""
+    """The [`Problem`][greyid.estimate.objective.Problem] of these parameters and settings (``(robust, horizon,
+    prior)``)."""
     robust, horizon, prior = criterion_settings
     options = filter_options(structure, method, **filter_settings)
     names = list(parameters.names)
@@ -196,7 +198,8 @@ def uses_scoring(optimizer: str, rows: int, n_free: int) -> bool:
 
 
 def uses_quasi_start(optimizer: str, scoring: bool) -> bool:
-    """Whether a search alone begins with a quasi-Newton start (:func:`~.optimize.quasi_newton_start`).
+    """Whether a search alone begins with a quasi-Newton start
+    ([`quasi_newton_start()`][greyid.estimate.optimize.quasi_newton_start]).
 
     Asked for by ``optimizer="quasi-newton"``.  It pays where an exact Hessian costs several
     gradients: one block in one thread (padded rows × free parameters² below SPLIT_WORK), about
@@ -210,7 +213,8 @@ def uses_quasi_start(optimizer: str, scoring: bool) -> bool:
 
 
 def new_search(problem: Problem, z0, maxiter: int, report, scoring: bool, handover: float | None = None) -> Search:
-    """A :class:`~.optimize.Search` from ``z0`` with this problem's settings (scoring if asked and possible)."""
+    """A [`Search`][greyid.estimate.optimize.Search] from ``z0`` with this problem's settings (scoring if asked and
+    possible)."""
     scoring = scoring and problem.horizon == 1 and problem.robust is None
     # On long series an exact Hessian costs dozens of scoring steps, and the
     # scoring matrix is close to it near the optimum: Newton only to finish.
@@ -268,7 +272,8 @@ def single_programs(structure, problem: Problem, arguments: tuple, stack: ExitSt
 
 
 class SearchesAlone:
-    """Runs one search at a time, with each problem's :func:`single_programs` opened once
+    """Runs one search at a time, with each problem's [`single_programs()`][greyid.estimate.estimation.single_programs]
+    opened once
     (a fit's starts and its refits with more sub-steps share them)."""
 
     def __init__(self, structure, arguments: tuple, stack: ExitStack):
@@ -276,7 +281,7 @@ class SearchesAlone:
 
     def run(self, problem: Problem, search: Search, quasi: bool = False) -> Optimum:
         """``search`` to its end; with ``quasi``, from where a quasi-Newton start gets to (see
-        :func:`~.optimize.quasi_newton_start`)."""
+        [`quasi_newton_start()`][greyid.estimate.optimize.quasi_newton_start])."""
         key = (problem.key(), quasi)
         if key not in self.programs:
             # Compiled ahead only where compilation, not evaluation, dominates: on long
@@ -306,7 +311,7 @@ def start_points(parameters: FreeParameters, starts: int, seed: int, scoring_aut
     """``(points, labels, newton_only)``: the starts of a fit, in z.
 
     The initial values (after a nested fit's estimates, if given), then
-    ``starts − 1`` points of a space-filling design (see :mod:`.starts`).
+    ``starts − 1`` points of a space-filling design (see `starts`).
     """
     z0 = parameters.z0
     points, labels = ([z0], ["initial values"]) if nested is None else ([nested, z0], ["nested fit", "initial values"])
@@ -357,7 +362,8 @@ def neighbouring_delays(structure, parameters: FreeParameters, z_best, prepared)
 
 def search_delays(structure, parameters: FreeParameters, prepared, best: Optimum, optima: list, labels: list,
                   run) -> Optimum:
-    """The best of ``best`` and refits (``run(z) -> Optimum``) from :func:`neighbouring_delays`;
+    """The best of ``best`` and refits (``run(z) -> Optimum``) from
+    [`neighbouring_delays()`][greyid.estimate.estimation.neighbouring_delays];
     the refits are appended to ``optima`` and ``labels`` (the fit's table of starts)."""
     for z_start, label in neighbouring_delays(structure, parameters, best.z, prepared):
         labels.append(label)
@@ -370,7 +376,7 @@ def search_delays(structure, parameters: FreeParameters, prepared, best: Optimum
 def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=None, robust=None,
         horizon=1, starts=1, seed=0, init=None, time_unit=None, maxiter=500, progress=False, cov_type=None,
         init_from=None, optimizer="auto", **filter_settings):
-    """Estimate the free parameters of ``model`` from ``data``; see :meth:`Model.fit`."""
+    """Estimate the free parameters of ``model`` from ``data``; see [`Model.fit()`][greyid.model.model.Model.fit]."""
     structure = model.structure
     robust, cov_type = check_settings(criterion, prior, robust, horizon, cov_type, optimizer, starts, seed)
     parameters = free_parameters(model, init)
@@ -467,7 +473,8 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
 
 def finish(model, frames, problem: Problem, best, optima, args, datasets, theta0, call: dict, labels,
            substep_choice=None):
-    """The :class:`FitResult` of an optimum: θ, the score covariance if asked, the settings kept with it.
+    """The [`FitResult`][greyid.estimate.results.FitResult] of an optimum: θ, the score covariance if asked, the
+    settings kept with it.
 
     ``call`` holds the fit's own settings (time, hold, criterion, robust, horizon,
     starts, optimizer, time_unit, prior, cov_type).

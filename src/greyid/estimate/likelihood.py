@@ -14,10 +14,10 @@ the free parameters, as ctsmTMB's ``likelihood()`` and statsmodels'
     f = nll.function()               # the pure JAX function x ↦ value: jax.grad, vmap, BlackJAX, optax
 
 With ``unconstrained=True`` x is the optimiser's coordinate z, in which every
-bound is gone (θ = l + e^z and the like, :mod:`.transforms`).
+bound is gone (θ = l + e^z and the like, [`transforms`][greyid.estimate.transforms]).
 
 Single evaluations of a shorter regular series of a linear model switch to the
-filter's steady state after its first rows (:mod:`greyid.filters.steady`) and
+filter's steady state after its first rows ([`greyid.filters.steady`][greyid.filters.steady]) and
 sum the criterion in the filter's scan; the Hessian and batches of parameter
 vectors step through every row.  ``steady_state=False`` steps through every
 row for single evaluations too.
@@ -44,7 +44,7 @@ from .transforms import Transform
 class Likelihood:
     """The negative log-likelihood (or criterion) of ``model`` on ``data``; see the module docstring.
 
-    Built by :meth:`greyid.Model.likelihood`.  Parameters not free in the model
+    Built by `greyid.Model.likelihood()`.  Parameters not free in the model
     (fixed ones) keep their values; the free ones are ``names``, in order.
     """
 
@@ -82,7 +82,7 @@ class Likelihood:
 
             return {False: at_x, True: at_z}
 
-        # A short series' switch to the steady state after its first rows (:mod:`greyid.filters.steady`)
+        # A short series' switch to the steady state after its first rows (greyid.filters.steady)
         # for single values and gradients; Hessians and evaluations vectorised over parameter
         # vectors (one decision per row of x would run both forms) step through every row.
         self._functions = functions(problem)

@@ -64,7 +64,8 @@ def run_study(model, truth: Mapping[str, float], data: pd.DataFrame, n_series: i
 
     ``report`` names the parameters for the table; ``derived`` adds functions of
     them (delta-method variances).  ``simulate`` and ``fit`` are keyword
-    arguments for :meth:`Model.simulate` and :meth:`Model.fit`; ``simulation_model``
+    arguments for [`Model.simulate()`][greyid.model.model.Model.simulate] and
+    [`Model.fit()`][greyid.model.model.Model.fit]; ``simulation_model``
     (default: ``model``) simulates, e.g. one whose initial state is known exactly
     while the fitted model keeps its prior.  ``progress=True``
     shows a progress bar; a callable receives ``(done, total)``.

@@ -108,7 +108,7 @@ def criterion_functions(structure, problem: Problem, forward_only: bool = False)
     (3.18, or the robust or k-step criterion) summed over the data sets, minus the log-prior (MAP).
 
     ``forward_only``: ``negative`` is differentiated in forward mode only, which lets a shorter
-    series with the steady state switch where its filter settles (:func:`~greyid.filters.core.scan_rows`).
+    series with the steady state switch where its filter settles ([`scan_rows()`][greyid.filters.core.scan_rows]).
     """
     kappa = scale_consistency(problem.robust)
     if problem.horizon == 1:
@@ -142,7 +142,7 @@ def criterion_functions(structure, problem: Problem, forward_only: bool = False)
 
 
 class Programs(NamedTuple):
-    """The compiled functions of one estimation problem (see :func:`build`)."""
+    """The compiled functions of one estimation problem (see [`build()`][greyid.estimate.objective.build])."""
 
     derivatives: Callable  # (z, rows, *args) -> (f, g, rows·H)
     value: Callable  # (z, *args) -> f
@@ -153,7 +153,7 @@ class Programs(NamedTuple):
 
 
 def build(structure, problem: Problem) -> Programs:
-    """The :class:`Programs` of this problem.
+    """The [`Programs`][greyid.estimate.objective.Programs] of this problem.
 
     ``derivatives(z, ...) -> (value, gradient, Hessian)`` is one compiled
     program.  For the exact Kalman filter with up to FORWARD_HESSIAN_MAX free
@@ -229,8 +229,9 @@ def whitened_sensitivities(R, d_eps, d_R):
 def expected_information(structure, problem: Problem, kinds):
     """``(z, rows, *args) -> (f, rows·g, M_rows, prior)``, the pieces of Fisher's scoring matrix.
 
-    F = MMᵀ + the prior's exact Hessian (:func:`combine_scoring`), with M the
-    whitened sensitivities of the innovations to z (:func:`whitened_sensitivities`):
+    F = MMᵀ + the prior's exact Hessian ([`combine_scoring()`][greyid.estimate.objective.combine_scoring]), with M the
+    whitened sensitivities of the innovations to z
+    ([`whitened_sensitivities()`][greyid.estimate.objective.whitened_sensitivities]):
     the expected information of the Gaussian innovations (3.33, 4.32–4.33), taken
     in z; ``prior`` holds the prior term's value, gradient and Hessian.  F is
     positive semi-definite everywhere and, with one tangent per parameter pushed
@@ -272,7 +273,7 @@ def expected_information(structure, problem: Problem, kinds):
 
 
 def forward_hessian(method: str, n_parameters: int) -> bool:
-    """Whether to take the Hessian forward over forward (see :func:`build`)."""
+    """Whether to take the Hessian forward over forward (see [`build()`][greyid.estimate.objective.build])."""
     return method == KALMAN and n_parameters <= FORWARD_HESSIAN_MAX
 
 
@@ -313,12 +314,13 @@ def worker_count() -> int:
 
 
 def combine_hessian(parts, n):
-    """(f, g, H) from the blocks of :func:`hessian_rows`."""
+    """(f, g, H) from the blocks of [`hessian_rows()`][greyid.estimate.objective.hessian_rows]."""
     return parts[0][0], parts[0][1], np.concatenate([np.asarray(p[2]) for p in parts])[:n]
 
 
 def combine_scoring(parts, n):
-    """(f, g, F) from the blocks of :func:`expected_information`: F = MMᵀ + the prior's Hessian."""
+    """(f, g, F) from the blocks of [`expected_information()`][greyid.estimate.objective.expected_information]: F = MMᵀ
+    + the prior's Hessian."""
     prior_value, prior_gradient, prior_hessian = (np.asarray(a) for a in parts[0][3])
     slopes = np.concatenate([np.asarray(p[1]) for p in parts])[:n]
     M = np.concatenate([np.asarray(p[2]) for p in parts])[:n]
@@ -341,7 +343,7 @@ class Derivatives:
     scoring matrix's sensitivities) are independent directional derivatives, so
     blocks of them run in parallel threads (JAX releases the GIL while a program
     runs) and ``combine(parts, n)`` joins them (default: ``(f, g, H)`` of
-    :func:`hessian_rows`).  All blocks have the same size — the last one padded
+    [`hessian_rows()`][greyid.estimate.objective.hessian_rows]).  All blocks have the same size — the last one padded
     with zero directions — so one compiled program serves them.
     """
 
@@ -401,7 +403,8 @@ class Derivatives:
 
 
 def compiled(structure, problem: Problem) -> Programs:
-    """The :class:`Programs` of :func:`build`, built once per problem."""
+    """The [`Programs`][greyid.estimate.objective.Programs] of [`build()`][greyid.estimate.objective.build], built once
+    per problem."""
     key = problem.key()
     if key not in structure.cache:
         structure.cache[key] = build(structure, problem)

@@ -9,7 +9,7 @@ optimum is quadratic while the steps far from it cost about a gradient.
 The trust region, not a line search, keeps it safe far from the optimum: where
 the Hessian is indefinite the step follows negative curvature, and a
 non-finite evaluation is a rejected step.  A point is called converged only
-where it is a minimum to working precision (see :func:`_stationary`), so a
+where it is a minimum to working precision (see [`_stationary()`][greyid.estimate.optimize._stationary]), so a
 stalled search is reported as such.
 """
 
@@ -196,11 +196,12 @@ def settle(outputs) -> tuple[tuple, bool]:
 class Search:
     """One minimisation, written as a generator of evaluation requests.
 
-    :meth:`requests` yields ``(kind, z)`` (kind EXACT, SCORING or VALUE) and
-    receives ``(outputs, finite)`` (see :func:`settle`); it returns the
-    :class:`Optimum`.  So one search runs alone (:func:`newton_trust_region`) or
+    `requests()` yields ``(kind, z)`` (kind EXACT, SCORING or VALUE) and
+    receives ``(outputs, finite)`` (see [`settle()`][greyid.estimate.optimize.settle]); it returns the
+    [`Optimum`][greyid.estimate.optimize.Optimum].  So one search runs alone
+    ([`newton_trust_region()`][greyid.estimate.optimize.newton_trust_region]) or
     beside others whose requests are evaluated together in one batched program
-    (:mod:`.batch`: the starts of a fit, the data sets of a fleet), each with its
+    ([`batch`][greyid.estimate.batch]: the starts of a fit, the data sets of a fleet), each with its
     own trust region and convergence.  ``z``, ``f`` and ``iterations`` show
     where the search stands.
     """
@@ -440,13 +441,13 @@ class Search:
         self.z, self.f, self.gradient, self.hessian, self.iterations = z, f, g, H, iterations
 
     def stopped(self, message: str) -> Optimum:
-        """Where the search stands, as an unconverged :class:`Optimum` (a pruned start)."""
+        """Where the search stands, as an unconverged [`Optimum`][greyid.estimate.optimize.Optimum] (a pruned start)."""
         return Optimum(self.z, self.f, self.gradient, self.hessian, self.iterations, self.evaluations, False,
                        message)
 
 
 def run_alone(search: Search, programs: dict[str, Callable]) -> Optimum:
-    """Run one :class:`Search`, evaluating each request with ``programs[kind](z)``."""
+    """Run one [`Search`][greyid.estimate.optimize.Search], evaluating each request with ``programs[kind](z)``."""
     requests = search.requests()
     try:
         kind, z = next(requests)
@@ -486,7 +487,7 @@ def quasi_newton_start(value_and_grad: Callable, z0: np.ndarray, max_evaluations
     evaluation here costs a forward gradient, a few times less than an exact Hessian
     (Armadillo: 14 evaluations of about 0.8 ms from the start to within 1e-8 of the optimum's
     value, where Newton took 12 exact Hessians of 2.5 ms).  The start only moves the point
-    from which :class:`Search` takes exact Newton steps, so the optimum, its Hessian and the
+    from which [`Search`][greyid.estimate.optimize.Search] takes exact Newton steps, so the optimum, its Hessian and the
     convergence test are those of Newton's method.  It stops at ``max_evaluations``, where the
     gradient falls below QUASI_GRADIENT, and at the first non-finite value or gradient; it
     returns the best point seen (z0 where nothing was better).
@@ -522,7 +523,8 @@ def newton_trust_region(evaluate: Callable, z0: np.ndarray, maxiter: int = 500,
                         value: Callable | None = None, handover: float = HANDOVER_DECREASE,
                         step_limit: np.ndarray | float = np.inf) -> Optimum:
     """Minimise with ``evaluate(z) -> (f, g, H)``, after Fisher scoring with ``scoring(z) -> (f, g, F)``
-    if given, judging trial points by ``value(z) -> f`` if given; see :meth:`Search.requests`."""
+    if given, judging trial points by ``value(z) -> f`` if given; see
+    [`Search.requests()`][greyid.estimate.optimize.Search.requests]."""
     search = Search(z0, maxiter, report, scoring is not None, value is not None, handover, step_limit)
     programs = {EXACT: evaluate, SCORING: scoring, VALUE: None if value is None else lambda z: (value(z),)}
     return run_alone(search, programs)

@@ -1,10 +1,11 @@
-"""From an optimum to a :class:`~.results.FitResult`: natural parameters, honest standard errors and flags.
+"""From an optimum to a [`FitResult`][greyid.estimate.results.FitResult]: natural parameters, honest standard errors
+and flags.
 
 The uncertainty comes from the exact Hessian of the negative log-posterior at the
 optimum (section 3.3.2), mapped from the optimiser's coordinates to the natural
 parameters; a singular or indefinite Hessian is reported by the parameter
 combination it leaves undetermined, a parameter at a bound loses its standard
-error, and a fit converges only at a minimum (:func:`honest_convergence`).
+error, and a fit converges only at a minimum ([`honest_convergence()`][greyid.estimate.optimum.honest_convergence]).
 """
 
 from __future__ import annotations
@@ -82,7 +83,7 @@ def why_undetermined(model, name: str, frames) -> str:
 def build_result(model, frames, theta, problem, best, optima, settings, scores=None) -> FitResult:
     """Map the optimum back to natural parameters and compute the uncertainty.
 
-    ``scores`` is the :class:`~.covariance.ScoreCovariance` of the per-step scores in z,
+    ``scores`` is the [`ScoreCovariance`][greyid.estimate.covariance.ScoreCovariance] of the per-step scores in z,
     needed for ``cov_type`` "opg" and "sandwich".
     """
     names = list(model.parameter_names)

@@ -1,6 +1,7 @@
 """A fit's criterion again, with some parameters held at chosen values (profiles, posterior sampling).
 
-:class:`Refit` rebuilds the estimation problem of a :class:`~.results.FitResult`
+[`Refit`][greyid.estimate.refit.Refit] rebuilds the estimation problem of a
+[`FitResult`][greyid.estimate.results.FitResult]
 — its data, filter, criterion and prior, the other parameters free within their
 bounds — once, so that many constrained re-estimations (the points of a profile
 likelihood) reuse the data preparation and the compiled programs of the fit.
@@ -165,7 +166,7 @@ class Refit:
         return self._hessian
 
     def programs(self) -> dict:
-        """The fit's programs with their threads, opened once for every refit (closed by :meth:`close`)."""
+        """The fit's programs with their threads, opened once for every refit (closed by `close()`)."""
         if getattr(self, "_programs", None) is None:
             self._stack = ExitStack()
             self._programs = single_programs(self.structure, self.problem, self.arguments, self._stack)

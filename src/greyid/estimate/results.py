@@ -109,7 +109,7 @@ class FitResult:
 
     @property
     def cov_type(self) -> str:
-        """How ``cov`` was computed: ``"hessian"``, ``"opg"`` or ``"sandwich"`` (see :mod:`.covariance`)."""
+        """How ``cov`` was computed: ``"hessian"``, ``"opg"`` or ``"sandwich"`` (see `covariance`)."""
         return self.settings.get("cov_type", "hessian")
 
     def cov_params(self) -> pd.DataFrame:
@@ -127,7 +127,8 @@ class FitResult:
         ``method="wald"``: estimate ± t_{N−k} quantile × SE (NaN where there is no
         standard error: fixed parameters, estimates at a bound).
         ``method="profile"``: the likelihood-ratio interval from the profile of each
-        free parameter (:func:`greyid.uncertainty.profile_intervals`), which follows
+        free parameter ([`greyid.uncertainty.profile_intervals()`][greyid.uncertainty.profile.profile_intervals]),
+        which follows
         a skewed likelihood; an end that runs into a bound is that bound, with a warning.
         """
         if method not in ("wald", "profile"):
@@ -145,20 +146,21 @@ class FitResult:
 
     def profile(self, name: str, values=None, n: int = 21, span: float = 3.0, expression: str | None = None
                 ) -> pd.DataFrame:
-        """The profile likelihood of a parameter or derived quantity; see :func:`greyid.uncertainty.profile`."""
+        """The profile likelihood of a parameter or derived quantity; see `greyid.uncertainty.profile()`."""
         from ..uncertainty.profile import profile
 
         return profile(self, name, values=values, n=n, span=span, expression=expression)
 
     def sample(self, draws: int = 1000, chains: int = 4, seed: int = 0, warmup: int = 500,
                target_accept: float = 0.8):
-        """NUTS draws from the posterior of the fit's criterion; see :func:`greyid.uncertainty.sample`."""
+        """NUTS draws from the posterior of the fit's criterion; see
+        [`greyid.uncertainty.sample()`][greyid.uncertainty.sampling.sample]."""
         from ..uncertainty.sampling import sample
 
         return sample(self, draws=draws, chains=chains, seed=seed, warmup=warmup, target_accept=target_accept)
 
     def plot_profile(self, name: str, ax=None, **options):
-        """Plot :meth:`profile` of ``name`` (deviance, χ² threshold, Wald parabola); returns the Figure
+        """Plot `profile()` of ``name`` (deviance, χ² threshold, Wald parabola); returns the Figure
         (drawn on ``ax`` where given)."""
         from ..uncertainty.profile import plot_profile
 
@@ -386,13 +388,13 @@ class FitResult:
                 parameter_uncertainty: bool = False, draws: int = 200, seed: int = 0, posterior=None):
         """``steps``-ahead predictions of the outputs (and states) with standard deviations.
 
-        As :meth:`Model.predict` at the estimates; append rows of future inputs with
+        As [`Model.predict()`][greyid.model.model.Model.predict] at the estimates; append rows of future inputs with
         missing outputs to ``data`` to forecast past its end.  ``interval=0.95``
         adds ``<y>_lower``/``<y>_upper`` columns.  With ``parameter_uncertainty=True``
         the prediction also carries the parameters' uncertainty: ``draws`` parameter
         vectors from the Laplace approximation (or from ``posterior=fit.sample()``),
         the predictive mixture's mean, total ``<y>_sd`` and quantiles
-        (:func:`greyid.uncertainty.intervals.predict`).
+        ([`greyid.uncertainty.intervals.predict()`][greyid.uncertainty.intervals.predict]).
         """
         if parameter_uncertainty:
             from ..uncertainty.intervals import predict
@@ -423,7 +425,7 @@ class FitResult:
         of the paths' mean and central interval per output instead, each path with
         its own parameter draw when ``parameter_uncertainty`` (Laplace, or
         ``posterior=``), over ``n_paths`` (default 200) paths; see
-        :func:`greyid.uncertainty.intervals.simulate`.
+        [`greyid.uncertainty.intervals.simulate()`][greyid.uncertainty.intervals.simulate].
         """
         if interval is not None or parameter_uncertainty:
             from ..uncertainty.intervals import simulate
@@ -447,7 +449,7 @@ class FitResult:
         return self._cache["residuals"]
 
     def validate(self, level: float = 0.05, lags: int | None = None, m: int | None = None):
-        """Residual tests of chapter 5 on every output: a :class:`~greyid.validation.Validation`.
+        """Residual tests of chapter 5 on every output: a [`Validation`][greyid.validation.validate.Validation].
 
         Its ``tests`` DataFrame has columns ``test, output, statistic, df,
         p_value, reject``; ``plot()``, ``plot_coherency()``,
@@ -535,7 +537,8 @@ def filter_settings(settings: dict) -> dict:
 
 
 def load_fit(path) -> FitResult:
-    """Read a fit written by :meth:`FitResult.save`; its ``model`` reproduces the log-likelihood."""
+    """Read a fit written by [`FitResult.save()`][greyid.estimate.results.FitResult.save]; its ``model`` reproduces the
+    log-likelihood."""
     from ..outputs import complete_generation
 
     path = Path(path)
@@ -551,7 +554,8 @@ def load_fit(path) -> FitResult:
 
 
 def fit_from_dict(spec: dict, where: str = "the fit", model=None) -> FitResult:
-    """A :class:`FitResult` from :meth:`FitResult.to_dict`'s form; errors name ``where`` it came from.
+    """A [`FitResult`][greyid.estimate.results.FitResult] from
+    [`FitResult.to_dict()`][greyid.estimate.results.FitResult.to_dict]'s form; errors name ``where`` it came from.
 
     ``model``, if given, is used instead of a new one built from the stored
     model (the same model: a fleet's fits share the caller's compiled one).

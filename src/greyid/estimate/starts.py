@@ -4,7 +4,7 @@
   the smaller model's estimates, and the new ones where the larger model
   reduces to the smaller (a sensor with a vanishing time constant, a resistance
   large enough to decouple a state).  Where that limit lies is the model's own
-  knowledge: :meth:`Model.set_nested_start` (the library's RC models declare
+  knowledge: [`Model.set_nested_start()`][greyid.model.model.Model.set_nested_start] (the library's RC models declare
   theirs); without it the new parameters take their declared initial values.
 * ``starts=k``: k − 1 further points by a Latin hypercube (SciPy's ``qmc``,
   seeded) in the coordinates the optimiser works in: the middle 96 % of a

@@ -10,7 +10,7 @@ of sub-steps from one until the log-likelihood changes by less than
 ``LOGLIK_TOLERANCE`` when it is doubled once more (step doubling, the usual
 error estimate of an integrator); a fit also requires that the estimates would
 move by less than a tenth of a standard error (see
-:func:`greyid.estimate.estimation.fit`).  A value given by the user is taken as
+[`greyid.estimate.estimation.fit()`][greyid.estimate.estimation.fit]).  A value given by the user is taken as
 it is.
 """
 

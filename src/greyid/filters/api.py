@@ -62,7 +62,7 @@ def sampling_intervals(dt: np.ndarray, times: np.ndarray) -> np.ndarray:
     Times k·Δ stored in floating point give intervals that differ in their last
     digits (1e-12 relative at 10⁴ samples of 1/3 h, more further on); each
     distinct interval costs a discretization, and a long regular series is only
-    recognised as regular (:mod:`.steady`) once they are one.  Intervals within
+    recognised as regular ([`steady`][greyid.filters.steady]) once they are one.  Intervals within
     64 ulps of the largest time of each other form one value, the most frequent
     among them; a group spread wider than that (steadily varying intervals) is
     left as it is, rounded to 12 significant digits.
@@ -124,7 +124,7 @@ def filter_options(structure: Structure, method: str | None, **options) -> Filte
 def accurate_options(structure: Structure, theta, prepared, method, **options):
     """``(FilterOptions, SubstepChoice or None)``: with ``substeps`` unset, as many as accuracy needs.
 
-    See :mod:`.accuracy`; the choice is made on the log-likelihood at ``theta``.
+    See [`accuracy`][greyid.filters.accuracy]; the choice is made on the log-likelihood at ``theta``.
     """
     if options.get("substeps") is not None or not needs_substeps(structure):
         return filter_options(structure, method, **options), None
@@ -309,7 +309,7 @@ def _guarded(method: str, series: Series, guarded: np.ndarray) -> pd.Series:
 
 
 def filter_data(model, params, data, time="t", hold="zoh", method=None, time_unit=None, **options):
-    """Filter result(s): one :class:`FilterResult`, or a list for a list of data sets."""
+    """Filter result(s): one `FilterResult`, or a list for a list of data sets."""
     structure, theta, prepared = _prepare(model, params, data, time, hold, time_unit)
     opts = accurate_options(structure, theta, prepared, method, **options)[0]
     run = compiled_filter(structure, opts, keep_outputs=True)
@@ -318,7 +318,7 @@ def filter_data(model, params, data, time="t", hold="zoh", method=None, time_uni
 
 
 def smooth_data(model, params, data, time="t", hold="zoh", method=None, time_unit=None, **options):
-    """Rauch–Tung–Striebel smoothing after any of the filters (see :mod:`.smoother`)."""
+    """Rauch–Tung–Striebel smoothing after any of the filters (see [`smoother`][greyid.filters.smoother])."""
     structure = model.structure
     chosen = method or (KALMAN if structure.is_linear else EKF)
     results = filter_data(model, params, data, time, hold, chosen, time_unit, **options)

@@ -58,10 +58,10 @@ class FilterOptions:
     kappa: float = 0.0
     #: Shorter regular series (steady.SHORT_ROWS rows or more) of a time-invariant linear model
     #: filtered exactly switch to the steady state too, after their first rows where the filter
-    #: has settled (:mod:`.steady`); long ones (steady.MIN_ROWS or more) always do.  Its programs
+    #: has settled ([`steady`][greyid.filters.steady]); long ones (steady.MIN_ROWS or more) always do.  Its programs
     #: hold both forms: a fit's first call compiles them 2–3 times as long, and its later
     #: evaluations run in half the time (docs/performance.md).  The public likelihood turns it on
-    #: for its single evaluations (:mod:`greyid.estimate.likelihood`); programs vectorised over
+    #: for its single evaluations ([`greyid.estimate.likelihood`][greyid.estimate.likelihood]); programs vectorised over
     #: series or parameter vectors (fleets, populations, a fit's starts) would run both forms for
     #: every member and do not take it.
     steady_state: bool = False
@@ -179,10 +179,10 @@ def takes_steady_state(structure: Structure, options: FilterOptions) -> bool:
 def filter_steps(structure: Structure, options: FilterOptions):
     """``steps(theta, data) -> FilterSteps``: one implementation of each filter.
 
-    The scan of :func:`make_filter` and the k-step predictions of
-    :func:`make_ahead` are both built from these predict and update closures.
+    The scan of [`make_filter()`][greyid.filters.core.make_filter] and the k-step predictions of
+    [`make_ahead()`][greyid.filters.core.make_ahead] are both built from these predict and update closures.
     A long regular series of a linear model takes the steady-state form where
-    the filter reaches it (:mod:`.steady`).
+    the filter reaches it ([`steady`][greyid.filters.steady]).
     """
     f, G, h, S = structure.drift, structure.diffusion, structure.observation, structure.observation_variance
     S_full = structure.observation_covariance  # None unless the outputs' noise is correlated
@@ -399,9 +399,9 @@ def scan_rows(parts: FilterSteps, n_rows: int, collect: Callable | None, accumul
     With ``accumulate`` the scan instead sums ``accumulate(StepTerms_k)`` in its
     carry and returns the sum: nothing is kept per step.  Long regular series
     of a linear model switch to the steady-state form where the filter reaches
-    it (:mod:`.steady`), shorter ones too where the options ask for it; a sum
+    it ([`steady`][greyid.filters.steady]), shorter ones too where the options ask for it; a sum
     only ever differentiated in forward mode (``forward_only``) tests more than
-    once where to switch (:func:`loop_until_settled`).
+    once where to switch ([`loop_until_settled()`][greyid.filters.core.loop_until_settled]).
     """
 
     def step(carry, row):
@@ -429,8 +429,10 @@ def scan_rows(parts: FilterSteps, n_rows: int, collect: Callable | None, accumul
 
 
 def scan_settling(parts: FilterSteps, n_rows: int, step_by_step: Callable, collect, accumulate):
-    """:func:`scan_rows` for a shorter series: its first HEAD rows step by step, then the rest at once
-    in the steady state where the filter has settled there, otherwise step by step too (:mod:`.steady`)."""
+    """[`scan_rows()`][greyid.filters.core.scan_rows] for a shorter series: its first HEAD rows step by step, then the
+    rest at once
+    in the steady state where the filter has settled there, otherwise step by step too
+    ([`steady`][greyid.filters.steady])."""
     model, head = parts.steady, steady_form.HEAD
     first = jax.tree_util.tree_map(lambda a: a[:head], parts.rows)
     rest = jax.tree_util.tree_map(lambda a: a[head:], parts.rows)
@@ -459,15 +461,17 @@ def scan_settling(parts: FilterSteps, n_rows: int, step_by_step: Callable, colle
 
 def loop_until_settled(parts: FilterSteps, n_rows: int, step: Callable, accumulate: Callable):
     """The summed criterion of a shorter series, step by step until the filter has settled, then the
-    rest at once in the steady state (:mod:`.steady`).
+    rest at once in the steady state ([`steady`][greyid.filters.steady]).
 
     A loop whose length is decided as it runs (``lax.while_loop``, which forward-mode derivatives
     pass through and reverse mode does not), over blocks of TEST_EVERY rows: after each it tests,
-    as :func:`scan_settling` does once, whether the filter has settled and all later rows are
+    as [`scan_settling()`][greyid.filters.core.scan_settling] does once, whether the filter has settled and all later
+    rows are
     regular and observed, and stops where they are.  So a filter that settles late (the thesis'
     test cell, after 76 rows) switches then instead of stepping through every row, with one loop
     body and one steady form in the program.  The rest — from the row where the loop stopped, a
-    window of n_rows − TEST_EVERY rows padded at the end — goes through :func:`~.steady.summed_rest`, whose
+    window of n_rows − TEST_EVERY rows padded at the end — goes through
+    [`summed_rest()`][greyid.filters.steady.summed_rest], whose
     own derivative rule takes the rest's gradient in reverse mode.
     """
     model, every = parts.steady, steady_form.TEST_EVERY
@@ -503,7 +507,8 @@ def loop_until_settled(parts: FilterSteps, n_rows: int, step: Callable, accumula
 
 
 def scan_chunks(parts: FilterSteps, n_rows: int, step_by_step: Callable, collect, accumulate):
-    """:func:`scan_rows` a chunk of rows at a time, each step by step or in the steady state."""
+    """[`scan_rows()`][greyid.filters.core.scan_rows] a chunk of rows at a time, each step by step or in the steady
+    state."""
     model, size = parts.steady, steady_form.CHUNK
     steady = steady_form.steady_state(model)
 
@@ -544,7 +549,7 @@ def make_summed_filter(structure: Structure, options: FilterOptions, per_step: C
 
     Nothing is stored per step, so the memory of the value and of its forward
     derivatives does not grow with the length of the series.  ``forward_only``: the
-    sum is never differentiated in reverse mode (see :func:`scan_rows`).
+    sum is never differentiated in reverse mode (see [`scan_rows()`][greyid.filters.core.scan_rows]).
     """
     build = filter_steps(structure, options)
 

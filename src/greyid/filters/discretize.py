@@ -110,7 +110,8 @@ def discretize(A: jnp.ndarray, Q: jnp.ndarray, tau: jnp.ndarray) -> Discretizati
 
 
 def discretize_each(A: jnp.ndarray, Q: jnp.ndarray, taus: jnp.ndarray) -> Discretization:
-    """:func:`discretize` for each of the steps ``taus`` (leading axis of the result).
+    """[`discretize()`][greyid.filters.discretize.discretize] for each of the steps ``taus`` (leading axis of the
+    result).
 
     One step after the other rather than vectorized: the number of doublings
     then stays a scalar, so each step runs only the doublings it needs, and the
@@ -154,7 +155,7 @@ def time_varying_step(matrices, offset, t_prev, tau, u_prev, u_cur, foh, substep
     cut into ``substeps`` pieces; on each, A and GGᵀ are frozen at its midpoint
     (the exponential midpoint rule, second order: the error falls fourfold per
     doubling of ``substeps``) and b is taken linear between the piece's ends, so
-    each piece is discretized exactly as in :func:`discretize`.  The inputs are
+    each piece is discretized exactly as in [`discretize()`][greyid.filters.discretize.discretize].  The inputs are
     held (``foh`` = 0) or interpolated (``foh`` = 1) inside the interval.
     """
     h = tau / substeps

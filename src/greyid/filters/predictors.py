@@ -168,7 +168,7 @@ def unscented_update(mean, cov, y, mask, u, t, theta, observation, variance, for
     """Unscented measurement update: ŷ, R and the state–output cross covariance from sigma points.
 
     P⁺ = P − K R Kᵀ subtracts, as every unscented update does; in the square-root
-    form P⁺ is refactorised by the guarded Cholesky (:func:`.small.cholesky`).
+    form P⁺ is refactorised by the guarded Cholesky ([`small.cholesky()`][greyid.filters.small.cholesky]).
     """
     P = to_matrix(cov, form)
     X = sigma_points(mean, P, weights)

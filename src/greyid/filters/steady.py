@@ -16,7 +16,7 @@ A chunk with a missing value or another interval runs the ordinary steps again
 (and checks again at its end).  P∞ comes from the doubling algorithm.
 
 A shorter series (SHORT_ROWS rows or more) runs its first HEAD rows step by
-step, and if the filter's covariance there has settled (:func:`settled_state`,
+step, and if the filter's covariance there has settled ([`settled_state()`][greyid.filters.steady.settled_state],
 to SETTLED_TOLERANCE) and every later row is fully observed at the regular
 interval, those rows take the steady-state form all at once; otherwise they run
 step by step too.  The Armadillo filter's covariance is within 1e-10 of P∞
@@ -26,7 +26,7 @@ the whole vectorised rest.
 
 The answers equal the ordinary filter's up to the tolerances; the derivatives
 are P∞'s: through the doubling iterations (long series), by the implicit
-function theorem (shorter ones, :func:`steady_prediction`).
+function theorem (shorter ones, [`steady_prediction()`][greyid.filters.steady.steady_prediction]).
 """
 
 from __future__ import annotations
@@ -56,8 +56,9 @@ TOLERANCE = 1e-12
 DOUBLINGS = 48
 #: Rows (the series' padded length) from which a shorter series may take the steady state.
 SHORT_ROWS = 128
-#: Rows of a shorter series' rest up to which :func:`short_recursion` takes it (longer ones:
-#: :func:`linear_recursion`).
+#: Rows of a shorter series' rest up to which [`short_recursion()`][greyid.filters.steady.short_recursion] takes it
+#: (longer ones:
+#: [`linear_recursion()`][greyid.filters.steady.linear_recursion]).
 SHORT_REST = 1024
 #: Rows of a shorter series that run step by step before it tests whether its filter has settled.
 HEAD = 32
@@ -69,7 +70,8 @@ TEST_EVERY = 16
 #: filter's by about this much each, times the few rows the filter would still take to settle:
 #: 1e-10 keeps the log-likelihood within 1e-9 (absolute) of the ordinary filter's.
 SETTLED_TOLERANCE = 1e-10
-#: Doubling iterations of the Lyapunov sum in :func:`settled_state` (2^SMITH_DOUBLINGS terms).
+#: Doubling iterations of the Lyapunov sum in [`settled_state()`][greyid.filters.steady.settled_state]
+#: (2^SMITH_DOUBLINGS terms).
 SMITH_DOUBLINGS = 8
 
 
@@ -107,7 +109,7 @@ class SteadyState(NamedTuple):
     chol_R: jnp.ndarray
     whitening: jnp.ndarray  # L⁻¹ with R = LLᵀ: one product per chunk instead of a triangular solve per row
     closed_loop: jnp.ndarray  # F = (I − KC)Φ, of the filtered mean's recursion x_k = F x_{k−1} + v_k
-    recursion: "Recursion | None"  # F's powers for :func:`linear_recursion`; None: :func:`short_recursion`
+    recursion: "Recursion | None"  # F's powers for linear_recursion(); None: short_recursion()
 
 
 def riccati_solution(transition, noise, C, S):
@@ -118,7 +120,7 @@ def riccati_solution(transition, noise, C, S):
     recursion from P = Λ, so it converges quadratically once the filter's
     closed loop is stable.  Where there is no steady state (a mode that is
     neither stable nor observed) the result is meaningless or NaN: the carried
-    covariance never equals it, so no chunk switches (:func:`at_steady_state`).
+    covariance never equals it, so no chunk switches ([`at_steady_state()`][greyid.filters.steady.at_steady_state]).
     """
     n = transition.shape[0]
     eye = jnp.eye(n)
@@ -138,7 +140,8 @@ def steady_state(model: SteadyModel, predicted=None, rows: int | None = None) ->
     """P∞ and the constant gain, innovation covariance (4.28–4.29) and filtered covariance of the steady state.
 
     ``predicted`` is P∞ where the caller has it (a shorter series); otherwise it
-    comes from :func:`riccati_solution`.  F's powers for :func:`linear_recursion`
+    comes from [`riccati_solution()`][greyid.filters.steady.riccati_solution].  F's powers for
+    [`linear_recursion()`][greyid.filters.steady.linear_recursion]
     are computed for ``rows`` (of the rest) beyond SHORT_REST.
     """
     P = predicted
@@ -177,7 +180,7 @@ def settled_state(model: SteadyModel, cov, rows: int):
     rounding wherever P is close, and never equals P where the sum does not
     converge (an unstable F, a closed loop too slow for 2^SMITH_DOUBLINGS steps:
     spectral radius above about 0.93).  The steady state is X, with P∞'s own
-    derivatives (:func:`steady_prediction`): those the first rows gave P still
+    derivatives ([`steady_prediction()`][greyid.filters.steady.steady_prediction]): those the first rows gave P still
     hold the initial state's, which P∞ has none of.
     """
     P, X, settled = newton_test(model, cov)
@@ -190,7 +193,8 @@ def settled_state(model: SteadyModel, cov, rows: int):
 
 def newton_test(model: SteadyModel, cov):
     """``(P, X, settled)``: the next prediction P from the filtered covariance ``cov``, one Newton step X
-    from it, and whether the two agree (see :func:`settled_state`); values only, no derivatives."""
+    from it, and whether the two agree (see [`settled_state()`][greyid.filters.steady.settled_state]); values only, no
+    derivatives."""
     disc = model.disc
     P = symmetrize(small.mm(small.mm(disc.transition, to_matrix(cov, model.form)), disc.transition.T)
                    + disc.noise_covariance)
@@ -224,7 +228,8 @@ def riccati_step(P, transition, noise, C, S):
 
 @jax.custom_jvp
 def steady_prediction(X, transition, noise, C, S):
-    """P∞ = X (given, found by :func:`settled_state`), with the derivatives of the Riccati equation's fixed point.
+    """P∞ = X (given, found by [`settled_state()`][greyid.filters.steady.settled_state]), with the derivatives of the
+    Riccati equation's fixed point.
 
     P∞ = R(P∞; Φ, Λ, C, S) gives, by the implicit function theorem,
     dP∞ = F dP∞ Fᵀ + ∂R (the step's derivative with P∞ held), F = Φ(I − KC) the
@@ -250,7 +255,8 @@ def _steady_prediction_jvp(primals, tangents):
 
 
 class Recursion(NamedTuple):
-    """The powers of F that :func:`linear_recursion` applies, computed once per steady state."""
+    """The powers of F that [`linear_recursion()`][greyid.filters.steady.linear_recursion] applies, computed once per
+    steady state."""
 
     powers: jnp.ndarray  # F⁰ … F^BLOCK
     toeplitz: jnp.ndarray  # (BLOCK, BLOCK, n, n): F^(l−i) where l ≥ i, else 0
@@ -262,7 +268,7 @@ def _powers(F, count):
 
 
 def recursion(F) -> Recursion:
-    """:class:`Recursion` of x_r = F x_{r−1} + v_r."""
+    """[`Recursion`][greyid.filters.steady.Recursion] of x_r = F x_{r−1} + v_r."""
     L = BLOCK
     powers = _powers(F, L)
     lag = jnp.arange(L)[:, None] - jnp.arange(L)[None, :]
@@ -349,12 +355,13 @@ def short_recursion(F, v, start):
 
 @jax.custom_jvp
 def doubling_recursion(F, v, start):
-    """:func:`short_recursion` as a prefix sum by doubling (Hillis and Steele), for a fit's Hessian.
+    """[`short_recursion()`][greyid.filters.steady.short_recursion] as a prefix sum by doubling (Hillis and Steele),
+    for a fit's Hessian.
 
     With the start folded into the first row, level k adds to each row F^(2^k)
     times the row 2^k before it, so that after it each row holds Σ F^(r−j) v_j
     over its last 2^(k+1) rows: ⌈log₂ rows⌉ levels of a shifted product and a
-    sum, and no LAPACK call.  The Hessian's rest (:func:`summed_rest`) takes its
+    sum, and no LAPACK call.  The Hessian's rest ([`summed_rest()`][greyid.filters.steady.summed_rest]) takes its
     gradient in reverse mode, which transposes the triangular solves into LAPACK
     calls with dozens of right-hand sides; the BLAS library spreads those over
     its threads, and a thread held by other work stalls the fit.  Armadillo fits
@@ -376,7 +383,8 @@ def doubling_recursion(F, v, start):
 
 
 def _same_recursion(recursion):
-    """The derivative rule of a mean recursion: as :func:`_linear_recursion_jvp`, the tangent is the
+    """The derivative rule of a mean recursion: as
+    [`_linear_recursion_jvp()`][greyid.filters.steady._linear_recursion_jvp], the tangent is the
     same recursion, x'_r = F x'_{r−1} + (F' x_{r−1} + v'_r)."""
     def rule(primals, tangents):
         F, v, start = primals
@@ -419,8 +427,8 @@ def steady_rows(model: SteadyModel, steady: SteadyState, x_start, rows, padding,
     step of the ordinary filter gives — and the carried ``(x, cov)`` at the end.
     Rows marked ``padding`` (only after the series' last row) count nothing in
     the criterion; the means carried through them are never used.  ``short``:
-    the mean's recursion over a shorter series' rest (:func:`short_recursion` or
-    :func:`doubling_recursion`).
+    the mean's recursion over a shorter series' rest ([`short_recursion()`][greyid.filters.steady.short_recursion] or
+    [`doubling_recursion()`][greyid.filters.steady.doubling_recursion]).
     """
     disc, C = model.disc, model.C
     n_rows = rows.t.shape[0]
@@ -454,7 +462,7 @@ def steady_rows(model: SteadyModel, steady: SteadyState, x_start, rows, padding,
 
 
 class RestRows(NamedTuple):
-    """The rows :func:`steady_rows` reads (a shorter series' rest)."""
+    """The rows [`steady_rows()`][greyid.filters.steady.steady_rows] reads (a shorter series' rest)."""
 
     t: jnp.ndarray
     t_prev: jnp.ndarray
@@ -465,7 +473,8 @@ class RestRows(NamedTuple):
 
 def summed_rest(accumulate: Callable, model: SteadyModel, x_start, cov, rows):
     """Σ accumulate(StepTerms_r) over a shorter series' rest in the steady state, settled from the
-    filtered covariance ``cov`` that the rows before carried out (:func:`settled_state`, :func:`steady_rows`).
+    filtered covariance ``cov`` that the rows before carried out
+    ([`settled_state()`][greyid.filters.steady.settled_state], [`steady_rows()`][greyid.filters.steady.steady_rows]).
 
     Its derivatives come from its own rule, which takes the gradient in reverse mode: a fit's Hessian
     (forward over forward) then differentiates the rest forward over reverse, carrying each row's

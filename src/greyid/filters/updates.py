@@ -6,7 +6,7 @@ square-root measurement update is Potter's, one scalar observation at a time,
 and never subtracts covariances, so P stays positive semi-definite (the role of
 the LDLᵀ updates of A.1.2 and A.3); the time update refactorises Φ P Φᵀ + Λ, a
 sum of positive semi-definite terms, by the guarded Cholesky factorisation of
-:func:`.small.cholesky` (zero pivots give zero columns).  It is not an array
+[`small.cholesky()`][greyid.filters.small.cholesky] (zero pivots give zero columns).  It is not an array
 (QR) algorithm.
 
 Unobserved elements of y_k are masked: their row of C is zeroed, their
@@ -131,7 +131,7 @@ def correlated_update(mean, cov, y, mask, y_pred, C, S_full, form: str, update=N
     covariance (unobserved ones get an identity block): with y', ŷ', C' = L⁻¹(y, ŷ, C)
     the noise is white with unit variances, so the scalar updates apply; log det R
     gains 2 log det L, and the innovations and R are returned in the outputs' own
-    coordinates.  ``update`` is :func:`linear_update` or a filter's variant of it.
+    coordinates.  ``update`` is [`linear_update()`][greyid.filters.updates.linear_update] or a filter's variant of it.
     """
     update = update or linear_update
     m = mask

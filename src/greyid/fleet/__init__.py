@@ -1,7 +1,8 @@
 """Fleets: one model fitted to many data sets in one call (batched, on Dask, on a GPU).
 
-:func:`fit_many` returns a :class:`FleetResult` (a table with one row per data
-set, each data set's :class:`~greyid.estimate.FitResult`); :func:`relate`
+[`fit_many()`][greyid.fleet.fit.fit_many] returns a [`FleetResult`][greyid.fleet.result.FleetResult] (a table with one
+row per data
+set, each data set's `FitResult`); [`relate()`][greyid.fleet.population.relate]
 regresses the estimates on covariates of the data sets (thesis section 8.4).
 """
 

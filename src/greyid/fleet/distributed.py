@@ -2,8 +2,8 @@
 
 The client sends each chunk — the model as its dictionary form, the data sets
 (DataFrames, or CSV paths read on the worker) and the settings — to a worker,
-which builds the model once (:func:`_worker_model` keeps it for later chunks,
-so a worker compiles once) and runs :func:`~.fit.fit_members` on the chunk.
+which builds the model once ([`_worker_model()`][greyid.fleet.distributed._worker_model] keeps it for later chunks,
+so a worker compiles once) and runs [`fit_members()`][greyid.fleet.fit.fit_members] on the chunk.
 Fits come back in their saved form and are rebuilt on the client around the
 caller's model.  Scheduling, retries and data locality are Dask's.
 """
@@ -51,11 +51,12 @@ def _workers(client) -> int:
 
 def fit_on_cluster(client, model, names: list, sources: list, inits: list, chunk_size: int, progress,
                    given: dict, worker_timeout: float | None = None) -> FleetResult:
-    """:func:`~.fit.fit_many` with ``scheduler=client`` (a ``dask.distributed.Client``).
+    """[`fit_many()`][greyid.fleet.fit.fit_many] with ``scheduler=client`` (a ``dask.distributed.Client``).
 
     A chunk whose worker dies is retried by Dask (``distributed.scheduler.allowed-failures``
     times, then it fails with ``KilledWorker``); where the cluster has had no worker at all for
-    ``worker_timeout`` seconds (default :data:`NO_WORKER_TIMEOUT`), the chunks still pending are
+    ``worker_timeout`` seconds (default [`NO_WORKER_TIMEOUT`][greyid.fleet.distributed.NO_WORKER_TIMEOUT]), the chunks
+    still pending are
     cancelled.  Either way their members come back as failed rows that say why, and the call returns.
     """
     try:

@@ -5,9 +5,9 @@ that fails becomes a row with its error; the others go on), groups them by
 padded length, and runs the searches of all members of a group together:
 each member keeps its own trust region and convergence, and the requests of
 all members are evaluated by one program vectorised over them
-(:mod:`greyid.estimate.batch`, the mechanism batched starts use).  Each member's
-result is the :class:`~greyid.estimate.FitResult` a separate ``model.fit``
-gives.  Series longer than :data:`~greyid.estimate.objective.LONG_SERIES` rows
+([`greyid.estimate.batch`][greyid.estimate.batch], the mechanism batched starts use).  Each member's
+result is the `FitResult` a separate ``model.fit``
+gives.  Series longer than [`LONG_SERIES`][greyid.estimate.objective.LONG_SERIES] rows
 are fitted one at a time (their programs keep memory independent of length).
 """
 
@@ -93,7 +93,7 @@ def member_inits(init, names: list) -> list[dict | None]:
 def fit_many(model, datasets, time: str | None = None, hold: str | None = None, scheduler=None,
              progress=False, init=None, chunk_size: int = 256, worker_timeout: float | None = None,
              **options) -> FleetResult:
-    """Fit ``model`` to each of ``datasets``; see :func:`greyid.fit_many` (``worker_timeout``: seconds a
+    """Fit ``model`` to each of ``datasets``; see `greyid.fit_many()` (``worker_timeout``: seconds a
     cluster may have no worker before its pending members are given up as failed rows)."""
     if resolve(model._options, options, ("steady_state",)).get("steady_state"):
         raise ModelError("steady_state=True is for single fits (model.fit, model.likelihood): a fleet evaluates "
@@ -111,13 +111,14 @@ def fit_many(model, datasets, time: str | None = None, hold: str | None = None, 
     return FleetResult(model, names, rows, fits)
 
 
-#: fit()'s settings and their defaults (as in :func:`greyid.estimate.estimation.fit`).
+#: fit()'s settings and their defaults (as in [`greyid.estimate.estimation.fit()`][greyid.estimate.estimation.fit]).
 FIT_DEFAULTS = dict(time="t", hold="zoh", method=None, criterion="ml", robust=None, horizon=1, starts=1, seed=0,
                     time_unit=None, maxiter=500, cov_type=None, optimizer="auto")
 
 
 def fit_members(model, names: list, sources: list, inits: list, progress, given: dict):
-    """``(rows, fits)``: the table rows and :class:`FitResult` (or None) of each data set."""
+    """``(rows, fits)``: the table rows and [`FitResult`][greyid.estimate.results.FitResult] (or None) of each data
+    set."""
     structure = model.structure
     given = dict(given)
     prior = given.pop("prior", None)
@@ -248,7 +249,8 @@ def _quiet(iteration, stage, f, g):
 
 def _result(model, structure, problem, args, member, best, optima, labels, s, robust, cov_type, prior,
             filter_settings):
-    """A member's :class:`FitResult`, as ``model.fit`` would build it (its warnings kept on it, not shown)."""
+    """A member's [`FitResult`][greyid.estimate.results.FitResult], as ``model.fit`` would build it (its warnings kept
+    on it, not shown)."""
     if isinstance(best, str):
         return best
     datasets = [inputs for _, inputs in member["prepared"]]

@@ -3,7 +3,7 @@
 The thesis relates the fuel-film model's X, τ_s and τ_ff at eleven operating
 points to throttle angle, speed, manifold pressure and air flow by linear
 regression over all subsets of the covariates, ranked by Mallows' C_p
-(Weisberg 1985).  :func:`relate` does the same on a fleet's table, by weighted
+(Weisberg 1985).  [`relate()`][greyid.fleet.population.relate] does the same on a fleet's table, by weighted
 least squares with weights 1/SE² of the estimates (statsmodels), so a data set
 that determines a parameter poorly counts for less.
 """
@@ -36,7 +36,7 @@ def relate(fleet, covariates: pd.DataFrame, parameter: str, candidates=None, wei
            max_terms: int | None = None) -> Relation:
     """Regress ``parameter``'s estimates on covariates of the data sets, best subset by Mallows' C_p.
 
-    ``fleet`` is a :class:`FleetResult` (or its ``table``); ``covariates`` is
+    ``fleet`` is a [`FleetResult`][greyid.fleet.result.FleetResult] (or its ``table``); ``covariates`` is
     indexed by the data sets' names; ``candidates`` the covariate columns to
     try (default: all).  Data sets without a fit or with a missing covariate
     are left out (and counted in the result's subsets table as ``n``).  C_p =

@@ -13,7 +13,7 @@ class FleetResult:
     per parameter (its estimate), ``<parameter>_se`` (standard errors),
     ``loglik``, ``aic``, ``n_obs``, ``converged``, ``iterations``, ``message``
     and ``error`` (why a data set has no fit, else None).  ``fits``: name →
-    :class:`~greyid.estimate.FitResult`, None where the data set failed.
+    `FitResult`, None where the data set failed.
     """
 
     def __init__(self, model, names: list, rows: list[dict], fits: list):

@@ -6,13 +6,13 @@
     print(m.to_toml())                  # its model file, to copy and edit
 
 The building models are the RC family of Bacher & Madsen (2011), built by
-:func:`rc_network` from the indoor air state Ti and any of the envelope Te,
+[`rc_network()`][greyid.library.rc_network] from the indoor air state Ti and any of the envelope Te,
 heater Th, interior medium Tm and sensor Ts states, with inputs Ta (ambient
 temperature, °C), Ps (solar irradiance, kW/m²) and Ph (heating power, kW) and
 output yTi; time in hours, C in kWh/K, R in K/kW.  The others are model files
 in ``library/models``: the test cell (7.43), the fuel film (8.1–8.3), logistic
 growth (2.30) and Lotka–Volterra (A.66).  ``wallN`` is a homogeneous wall of N
-nodes (:mod:`.walls`, section 7.1), with the exact and lumped frequency responses.
+nodes (`walls`, section 7.1), with the exact and lumped frequency responses.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from .walls import ladder_polynomials, lumped_wall, wall_frequency_response, wal
 #: Extra states of the RC family, in the order they appear in a model's name.
 RC_STATES = ("Te", "Th", "Tm", "Ts")
 _RC_WHAT = {"Te": "envelope", "Th": "heater", "Tm": "interior medium", "Ts": "sensor"}
-#: The building models listed by :func:`names`; any other combination of the RC
+#: The building models listed by [`names()`][greyid.library.names]; any other combination of the RC
 #: states loads too, in any order (``TiThTeTs`` is ``TiTeThTs``).
 BUILDING_MODELS = ("Ti", "TiTe", "TiTh", "TiTm", "TiTeTh", "TiTeThTs", "TiTeThTmTs")
 
@@ -142,7 +142,8 @@ def _model_files() -> dict:
     return {f.name[: -len(".toml")]: f for f in folder.iterdir() if f.name.endswith(".toml")}
 
 
-#: Walls listed by :func:`names`; ``wallN`` loads the N-node wall for any N (:func:`wall_model`).
+#: Walls listed by [`names()`][greyid.library.names]; ``wallN`` loads the N-node wall for any N
+#: ([`wall_model()`][greyid.library.walls.wall_model]).
 WALL_MODELS = ("wall1", "wall2")
 
 
@@ -152,7 +153,7 @@ def names() -> list[str]:
 
 
 def load_model(name: str) -> Model:
-    """A fresh copy of the library model ``name`` (see :func:`names`)."""
+    """A fresh copy of the library model ``name`` (see [`names()`][greyid.library.names])."""
     states = _rc_states(name)
     if states is not None:
         return rc_network(states)

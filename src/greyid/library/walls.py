@@ -11,10 +11,11 @@ temperature).  A ladder of resistances r₁ … r_{n+1} and capacitances c₁ �
 whose upper-right and lower-right entries are the polynomials B_n and D_n.
 The network "from the infinite product expansion" keeps the gain Σr_i = R and
 the first n zeros of B (s = −k²π²/RC) and D (s = −(k − ½)²π²/RC) (7.16–7.17):
-:func:`lumped_wall` solves for it at any order (the thesis prints orders 1
-and 2, (7.20) and (7.23)), :func:`wall_frequency_response` puts the exact and
+[`lumped_wall()`][greyid.library.walls.lumped_wall] solves for it at any order (the thesis prints orders 1
+and 2, (7.20) and (7.23)), [`wall_frequency_response()`][greyid.library.walls.wall_frequency_response] puts the exact
+and
 lumped responses side by side so one sees over which band a lumped model is
-adequate, and :func:`wall_model` is the n-node wall as a greyid model.
+adequate, and [`wall_model()`][greyid.library.walls.wall_model] is the n-node wall as a greyid model.
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""From a :class:`~greyid.model.Model`'s equations to its compiled :class:`Structure`.
+"""From a [`Model`][greyid.model.model.Model]'s equations to its compiled
+[`Structure`][greyid.model.structure.Structure].
 
 The equations are checked against each other (names declared once, noise only
 in system equations, the initial state free of states and inputs), algebraic

@@ -5,7 +5,7 @@ on the film a transport delay later.  In equations the delay is written
 ``delay(mf, tau)``, with ``tau`` a number or an expression of parameters (an
 estimable delay), in the data's time unit.  Each distinct ``delay(u, tau)``
 becomes one extra input of the compiled model functions, which the filters fill
-in with the delayed input's values (see :mod:`greyid.filters.delays`).
+in with the delayed input's values (see [`greyid.filters.delays`][greyid.filters.delays]).
 """
 
 from __future__ import annotations

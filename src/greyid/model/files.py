@@ -40,8 +40,9 @@ A model file holds what the Python API holds, readable at a glance::
     criterion = "ml"
     starts = 1
 
-:func:`read_model` and :func:`write_model` round-trip (``Model.from_toml`` /
-``model.to_toml``); :func:`read_data` reads the data a model file points to.
+[`read_model()`][greyid.model.files.read_model] and [`write_model()`][greyid.model.files.write_model] round-trip
+(``Model.from_toml`` /
+``model.to_toml``); [`read_data()`][greyid.model.files.read_data] reads the data a model file points to.
 """
 
 from __future__ import annotations
@@ -110,7 +111,7 @@ def model_to_dict(model) -> dict:
 
 
 def model_from_dict(spec: Mapping, cls=None):
-    """Rebuild a model written by :func:`model_to_dict`."""
+    """Rebuild a model written by [`model_to_dict()`][greyid.model.files.model_to_dict]."""
     if cls is None:
         from .model import Model as cls
     m = cls(spec.get("name", "model"), spec.get("description", ""))
@@ -142,7 +143,8 @@ def model_from_dict(spec: Mapping, cls=None):
 
 # ---------------------------------------------------------------------- reading TOML
 def spec_from_toml(document: Mapping) -> dict:
-    """The :func:`model_to_dict` form of a parsed TOML model file (checked by :mod:`greyid.schema`)."""
+    """The [`model_to_dict()`][greyid.model.files.model_to_dict] form of a parsed TOML model file (checked by
+    [`greyid.schema`][greyid.schema])."""
     check_model_document(document)
     model = document["model"]
     system = model["system"] if isinstance(model["system"], list) else [model["system"]]
@@ -173,7 +175,7 @@ def spec_from_toml(document: Mapping) -> dict:
 
 
 def read_model(source):
-    """A :class:`Model` from a TOML model file (a path) or TOML text.
+    """A [`Model`][greyid.model.model.Model] from a TOML model file (a path) or TOML text.
 
     A relative ``[data] file`` is kept relative to the model file's folder.
     """
@@ -287,7 +289,7 @@ def write_model(model, path=None) -> str:
 
 
 # ---------------------------------------------------------------------- data
-#: How a saved fit names data that came from :func:`greyid.datasets.fetch` rather than a file.
+#: How a saved fit names data that came from [`greyid.datasets.fetch()`][greyid.data.named.fetch] rather than a file.
 DATASET_PREFIX = "dataset:"
 
 
@@ -327,14 +329,14 @@ def data_path(model, path=None) -> Path:
 
 def data_origin(model, path=None) -> str:
     """Where the data come from, as a saved fit keeps it: the data file's absolute path, or
-    ``dataset:NAME`` for a data set of :func:`greyid.datasets.fetch`."""
+    ``dataset:NAME`` for a data set of [`greyid.datasets.fetch()`][greyid.data.named.fetch]."""
     name = _dataset_name(model, path)
     return f"{DATASET_PREFIX}{name}" if name is not None else str(data_path(model, path).resolve())
 
 
 def read_data(model, path=None, time: str | None = None):
-    """Read the data for ``model``: the CSV file of :func:`data_path`, or the named data set
-    (``[data] dataset``, or ``path`` written ``dataset:NAME``) by :func:`greyid.datasets.fetch`.
+    """Read the data for ``model``: the CSV file of [`data_path()`][greyid.model.files.data_path], or the named data set
+    (``[data] dataset``, or ``path`` written ``dataset:NAME``) by [`greyid.datasets.fetch()`][greyid.data.named.fetch].
 
     The separator is ``[data] separator`` when given, else detected.  Column
     renaming by ``[data.columns]`` happens when the data are used.

@@ -1,4 +1,4 @@
-"""The :class:`Model`: a stochastic state-space model written as equations.
+"""The [`Model`][greyid.model.model.Model]: a stochastic state-space model written as equations.
 
     m = Model("TiTw")
     m.add_system("dTi = (1/(Ci*Riw)*(Tw-Ti) + Aw/Ci*Gv + Qi/Ci)*dt + exp(p11)*dw1")
@@ -150,7 +150,7 @@ class Model:
 
     @property
     def options(self) -> dict:
-        """The model's default settings (see :meth:`set_options`)."""
+        """The model's default settings (see `set_options()`)."""
         return dict(self._options)
 
     def set_observation_covariance(self, matrix) -> "Model":
@@ -199,7 +199,7 @@ class Model:
         return self
 
     def set_population(self, random=None, effects=None, omega=None, covariates=None, omega_init=None) -> "Model":
-        """Defaults of :func:`greyid.fit_population` for this model (a model file's ``[population]``):
+        """Defaults of `greyid.fit_population()` for this model (a model file's ``[population]``):
         ``random`` {parameter: "normal" | "lognormal"}, ``effects`` {parameter: [covariate, ...]},
         ``omega`` "diagonal" | "full", ``covariates`` a CSV file with a row per data set (first
         column: the data sets' names; relative to the model file), ``omega_init`` {parameter: sd}."""
@@ -220,7 +220,7 @@ class Model:
 
         ``{"t": "h", "Ti": "degC", "Ci": "kWh/K", "s1": "K/h^0.5"}``; names
         without a unit count as dimensionless.  Every equation is then checked for
-        dimensional consistency before a fit (:meth:`check_units`).
+        dimensional consistency before a fit (`check_units()`).
         """
         from .units import parse_units
 
@@ -230,7 +230,7 @@ class Model:
 
     @property
     def units(self) -> dict[str, str]:
-        """The units given with :meth:`set_units` (a copy)."""
+        """The units given with `set_units()` (a copy)."""
         return dict(self._units)
 
     def unit_report(self, time: str | None = None) -> pd.DataFrame:
@@ -242,7 +242,7 @@ class Model:
                                   note=t.note.lstrip(" :")) for t in terms])
 
     def check_units(self, time: str | None = None) -> list[str]:
-        """Check the equations' dimensions (see :mod:`greyid.model.units`); the report's lines.
+        """Check the equations' dimensions (see `greyid.model.units`); the report's lines.
 
         Raises a ModelError naming every term whose unit is not the expected one.
         """
@@ -425,7 +425,7 @@ class Model:
 
     # ------------------------------------------------------------------ parameters
     def parameter_vector(self, params: Mapping[str, float] | None = None) -> np.ndarray:
-        """The parameter vector θ in :attr:`parameter_names` order.
+        """The parameter vector θ in `parameter_names` order.
 
         Values come from ``params``; parameters not named there take their fixed
         value.  A parameter with neither is an error.
@@ -465,14 +465,14 @@ class Model:
 
     @classmethod
     def from_dict(cls, spec: Mapping) -> "Model":
-        """Rebuild a model written by :meth:`to_dict`."""
+        """Rebuild a model written by `to_dict()`."""
         from .files import model_from_dict
 
         return model_from_dict(spec, cls)
 
     @classmethod
     def from_toml(cls, source) -> "Model":
-        """Read a model file (TOML; a path, or the text itself). See :mod:`greyid.model.files`."""
+        """Read a model file (TOML; a path, or the text itself). See `greyid.model.files`."""
         from .files import read_model
 
         return read_model(source)
@@ -507,25 +507,25 @@ class Model:
         points of a space-filling design inside the bounds; ``init_from`` (the fit
         of a model this one extends) adds a start at that fit's estimates, with the
         new parameters where this model reduces to the other (see
-        :meth:`set_nested_start` and :mod:`greyid.estimate.starts`).  ``progress=True`` prints the
+        `set_nested_start()` and `greyid.estimate.starts`).  ``progress=True`` prints the
         optimiser's iterations (or pass a callable taking one dict per
         iteration).  ``cov_type`` chooses the covariance of the estimates:
         ``"hessian"`` (the default for ML and MAP), ``"sandwich"`` H⁻¹JH⁻¹ (the
         default for k-step and robust criteria, which are not likelihoods) or
-        ``"opg"`` (see :mod:`greyid.estimate.covariance`).  ``optimizer`` is ``"auto"``
+        ``"opg"`` (see `greyid.estimate.covariance`).  ``optimizer`` is ``"auto"``
         (Fisher scoring far from the optimum where a Hessian is costly, then exact
         Newton steps), ``"scoring"``, ``"newton"`` or ``"quasi-newton"`` (L-BFGS steps on
         the value and exact gradient, then exact Newton steps: the same optimum, compiled
         fits of small models in half to 0.6 of the default's time (Armadillo), a first fit
-        compiling one program more; see :mod:`greyid.estimate.optimize`).
+        compiling one program more; see `greyid.estimate.optimize`).
         ``steady_state=True``: a regular series of 128 rows or more of a linear
         time-invariant model runs the fit's programs in the filter's steady state
         once the filter has settled (as ``likelihood`` does): later fits of the model in
         the process take about half the time, the first one compiles 2–3 times as long
         (docs/performance.md); the same optimum (log-likelihood within 1e-8).
-        Settings not given come from :meth:`set_options`, then
+        Settings not given come from `set_options()`, then
         from the defaults (time column "t", zero-order hold, ML).  Returns a
-        :class:`~greyid.estimate.FitResult`.
+        `FitResult`.
         """
         from ..estimate.estimation import fit
 
@@ -542,7 +542,7 @@ class Model:
     def likelihood(self, data, time: str | None = None, hold: str | None = None, method: str | None = None,
                    criterion: str | None = None, prior=None, robust=None, horizon: int | None = None, **options):
         """The negative log-likelihood of ``data`` (or the criterion ``fit`` would minimise: MAP, robust,
-        k-step) as a function of the free parameters: a :class:`~greyid.estimate.likelihood.Likelihood`
+        k-step) as a function of the free parameters: a [`Likelihood`][greyid.estimate.likelihood.Likelihood]
         with ``.names``, ``.value(x)``, ``.value_and_grad(x)`` and ``.hessian(x)`` (x in the parameters'
         own units, one vector or one row per vector; ``unconstrained=True`` for the optimiser's z), and
         ``.function()``, the pure JAX function for ``jax.grad``, ``vmap``, samplers and optimisers.
@@ -593,7 +593,7 @@ class Model:
 
     def filter(self, params, data, time: str | None = None, hold: str | None = None, method: str | None = None,
                **options):
-        """Run the filter and return a :class:`~greyid.filters.FilterResult`."""
+        """Run the filter and return a `FilterResult`."""
         from ..filters.api import filter_data
 
         data, settings = self._call_settings(data, dict(time=time, hold=hold, method=method, **options),

@@ -31,7 +31,8 @@ def glazing_transmittance_expression(theta, panes, index=GLASS_INDEX):
 
 
 def glazing_transmittance(theta, panes, index: float = GLASS_INDEX):
-    """NumPy values of :func:`glazing_transmittance_expression` (θ in radians)."""
+    """NumPy values of [`glazing_transmittance_expression()`][greyid.model.physics.glazing_transmittance_expression] (θ
+    in radians)."""
     theta = np.asarray(theta, dtype=np.float64)
     c1 = np.clip(np.cos(theta), 0.0, None)
     c2 = np.sqrt(1 - (1 - c1 ** 2) / index ** 2)

@@ -1,6 +1,6 @@
 """From a model specification to compiled JAX functions.
 
-A :class:`Structure` holds everything the filters need: names, the drift f, the
+A [`Structure`][greyid.model.structure.Structure] holds everything the filters need: names, the drift f, the
 diffusion G, the observation function h and the observation variances S as
 jitted-traceable functions of ``(x, u, t, theta)`` (model (4.1)–(4.2)), the initial
 state, and the model class (linear time-invariant, linear time-varying or
@@ -61,7 +61,7 @@ class Structure:
     equations: dict = field(default_factory=dict)
     #: (x, u, t, θ) → the outputs' full noise covariance, where they are correlated (else None).
     observation_covariance: ModelFunction | None = None
-    #: The model's ``delay(u, tau)`` terms (:class:`~greyid.model.delays.DelayedInput`), each an
+    #: The model's ``delay(u, tau)`` terms ([`DelayedInput`][greyid.model.delays.DelayedInput]), each an
     #: extra input of the functions above, after the data's inputs.
     delays: tuple = ()
     #: Whether ∂h/∂x and the outputs' noise depend on neither inputs nor time (a linear
@@ -72,7 +72,7 @@ class Structure:
     #: differentiating or evaluating f in every step.
     linear_drift: Callable[[Array], tuple] | None = None
     #: A hash of everything the functions above compute (the equations as lambdified, names,
-    #: settings), for programs kept on disk (:mod:`greyid.programs`); None for models of Python
+    #: settings), for programs kept on disk ([`greyid.programs`][greyid.programs]); None for models of Python
     #: functions, whose programs are never kept.
     fingerprint: str | None = field(default=None, compare=False)
     #: Compiled filters and simulators for this structure, keyed by their settings.
@@ -183,7 +183,7 @@ def lambdify_model(exprs, states, inputs, parameters, shape) -> ModelFunction:
 
 def linear_drift_function(drift: sp.Matrix, states, inputs, parameters) -> Callable[[Array], tuple]:
     """θ → (A, B, c) of a drift f = A x + B u + c that is affine in x and u with coefficients
-    free of x, u and t (a linear time-invariant model, see :func:`classify`)."""
+    free of x, u and t (a linear time-invariant model, see [`classify()`][greyid.model.structure.classify])."""
     n, p = len(states), len(inputs)
     A = drift.jacobian(sp.Matrix(states))
     offset = drift.subs({x: 0 for x in states})

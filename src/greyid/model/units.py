@@ -221,7 +221,7 @@ def _describe(algebra, q, expected) -> str:
 
 
 def check_terms(algebra: UnitAlgebra, label: str, expr: sp.Expr, expected) -> list[Term]:
-    """One :class:`Term` per additive term of ``expr`` against the ``expected`` unit."""
+    """One [`Term`][greyid.model.units.Term] per additive term of ``expr`` against the ``expected`` unit."""
     terms = sp.Add.make_args(expr)
     out = []
     for term in terms:
@@ -310,7 +310,8 @@ def time_unit(model, time_name: str = "t", settings: Mapping | None = None) -> s
 
 
 def figure_units(model, time_name: str = "t", settings: Mapping | None = None) -> dict:
-    """The model's units for figures, with the time column's unit (:func:`time_unit`) where it has one."""
+    """The model's units for figures, with the time column's unit ([`time_unit()`][greyid.model.units.time_unit]) where
+    it has one."""
     units = model.units
     unit = time_unit(model, time_name, settings)
     if unit and not units.get(time_name):

@@ -1,8 +1,9 @@
 """Population (nonlinear mixed-effects) SDE models: many data sets, shared structure, individual parameters.
 
-:func:`fit_population` estimates the typical values, covariate effects and the
+[`fit_population()`][greyid.population.fit.fit_population] estimates the typical values, covariate effects and the
 random effects' covariance Ω by the Laplace approximation of the marginal
-likelihood (:mod:`.laplace`) and returns a :class:`PopulationResult`.
+likelihood ([`laplace`][greyid.population.laplace]) and returns a
+[`PopulationResult`][greyid.population.result.PopulationResult].
 """
 
 from .fit import PopulationWarning, fit_population

@@ -9,7 +9,7 @@ gradients and Hessians.  The worker builds the model and compiles the programs
 once (kept for later chunks and evaluations); the outer search stays on the
 client.  Dask retries a chunk whose worker died; a chunk that fails anyway (its
 scattered data were lost with the worker) is scattered again from the client's
-copy and run again, up to :data:`RESENDS` times; where the cluster has had no
+copy and run again, up to [`RESENDS`][greyid.population.distributed.RESENDS] times; where the cluster has had no
 worker at all for ``worker_timeout`` seconds the fit stops with an error that
 says so instead of waiting.
 """
@@ -72,7 +72,7 @@ def evaluate(programs, phi, u0, kind: str):
 
 
 class ClusterEvaluator:
-    """:func:`evaluate` over chunks of members on a Dask cluster."""
+    """[`evaluate()`][greyid.population.distributed.evaluate] over chunks of members on a Dask cluster."""
 
     def __init__(self, client, model, spec, options, members, chunk_size: int | None, worker_timeout: float):
         try:

@@ -2,14 +2,14 @@
 
 ``fit_population(model, datasets, random={...})`` maximises the Laplace
 approximation of the marginal likelihood Π_i ∫ p(y_i | θ_i) p(η_i) dη_i over
-the population parameters φ (:mod:`.spec`): every outer step solves each
+the population parameters φ ([`spec`][greyid.population.spec]): every outer step solves each
 member's inner problem (the conditional modes of its random effects, all
 members at once by vectorised programs, warm-started from the previous modes)
-and evaluates Σ_i ℓ_i(φ) with exact derivatives (:mod:`.laplace`).  The outer
-search is greyid's trust-region search (:mod:`greyid.estimate.optimize`):
+and evaluates Σ_i ℓ_i(φ) with exact derivatives ([`laplace`][greyid.population.laplace]).  The outer
+search is greyid's trust-region search (`greyid.estimate.optimize`):
 BFGS steps on the exact gradient from the members' outer-product information
 Σ_i ∇ℓ_i∇ℓ_iᵀ, then Newton steps on the exact Hessian at the end (see
-:func:`_search`); the standard errors come from that exact Hessian.
+[`_search()`][greyid.population.fit._search]); the standard errors come from that exact Hessian.
 """
 
 from __future__ import annotations
@@ -102,7 +102,7 @@ class Outer:
     """The outer criterion Σ_i ℓ_i(φ) with its derivatives; keeps the members' modes for warm starts.
 
     Evaluations run here (the members split over the cores) or, with ``evaluator`` (a
-    :class:`~.distributed.ClusterEvaluator`), by chunks of members on a Dask cluster.
+    [`ClusterEvaluator`][greyid.population.distributed.ClusterEvaluator]), by chunks of members on a Dask cluster.
     """
 
     def __init__(self, programs: laplace.LaplacePrograms | None, members: Members, spec: PopulationSpec,
@@ -282,7 +282,8 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
                    method: str | None = None, init=None, omega_init=None, start: str = "pooled",
                    maxiter: int = 200, scheduler=None, chunk_size: int | None = None,
                    worker_timeout: float | None = None, progress=False, **options):
-    """Fit a population (nonlinear mixed-effects) SDE model to many data sets; a :class:`PopulationResult`.
+    """Fit a population (nonlinear mixed-effects) SDE model to many data sets; a
+    [`PopulationResult`][greyid.population.result.PopulationResult].
 
     ``datasets``: a mapping name → DataFrame or CSV path (or a list, named 0..n−1),
     one data set per member.  ``random`` maps parameters to their random effect:
@@ -293,9 +294,9 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
     parameter's mean (on the log scale for a lognormal parameter).  Parameters
     without a random effect are shared by all members.  The marginal likelihood is
     the Laplace approximation over each member's η (exact where η enters the
-    outputs linearly in a linear Gaussian model); see :mod:`greyid.population`.
+    outputs linearly in a linear Gaussian model); see `greyid.population`.
     ``random``, ``effects``, ``omega``, ``covariates`` (a CSV file's path) and
-    ``omega_init`` not given are the model's (:meth:`~greyid.Model.set_population`,
+    ``omega_init`` not given are the model's (`set_population()`,
     a model file's ``[population]`` table).
     ``scheduler=`` a ``dask.distributed.Client``: the members' inner optimisations run
     by chunks (``chunk_size``, default one per worker) on the cluster, the outer
@@ -303,7 +304,7 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
     worker before the fit stops with an error.
 
     The search starts from the typical values of a fit of the model to the first
-    :data:`POOLED_MEMBERS` data sets together (``start="pooled"``; from ``init`` or
+    `POOLED_MEMBERS` data sets together (``start="pooled"``; from ``init`` or
     the model's initial values where that fit fails) or, with ``start="init"``,
     from the initial values themselves; ω starts at ``omega_init`` ({parameter: standard deviation}, or Ω
     itself as a square DataFrame labelled by the random parameters, positive definite; default 0.3 on

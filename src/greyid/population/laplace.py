@@ -1,7 +1,7 @@
 """The Laplace approximation of a member's marginal likelihood, and its exact derivatives.
 
 For member i with data y_i and standardised random effects u_i ~ N(0, I)
-(η_i = L u_i, :mod:`.spec`),
+(η_i = L u_i, [`spec`][greyid.population.spec]),
 
     g_i(u, φ) = −log p(y_i | θ_i(φ, u)) + ½ uᵀu,
 
@@ -188,7 +188,8 @@ def conditional_modes(programs, phi, u0) -> Modes:
     """Each member's û_i = argmin g_i: damped Newton steps on all members at once, each member stopping
     at its own convergence; a non-PD Hessian is made PD by flipping and flooring its eigenvalues.
 
-    ``programs`` has ``inner(u, φ)`` and ``value(u, φ)`` over all members (:class:`MemberPrograms`)."""
+    ``programs`` has ``inner(u, φ)`` and ``value(u, φ)`` over all members
+    ([`MemberPrograms`][greyid.population.laplace.MemberPrograms])."""
     u = np.array(u0, dtype=float)
     value, gradient, hessian = map(np.asarray, programs.inner(u, phi))
     finite = _finite(value, gradient, hessian)
@@ -284,11 +285,13 @@ def _joined(outs: list, parts: list[tuple]):
 
 
 class MemberPrograms:
-    """The :class:`LaplacePrograms` bound to the members' data, each call split over threads.
+    """The [`LaplacePrograms`][greyid.population.laplace.LaplacePrograms] bound to the members' data, each call split
+    over threads.
 
     The members are cut into chunks of equal size (the last padded with copies of
     its first member): ``workers`` chunks for the inner programs, chunks of
-    :data:`DERIVATIVE_MEMBERS` for the outer gradient and Hessian.  One compiled
+    [`DERIVATIVE_MEMBERS`][greyid.population.laplace.DERIVATIVE_MEMBERS] for the outer gradient and Hessian.  One
+    compiled
     program serves all chunks of a size, and the chunks run side by side on the
     threads: XLA runs one vectorised scan on one core.
     """
@@ -334,7 +337,8 @@ class MemberPrograms:
         compiler.shutdown(wait=False)
 
     def hessian(self, phi, u):
-        """In chunks of :data:`DERIVATIVE_MEMBERS`, split over the threads as the gradient's."""
+        """In chunks of [`DERIVATIVE_MEMBERS`][greyid.population.laplace.DERIVATIVE_MEMBERS], split over the threads as
+        the gradient's."""
         if getattr(self, "_hessian_compiled", None) is not None:
             self._hessian_compiled.result()  # compiled in the background (an error there is raised here)
         phi = jnp.asarray(phi)

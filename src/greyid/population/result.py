@@ -59,7 +59,7 @@ class PopulationResult:
     (the standard deviation of η; for a lognormal parameter on the log scale,
     about its coefficient of variation) and ``corr_<a>_<b>`` — with standard
     errors from the exact Hessian of the Laplace marginal likelihood and 95 %
-    intervals taken where each is unbounded (see :func:`_reporting`).
+    intervals taken where each is unbounded (see `_reporting()`).
     ``random_effects``: one row per member, each random parameter's value at the
     conditional mode of η with its conditional standard error (given φ).
     """
@@ -184,7 +184,7 @@ class PopulationResult:
         return pd.Series(out, name="shrinkage")
 
     def member(self, name):
-        """That member's :class:`~greyid.estimate.FitResult` at its individual parameters: the random
+        """That member's `FitResult` at its individual parameters: the random
         parameters at their conditional modes (standard errors conditional on the population parameters),
         the others at the population estimates (their population standard errors); residual tests,
         predictions and plots work on it as on any fit.  Its ``loglik`` is the member's own
@@ -291,7 +291,7 @@ class PopulationResult:
         return self._fit_at(name, theta, random_se, members.frames[0], int(members.n_obs[0]), "new data set")
 
     def report(self, path=None, level: float = 0.05, title: str | None = None, members: bool = True) -> str:
-        """The self-contained HTML report of this population fit (:mod:`greyid.report.population`); written
+        """The self-contained HTML report of this population fit (`greyid.report.population`); written
         atomically to ``path`` when given.  ``members=False`` leaves out the members' residual tests."""
         from ..outputs import write_atomic
         from ..report.population import population_report
@@ -302,7 +302,7 @@ class PopulationResult:
         return text
 
     def save(self, path) -> None:
-        """Write the fit as JSON (see :mod:`.saved`), atomically."""
+        """Write the fit as JSON (see `saved`), atomically."""
         from ..outputs import write_atomic
         from .saved import population_to_dict
 
@@ -336,7 +336,8 @@ class PopulationResult:
 
 
 class LikelihoodRatio:
-    """A likelihood-ratio test between nested population models (:func:`likelihood_ratio`)."""
+    """A likelihood-ratio test between nested population models
+    ([`likelihood_ratio()`][greyid.population.result.likelihood_ratio])."""
 
     def __init__(self, statistic, df, p_value, variances, note):
         self.statistic, self.df, self.p_value, self.variances, self.note = statistic, df, p_value, variances, note

@@ -1,7 +1,7 @@
 """A population fit on disk: JSON with the model, the population parameters and each member's mode.
 
 ``PopulationResult.save(path)`` writes it atomically (a process killed meanwhile
-leaves the previous file whole); :func:`load_population` rebuilds the result —
+leaves the previous file whole); [`load_population()`][greyid.population.saved.load_population] rebuilds the result —
 its tables, summary and tests — without refitting.  The members' data are not
 in the file: where they were given as CSV paths the paths are kept and read
 again by ``member()``; otherwise ``load_population(path, data=...)`` takes them.
@@ -45,7 +45,8 @@ def population_to_dict(result) -> dict:
 
 
 def load_population(path, data=None):
-    """The :class:`~.result.PopulationResult` saved at ``path``; ``data`` (name → DataFrame) gives
+    """The [`PopulationResult`][greyid.population.result.PopulationResult] saved at ``path``; ``data`` (name →
+    DataFrame) gives
     ``member()`` the data sets that were not CSV files."""
     from ..model import Model
     from .fit import Members

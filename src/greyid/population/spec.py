@@ -144,7 +144,7 @@ class PopulationSpec:
         return omega[:, None] * xp.stack(rows)
 
     def base(self) -> tuple:
-        """The arrays :meth:`theta` takes besides φ, u and x: θ's fixed values, the bounds of the free ones
+        """The arrays `theta()` takes besides φ, u and x: θ's fixed values, the bounds of the free ones
         (arguments of the compiled programs, so that new values do not compile anew)."""
         return (self.theta0, self.transform.lower, self.transform.upper)
 
@@ -155,7 +155,7 @@ class PopulationSpec:
         return xp.where(np.array(self.log_scale), z, natural)
 
     def key(self) -> tuple:
-        """Everything :meth:`theta` closes over (the key of the compiled programs)."""
+        """Everything `theta()` closes over (the key of the compiled programs)."""
         return (self.names, self.free, self.log_scale, tuple(self.transform.kind.tolist()), self.random,
                 self.effects, self.full)
 
@@ -190,7 +190,8 @@ class PopulationSpec:
 
 def make_spec(model, random, covariates, effects, omega, names_of_datasets, init=None,
               omega_init=None) -> tuple[PopulationSpec, np.ndarray]:
-    """The :class:`PopulationSpec` of these settings, and the data sets' covariate rows (raw)."""
+    """The [`PopulationSpec`][greyid.population.spec.PopulationSpec] of these settings, and the data sets' covariate
+    rows (raw)."""
     from ..estimate.estimation import free_parameters
 
     parameters = free_parameters(model, init)

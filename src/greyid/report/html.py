@@ -86,7 +86,8 @@ ESTIMATES_ADVICE = ("The data determine a combination of these parameters better
 
 
 def _correlation_table(corr: pd.DataFrame, advice: str = ESTIMATES_ADVICE) -> str:
-    """The correlation matrix, shaded by sign and size; pairs above :data:`STRONG_CORRELATION` outlined
+    """The correlation matrix, shaded by sign and size; pairs above
+    [`STRONG_CORRELATION`][greyid.report.html.STRONG_CORRELATION] outlined
     and listed below the table."""
     head = '<th class="name"></th>' + "".join(f'<th class="name">{_esc(c)}</th>' for c in corr.columns)
     rows, strong = [], []
@@ -220,7 +221,8 @@ def _reaches_bound(intervals: pd.DataFrame, params: pd.DataFrame) -> set[str]:
 
 
 def _parameters_section(fit, profile=None) -> str:
-    """The parameter table; ``profile`` is the result of :func:`_profile_intervals` (or None).
+    """The parameter table; ``profile`` is the result of
+    [`_profile_intervals()`][greyid.report.html._profile_intervals] (or None).
 
     One column per interval ("[lower, upper]") so that the table fits a page.
     """
@@ -370,7 +372,7 @@ def page(title: str, ids, sections: list[str], css: str = "") -> str:
 
 
 def write_report(fit, path, **options) -> Path:
-    """Write :func:`html_report` to ``path``; returns the path."""
+    """Write [`html_report()`][greyid.report.html.html_report] to ``path``; returns the path."""
     from ..outputs import write_atomic
 
     path = Path(path)

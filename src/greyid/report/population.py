@@ -281,7 +281,7 @@ def _members_section(result, level: float) -> str:
 
 
 def population_report(result, level: float = 0.05, title: str | None = None, members: bool = True) -> str:
-    """The report of a :class:`~greyid.population.PopulationResult` as one HTML document (a string).
+    """The report of a [`PopulationResult`][greyid.population.result.PopulationResult] as one HTML document (a string).
 
     ``members=False`` leaves out the members' residual tests (they need every member's data)."""
     title = title or f"greyid population report: {result.model.name}"

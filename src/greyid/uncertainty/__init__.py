@@ -1,11 +1,14 @@
 """Uncertainty beyond the Hessian: profile likelihoods, posterior sampling, prediction intervals.
 
-* :func:`profile` — the profile of the criterion in a parameter or derived quantity;
-* :func:`profile_intervals` — likelihood-ratio confidence intervals by root finding on profiles;
-* :func:`plot_profile` — a profile's deviance with the χ² threshold;
-* :func:`sample` — NUTS draws from the fit's posterior (:class:`Posterior`);
-* :func:`predict`, :func:`simulate` — intervals with the parameters' uncertainty too,
-  :func:`plot_intervals` their bands.
+* `profile()` — the profile of the criterion in a parameter or derived quantity;
+* [`profile_intervals()`][greyid.uncertainty.profile.profile_intervals] — likelihood-ratio confidence intervals by root
+finding on profiles;
+* [`plot_profile()`][greyid.uncertainty.profile.plot_profile] — a profile's deviance with the χ² threshold;
+* [`sample()`][greyid.uncertainty.sampling.sample] — NUTS draws from the fit's posterior
+([`Posterior`][greyid.uncertainty.sampling.Posterior]);
+* [`predict()`][greyid.uncertainty.intervals.predict], [`simulate()`][greyid.uncertainty.intervals.simulate] —
+intervals with the parameters' uncertainty too,
+  [`plot_intervals()`][greyid.uncertainty.intervals.plot_intervals] their bands.
 """
 
 from .profile import plot_profile, profile, profile_interval, profile_intervals

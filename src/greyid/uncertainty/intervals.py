@@ -3,7 +3,7 @@
 A prediction at fixed θ̂ has the state and measurement noise only.  Drawing
 θ_j from the Laplace approximation (Gaussian in the optimiser's coordinates z,
 so every draw respects the bounds; the covariance is the fit's, mapped to z) or
-from posterior draws of :func:`~.sampling.sample`, the predictive distribution
+from posterior draws of [`sample()`][greyid.uncertainty.sampling.sample], the predictive distribution
 is the mixture of the Gaussian predictions N(ŷ_j, S_j): its mean is the average
 of ŷ_j, its variance E[S_j] + Var[ŷ_j] (law of total variance), and its interval
 ends are the mixture's quantiles (by bisection on the mixture's distribution
@@ -26,7 +26,7 @@ from ..estimate.transforms import Transform
 def parameter_draws(fit, draws: int = 200, seed: int = 0, posterior=None) -> np.ndarray:
     """θ vectors (draws, all parameters in the model's order) with the fit's uncertainty.
 
-    From ``posterior`` (a :class:`~.sampling.Posterior`: its draws resampled,
+    From ``posterior`` (a [`Posterior`][greyid.uncertainty.sampling.Posterior]: its draws resampled,
     seeded) or from the Laplace approximation in z.  Parameters without a
     standard error (at a bound, fixed) stay at their estimates, with a warning
     for free ones.
@@ -154,7 +154,8 @@ def simulate(fit, data=None, n_paths: int = 200, interval: float = 0.95, seed: i
 
 
 def plot_intervals(table: pd.DataFrame, data: pd.DataFrame | None = None, title: str | None = None):
-    """A figure of a :func:`predict` or :func:`simulate` table: the mean, the band and the measured outputs.
+    """A figure of a [`predict()`][greyid.uncertainty.intervals.predict] or
+    [`simulate()`][greyid.uncertainty.intervals.simulate] table: the mean, the band and the measured outputs.
 
     The outputs are the columns with ``_lower``/``_upper`` companions, the time
     the table's first column; ``data`` (the measured outputs, rows aligned with

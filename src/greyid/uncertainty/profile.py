@@ -223,7 +223,7 @@ def profile_interval(fit, name: str, level: float = 0.95, notes: list | None = N
     coordinate of the parameter (log or logistic where it is bounded): that
     signed root deviance is nearly linear there, so secant steps from the Wald
     guess bracket the end in a few refits and regula falsi closes it.  An end
-    that reaches the parameter's bound is the bound, with a :class:`FitWarning`
+    that reaches the parameter's bound is the bound, with a `FitWarning`
     naming it; NaN where the profile stays below the threshold for MAX_STEPS steps.
     With ``notes`` (a list) those messages are appended to it instead of warned
     (the warnings machinery is process-wide: a report computes the intervals in a
@@ -273,7 +273,8 @@ def _say(message: str, notes: list | None) -> None:
 
 
 def _interval_end(fit, name, points, transform, z_hat, step, threshold, side, level, notes=None) -> float:
-    """One end of :func:`profile_interval`, along z = ẑ + o·step for o ≥ 0."""
+    """One end of [`profile_interval()`][greyid.uncertainty.profile.profile_interval], along z = ẑ + o·step for o ≥
+    0."""
     target = np.sqrt(threshold)
 
     def theta(o):
@@ -308,7 +309,7 @@ def _interval_end(fit, name, points, transform, z_hat, step, threshold, side, le
 def profile_intervals(fit, level: float = 0.95, names=None, notes: list | None = None) -> pd.DataFrame:
     """``lower`` and ``upper`` of the profile-likelihood interval of each free parameter (NaN for fixed ones).
 
-    ``notes``: see :func:`profile_interval`.
+    ``notes``: see [`profile_interval()`][greyid.uncertainty.profile.profile_interval].
     """
     if not 0 < level < 1:
         raise ModelError(f"level must lie between 0 and 1, got {level!r}")
@@ -322,7 +323,7 @@ def profile_intervals(fit, level: float = 0.95, names=None, notes: list | None =
 
 
 def plot_profile(table: pd.DataFrame, ax=None, wald_se: float | None = None):
-    """The deviance 2(ℓ̂ − ℓ_p) of a :func:`profile` table with the 95 % χ² threshold (and the Wald parabola);
+    """The deviance 2(ℓ̂ − ℓ_p) of a `profile()` table with the 95 % χ² threshold (and the Wald parabola);
     returns the Figure (drawn on ``ax`` where given, else on a new one), as greyid's other plots do."""
     if ax is None:
         from matplotlib.figure import Figure

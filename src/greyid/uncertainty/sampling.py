@@ -141,7 +141,7 @@ def sample(fit, draws: int = 1000, chains: int = 4, seed: int = 0, warmup: int =
 
     ``chains`` run in parallel (``vmap``), each from a draw of the Laplace
     approximation, with ``warmup`` adaptation steps before ``draws`` kept ones.
-    Returns a :class:`Posterior` (draws, R-hat, ESS, divergences; ArviZ
+    Returns a [`Posterior`][greyid.uncertainty.sampling.Posterior] (draws, R-hat, ESS, divergences; ArviZ
     ``InferenceData`` through ``to_inference_data()``).
     """
     try:

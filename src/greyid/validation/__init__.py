@@ -1,7 +1,7 @@
 """Model validation (thesis chapter 5).
 
 Residual tests work on any residual series (arrays or pandas Series; NaN values
-are dropped, see :mod:`greyid.validation.series`); structure tests work on
+are dropped, see `greyid.validation.series`); structure tests work on
 fits.  ``fit.validate()`` runs the residual tests on a fit and plots them.
 """
 

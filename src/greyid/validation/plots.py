@@ -1,6 +1,6 @@
 """Figures for validation (section 5.3): returned, never shown, so scripts can save them.
 
-Figures are built with :class:`matplotlib.figure.Figure` directly, without
+Figures are built with `matplotlib.figure.Figure` directly, without
 pyplot's global state, so they work in scripts, notebooks and reports alike.
 """
 
@@ -112,7 +112,7 @@ def coherency_figure(residuals: pd.Series, inputs: pd.DataFrame, m: int | None =
 
 def labelled(name: str, units=None) -> str:
     """``name [unit]`` where the model gives the name a unit, written as the report's tables write it
-    (``kW/m²``, ``°C``: :func:`greyid.model.units.pretty`)."""
+    (``kW/m²``, ``°C``: [`greyid.model.units.pretty()`][greyid.model.units.pretty])."""
     from ..model.units import pretty
 
     unit = (units or {}).get(name)

@@ -122,7 +122,8 @@ class Validation:
 
 
 def validate(fit, level: float = 0.05, lags: int | None = None, m: int | None = None) -> Validation:
-    """Run the residual tests of chapter 5 on every output of ``fit``; see :class:`Validation`."""
+    """Run the residual tests of chapter 5 on every output of ``fit``; see
+    [`Validation`][greyid.validation.validate.Validation]."""
     if not 0 < level < 1:
         raise ModelError(f"level must lie between 0 and 1, got {level}")
     if fit.attach_stored_data() is None:
