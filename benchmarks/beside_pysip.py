@@ -31,7 +31,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from timing import durations, fastest  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-ARMADILLO = ROOT.parent / "shared" / "data" / "armadillo_box" / "armadillo_data_H2.csv"
 LENGTHS = (10_000, 100_000)
 
 
@@ -39,10 +38,11 @@ def make(folder: Path) -> None:
     import numpy as np
     import pandas as pd
 
+    import greyid
     from greyid.datasets.reference import armadillo_model
 
     folder.mkdir(parents=True, exist_ok=True)
-    data = pd.read_csv(ARMADILLO).iloc[:-1]
+    data = greyid.datasets.fetch("armadillo").iloc[:-1]
     data.to_csv(folder / "armadillo_232.csv", index=False)
     model = armadillo_model()
     fitted = model.fit(data, time="Time", hold="foh").values

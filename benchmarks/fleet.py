@@ -3,7 +3,7 @@
     python benchmarks/fleet.py [--sizes 10,100,1000] [--alone 100]
 
 Houses: the Armadillo model (pySIP's TwTi_RoRi, first-order hold, 232 rows; data
-from ../shared/data) simulated at its fitted parameters with a different noise
+the data set armadillo) simulated at its fitted parameters with a different noise
 seed per house.  For each fleet size it prints the time of ``greyid.fit_many``
 once its programs are compiled (the fleet is fitted twice, the second timed), and
 the time per house of compiled one-at-a-time ``model.fit`` calls on the first
@@ -20,10 +20,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
 ROOT = Path(__file__).resolve().parents[1]
-ARMADILLO = ROOT.parent / "shared" / "data" / "armadillo_box" / "armadillo_data_H2.csv"
 
 
 def houses(model, data, fitted, count: int) -> dict:
@@ -42,7 +40,7 @@ def main():
     from greyid.datasets.reference import armadillo_model
 
     model = armadillo_model()
-    data = pd.read_csv(ARMADILLO).iloc[:-1]
+    data = greyid.datasets.fetch("armadillo").iloc[:-1]
     settings = dict(time="Time", hold="foh")
     fitted = model.fit(data, **settings).values
     sizes = [int(v) for v in args.sizes.split(",")]

@@ -3,7 +3,7 @@
     python benchmarks/likelihood.py [--rounds 10] [--calls 100] [--source OTHER_CHECKOUT/src]
 
 The Armadillo model (pySIP's TwTi_RoRi, first-order hold, 232 rows, seven free
-parameters; data from ../shared/data or ``greyid.datasets``) at its fitted
+parameters; the data set armadillo) at its fitted
 optimum and at its starting values:
 
 * greyid: ``model.likelihood(data).value_and_grad(x)``, the public call with
@@ -35,7 +35,6 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from timing import durations, fastest  # noqa: E402
 
-ARMADILLO = Path(__file__).resolve().parents[2] / "shared" / "data" / "armadillo_box" / "armadillo_data_H2.csv"
 
 
 def plain_scan(data, names):
@@ -96,13 +95,12 @@ def main(argv=None) -> None:
     warnings.simplefilter("ignore")
     import jax
     import numpy as np
-    import pandas as pd
 
     import greyid
     from greyid.datasets.reference import armadillo_model
 
     print(f"greyid from {Path(greyid.__file__).parent}, JAX {jax.__version__}")
-    data = pd.read_csv(ARMADILLO).iloc[:-1] if ARMADILLO.exists() else greyid.datasets.fetch("armadillo").iloc[:-1]
+    data = greyid.datasets.fetch("armadillo").iloc[:-1]
     model = armadillo_model()
     fit = model.fit(data, time="Time", hold="foh")
     nll = model.likelihood(data, time="Time", hold="foh")

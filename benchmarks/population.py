@@ -3,7 +3,7 @@
     python benchmarks/population.py [--sizes 100,1000] [--scheduler local] [--cache-dir DIR]
 
 Houses: the Armadillo model (pySIP's TwTi_RoRi, first-order hold, 232 rows; data
-from ../shared/data) simulated at its fitted parameters with a lognormal spread
+the data set armadillo) simulated at its fitted parameters with a lognormal spread
 of 20 % in Ro and 30 % in Cw (one house per seed).  For each size it fits the
 population with ``Ro`` and ``Cw`` lognormal and prints the time of
 ``greyid.fit_population`` on the first call (compiling its programs, on an empty
@@ -23,10 +23,8 @@ import tracemalloc
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
 ROOT = Path(__file__).resolve().parents[1]
-ARMADILLO = ROOT.parent / "shared" / "data" / "armadillo_box" / "armadillo_data_H2.csv"
 SPREAD = {"Ro": 0.2, "Cw": 0.3}
 
 
@@ -60,7 +58,7 @@ def main():
     from greyid.datasets.reference import armadillo_model
 
     model = armadillo_model()
-    data = pd.read_csv(ARMADILLO).iloc[:-1]
+    data = greyid.datasets.fetch("armadillo").iloc[:-1]
     fitted = model.fit(data, time="Time", hold="foh").values
     print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}), {jax.local_device_count()} device(s)")
     client = None

@@ -3,7 +3,7 @@
     python benchmarks/uncertainty.py
 
 On the Armadillo fit (pySIP's TwTi_RoRi, first-order hold, 232 rows, 7 free
-parameters; data in ../shared/data/armadillo_box): a profile of 21 points of
+parameters; the data set armadillo): a profile of 21 points of
 Cw (first call and compiled), the profile intervals of all seven parameters,
 the profile of a derived quantity (UA = 1/(Ri + Ro)), NUTS with 4 chains of
 1000 draws after 500 warm-up steps (first call, with compilation, and again),
@@ -16,20 +16,19 @@ import sys
 import warnings
 from pathlib import Path
 
-import pandas as pd
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from timing import timed  # noqa: E402
 
-ARMADILLO = Path(__file__).resolve().parents[2] / "shared" / "data" / "armadillo_box" / "armadillo_data_H2.csv"
 
 
 def main():
+    import greyid
     from greyid.datasets.reference import armadillo_model
 
     warnings.simplefilter("ignore")
     model = armadillo_model()
-    data = pd.read_csv(ARMADILLO).iloc[:-1]
+    data = greyid.datasets.fetch("armadillo").iloc[:-1]
     fit = model.fit(data, time="Time", hold="foh")
     print(f"Armadillo fit: log L {fit.loglik:.4f}, {fit.n_params} free parameters")
     timed("profile of Cw, 21 points", lambda: fit.profile("Cw"), repeat=3)

@@ -3,23 +3,19 @@
 Start from the one-state model Ti and, at each step, try every extension by one
 more state — envelope Te, heater Th, sensor Ts, interior medium Tm — keep the
 one with the highest likelihood, and stop when the likelihood-ratio test no
-longer rejects at 5 %.  Data: ../shared/data/prbs1_test_house/inputPRBS1.csv
-(read from there, not copied).  Run: python studies/prbs1_selection.py
+longer rejects at 5 %.  Data: the data set ``prbs1`` (``greyid.datasets.fetch``:
+downloaded once, or read from ``GREYID_DATA_MIRROR``).  Run: python studies/prbs1_selection.py
 """
 
 from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
 
 import pandas as pd
 
 import greyid
 from greyid import library, validation
-
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "prbs1_test_house" / "inputPRBS1.csv"
-
 
 def extensions(current: greyid.Model) -> list[greyid.Model]:
     """Every model with one more RC state than ``current``."""
@@ -32,7 +28,7 @@ def main(argv=None) -> None:
     parser.add_argument("--level", type=float, default=0.05)
     parser.add_argument("--starts", type=int, default=1)
     args = parser.parse_args(argv)
-    data = pd.read_csv(DATA, sep=";")
+    data = greyid.datasets.fetch("prbs1")
     started = time.perf_counter()
     result = validation.select_forward([library.load_model("Ti"), extensions, extensions, extensions, extensions],
                                        data, level=args.level, starts=args.starts)

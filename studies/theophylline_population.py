@@ -2,7 +2,8 @@
 
     python studies/theophylline_population.py [--no-r]
 
-Twelve subjects, eleven concentrations each (../shared/data/theophylline).  The
+Twelve subjects, eleven concentrations each (the data set ``theophylline``,
+``greyid.datasets.fetch``: downloaded once, or read from ``GREYID_DATA_MIRROR``).  The
 model is one compartment with first-order absorption (greyid.datasets.reference.
 theophylline_model: the SDE with a process noise of 1e-4, its solution the ODE's
 SSfol), random effects on lKa and lCl (normal on the log scale, Ω diagonal), as
@@ -16,13 +17,12 @@ approximation also evaluated at nlme's estimates.
 
 import argparse
 import subprocess
+import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "theophylline" / "Theoph.csv"
 
 R_SCRIPT = """
 suppressMessages(library(nlme))
@@ -38,12 +38,15 @@ cat(sprintf("version %s NA\\n", as.character(packageVersion("nlme"))))
 """
 
 
-def run_nlme() -> dict | None:
-    try:
-        out = subprocess.run(["Rscript", "-e", R_SCRIPT.format(path=DATA)], capture_output=True, text=True,
-                             timeout=300, check=True).stdout
-    except (OSError, subprocess.SubprocessError):
-        return None
+def run_nlme(frame: pd.DataFrame) -> dict | None:
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "Theoph.csv"
+        frame.to_csv(path, index=False)
+        try:
+            out = subprocess.run(["Rscript", "-e", R_SCRIPT.format(path=path)], capture_output=True, text=True,
+                                 timeout=300, check=True).stdout
+        except (OSError, subprocess.SubprocessError):
+            return None
     return {name: (value, se) for name, value, se in (line.split() for line in out.strip().splitlines())}
 
 
@@ -56,7 +59,7 @@ def main():
     from greyid.population.fit import Outer, _prepare_members, population_filter, population_programs
     from greyid.population.spec import make_spec
 
-    frame = pd.read_csv(DATA)
+    frame = greyid.datasets.fetch("theophylline")
     data = {str(k): g[["Time", "Dose", "conc"]].reset_index(drop=True) for k, g in frame.groupby("Subject", sort=False)}
     model = theophylline_model()
     random = {"lKa": "normal", "lCl": "normal"}
@@ -65,7 +68,7 @@ def main():
     seconds = time.perf_counter() - start
     print(fit.summary())
     print(f"\ngreyid.fit_population: {seconds:.1f} s")
-    nlme = None if args.no_r else run_nlme()
+    nlme = None if args.no_r else run_nlme(frame)
     if nlme is None:
         print("R's nlme not run")
         return

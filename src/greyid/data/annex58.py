@@ -4,8 +4,8 @@ The course's R code (marcohv/exercises_ts_dtu, ``Ex_3/r``: ``readSeries("X5", Ts
 nlags=NA)`` then ``prepare_data(..., samples_after_Qi_step=5)``) turns the
 1-minute series ``X5.rda`` into the 10-minute one the exercise fits.
 [`ten_minutes()`][greyid.data.annex58.ten_minutes] does the same, step by step, so that the data set can be
-derived from its public source; it reproduces the course's file (the project's
-``shared/data/annex58_test_box/ce4_10min.csv``) to rounding.
+derived from its public source; it reproduces the course's own 10-minute file to
+rounding (``tests/test_datasets_fetch.py`` compares them).
 """
 
 from __future__ import annotations

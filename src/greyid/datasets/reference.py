@@ -1,7 +1,8 @@
-"""Models of other tools' published examples, for cross-checks on ../shared/data.
+"""Models of other tools' published examples, for cross-checks on the data sets they were fitted to.
 
-The data themselves are not bundled (their licences are not ours to grant);
-pass them in from ``shared/data`` as described there.
+The data themselves are not bundled (their licences are not ours to grant):
+``greyid.datasets.fetch`` reads them by name (``"armadillo"``, ``"ornstein_2d"``,
+``"theophylline"``).
 """
 
 from __future__ import annotations
@@ -46,7 +47,7 @@ def theophylline_model(process_noise: float = 1e-4) -> Model:
     """One compartment with first-order absorption and elimination (Pinheiro & Bates 2000, section 6.4;
     R's ``SSfol``) as an SDE: C' = Dose·ka·ke/Cl·e^{−ka t} − ke·C, C(0) = 0, parameters on the log scale
     (lKe, lKa, lCl) as nlme estimates them, residual variance s2, and a small fixed process noise
-    ``sig`` so that the SDE's solution is the ODE's (the data: ../shared/data/theophylline)."""
+    ``sig`` so that the SDE's solution is the ODE's (the data: ``greyid.datasets.fetch("theophylline")``)."""
     m = Model("theophylline")
     m.add_system("dC = (Dose*exp(lKa + lKe - lCl - exp(lKa)*t) - exp(lKe)*C)*dt + sig*dw1")
     m.add_inputs("Dose")

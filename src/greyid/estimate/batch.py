@@ -211,9 +211,9 @@ class BatchedPrograms:
 #: more than PRUNE_GAP (criterion units), and has all but stopped: its last three
 #: steps gained less than SETTLED_GAIN together.  It is settling on an optimum far
 #: below the best, and only its polishing steps are saved.  Pruning on the pace of
-#: progress alone loses optima: a Newton search from PRBS1's TiThTs default start
-#: trails by 1000 units for 18 steps, gaining about 9 a step, then finds the best
-#: optimum (3924.47); gains projected from a geometric trend pruned every start but
+#: progress alone loses optima: a Newton search can trail by 1000 units for 18 steps,
+#: gaining about 9 a step, then find the best optimum (PRBS1's TiThTs with the window
+#: area's bound at −5); gains projected from a geometric trend pruned every start but
 #: one there, scoring steps' gains not being geometric early on.
 PRUNE_AFTER = 8
 PRUNE_GAP = 50.0

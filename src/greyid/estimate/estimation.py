@@ -32,7 +32,7 @@ from .objective import Derivatives, Problem, combine_scoring, compiled, step_sco
 from .batch import BatchedPrograms, drive, prune_trailing
 from .optimize import (EXACT, GRADIENT, HANDOVER_DECREASE, MAX_STEP, QUASI_EVALUATIONS_PER_PARAMETER, SCORING, VALUE,
                        NotFiniteError, Optimum, Search, quasi_newton_start, run_alone)
-from .starts import nested_start, space_filling
+from .starts import nested_start, reductions, space_filling
 from .transforms import NONE, Transform
 
 CRITERIA = ("ml", "map")
@@ -307,24 +307,36 @@ def failed_start(z0, error: ModelError) -> Optimum:
                    f"failed: {error}")
 
 
-def start_points(parameters: FreeParameters, starts: int, seed: int, scoring_auto: bool, nested=None):
+def start_points(parameters: FreeParameters, starts: int, seed: int, scoring_auto: bool, nested=None,
+                 reduced=()):
     """``(points, labels, newton_only)``: the starts of a fit, in z.
 
     The initial values (after a nested fit's estimates, if given), then
-    ``starts − 1`` points of a space-filling design (see `starts`).
+    ``starts − 1`` more: with ``scoring_auto`` the initial values again with Newton
+    steps only, then the ``reduced`` starts (``[(label, z), ...]``: where the model
+    reduces to a smaller one, see [`reductions()`][greyid.estimate.starts.reductions]),
+    then points of a space-filling design.
     """
     z0 = parameters.z0
     points, labels = ([z0], ["initial values"]) if nested is None else ([nested, z0], ["nested fit", "initial values"])
-    extra = space_filling(parameters.transform, z0, starts - 1, seed)
-    labels += ["space-filling"] * (starts - 1)
-    newton_only = [False] * len(labels)
+    extra, extra_labels, newton_only = [], [], [False] * len(points)
     if scoring_auto and starts > 1:
         # Scoring's matrix has no negative curvature, so from one start it can settle in
-        # another basin than exact Newton steps (PRBS1's TiThTs: 3902.5 against 3924.5):
-        # the first extra start repeats the initial values with Newton steps only.
-        extra[0] = z0
-        labels[len(points)], newton_only[len(points)] = "initial values, Newton steps", True
-    return points + extra, labels, newton_only
+        # another basin than exact Newton steps: the first extra start repeats the initial
+        # values with Newton steps only.
+        extra.append(z0)
+        extra_labels.append("initial values, Newton steps")
+    for label, z in reduced:
+        if len(extra) < starts - 1:
+            extra.append(z)
+            extra_labels.append(label)
+    # The design's points after as many as the starts above take (with no reduced start, the points a fit
+    # took before reduced starts existed).
+    filling = list(space_filling(parameters.transform, z0, starts - 1, seed))[len(extra):]
+    extra += filling
+    extra_labels += ["space-filling"] * len(filling)
+    newton_only += [label == "initial values, Newton steps" for label in extra_labels]
+    return points + extra, labels + extra_labels, newton_only
 
 
 def neighbouring_delays(structure, parameters: FreeParameters, z_best, prepared):
@@ -404,7 +416,15 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
         warm = nested_start(model, init_from, names, free, parameters.lower, parameters.upper)
         free_theta0 = theta0[list(free)]
         nested = transform.to_z(np.array([warm.get(names[i], free_theta0[j]) for j, i in enumerate(free)]))
-    points, labels, newton_only = start_points(parameters, starts, seed, use_scoring and optimizer == "auto", nested)
+    reduced = []
+    if starts > 1:
+        for text, values in reductions(model, names, free, parameters.lower, parameters.upper):
+            theta = theta0[list(free)].copy()
+            for j, i in enumerate(free):
+                theta[j] = values.get(names[i], theta[j])
+            reduced.append((text, transform.to_z(theta)))
+    points, labels, newton_only = start_points(parameters, starts, seed, use_scoring and optimizer == "auto", nested,
+                                               reduced)
     label = "log-likelihood" if criterion == "ml" and robust is None and horizon == 1 else "criterion"
 
     def not_finite(problem, z_start, i):

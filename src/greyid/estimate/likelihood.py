@@ -42,10 +42,29 @@ from .transforms import Transform
 
 
 class Likelihood:
-    """The negative log-likelihood (or criterion) of ``model`` on ``data``; see the module docstring.
+    """The negative log-likelihood (or the criterion a fit minimises) as a function of the free parameters.
 
-    Built by `greyid.Model.likelihood()`.  Parameters not free in the model
-    (fixed ones) keep their values; the free ones are ``names``, in order.
+    Made by [`Model.likelihood()`][greyid.model.model.Model.likelihood], whose
+    arguments it takes.  Parameters not free in the model (fixed ones) keep their
+    values; the free ones are ``names``, in order.  Compiled once; single
+    evaluations of a regular series of a linear model switch to the filter's
+    steady state where it has settled (``steady_state=False`` steps through every row).
+
+    Attributes
+    ----------
+    names : list of str
+        The free parameters, in the order of ``x``.
+    n_obs : int
+        The observed output values.
+
+    Examples
+    --------
+    >>> from scipy.optimize import minimize
+    >>> from greyid.datasets import building_model, load_building_data
+    >>> nll = building_model().likelihood(load_building_data().iloc[:200])
+    >>> result = minimize(lambda z: nll.value_and_grad(z, unconstrained=True),
+    ...                   nll.to_unconstrained(nll.start()), jac=True, method="BFGS")
+    >>> estimates = dict(zip(nll.names, nll.from_unconstrained(result.x)))
     """
 
     def __init__(self, model, data, time: str = "t", hold: str = "zoh", method=None, criterion: str = "ml",
@@ -91,8 +110,18 @@ class Likelihood:
 
     # ------------------------------------------------------------------ the functions
     def function(self, unconstrained: bool = False):
-        """The pure JAX function x ↦ negative log-likelihood (one parameter vector), for ``jax.grad``,
-        ``jax.vmap``, samplers and optimisers of your own."""
+        """The pure JAX function of one parameter vector, for ``jax.grad``, ``jax.vmap``, samplers and optimisers.
+
+        Parameters
+        ----------
+        unconstrained : bool
+            A function of z, the optimiser's coordinates, instead of the parameters' values.
+
+        Returns
+        -------
+        callable
+            x ↦ the negative log-likelihood (a JAX scalar).
+        """
         return self._functions[bool(unconstrained)]
 
     def _program(self, kind: str, unconstrained: bool, batched: bool):
@@ -118,31 +147,101 @@ class Likelihood:
         return tuple(np.asarray(a) for a in out) if isinstance(out, tuple) else np.asarray(out)
 
     def value(self, x, unconstrained: bool = False):
-        """The negative log-likelihood at x (a vector of ``names``' values, or one row per vector)."""
+        """The negative log-likelihood at x.
+
+        Parameters
+        ----------
+        x : array_like
+            The free parameters' values in ``names``' order: one vector, or a 2-D array
+            with one vector per row (evaluated together).
+        unconstrained : bool
+            ``x`` is in the optimiser's coordinates z (bounds removed) instead.
+
+        Returns
+        -------
+        float or numpy.ndarray
+            One value, or one per row of ``x``.
+        """
         return self._call("value", x, unconstrained)
 
     def __call__(self, x, unconstrained: bool = False):
         return self.value(x, unconstrained)
 
     def value_and_grad(self, x, unconstrained: bool = False):
-        """``(value, gradient)`` at x; the gradient exact (forward mode, one tangent per parameter)."""
+        """The value and its exact gradient at x (forward mode, one tangent per parameter).
+
+        Parameters
+        ----------
+        x : array_like
+            The free parameters' values in ``names``' order: one vector, or a 2-D array
+            with one vector per row (evaluated together).
+        unconstrained : bool
+            ``x`` is in the optimiser's coordinates z (bounds removed) instead.
+
+        Returns
+        -------
+        tuple
+            ``(value, gradient)``; with one row per vector, one of each per row.
+        """
         return self._call("value_and_grad", x, unconstrained)
 
     def hessian(self, x, unconstrained: bool = False):
-        """The exact Hessian at x (forward over forward)."""
+        """The exact Hessian at x (forward over forward).
+
+        Parameters
+        ----------
+        x : array_like
+            The free parameters' values in ``names``' order: one vector, or a 2-D array
+            with one vector per row (evaluated together).
+        unconstrained : bool
+            ``x`` is in the optimiser's coordinates z (bounds removed) instead.
+
+        Returns
+        -------
+        numpy.ndarray
+            (n, n), or (rows, n, n).
+        """
         return self._call("hessian", x, unconstrained)
 
     # ------------------------------------------------------------------ coordinates
     def to_unconstrained(self, x) -> np.ndarray:
-        """z of the parameter values x (the optimiser's coordinates, bounds removed)."""
+        """The optimiser's coordinates z of parameter values x (bounds removed by log and logit transforms).
+
+        Parameters
+        ----------
+        x : array_like
+            The free parameters' values in ``names``' order.
+
+        Returns
+        -------
+        numpy.ndarray
+            z.
+        """
         return self._transform.to_z(np.asarray(x, dtype=float))
 
     def from_unconstrained(self, z) -> np.ndarray:
-        """The parameter values x at z."""
+        """The parameter values x at the optimiser's coordinates z.
+
+        Parameters
+        ----------
+        z : array_like
+            The coordinates.
+
+        Returns
+        -------
+        numpy.ndarray
+            x, in ``names``' order.
+        """
         return np.asarray(self._transform.to_theta(jnp.asarray(z, dtype=float)))
 
     def start(self) -> np.ndarray:
-        """The free parameters' initial values, in ``names``' order."""
+        """The free parameters' initial values.
+
+        Returns
+        -------
+        numpy.ndarray
+            In ``names``' order.
+        """
         return self._start.copy()
 
     def __repr__(self) -> str:

@@ -38,7 +38,50 @@ def p_value_text(p: float) -> str:
 
 @dataclass
 class FitResult:
-    """Estimates and their uncertainty for one model fitted to one or more data sets."""
+    """Estimates and their uncertainty for one model fitted to one or more data sets.
+
+    Made by [`Model.fit()`][greyid.model.model.Model.fit] and
+    [`load_fit()`][greyid.estimate.results.load_fit]; its names follow statsmodels'
+    results (``params``, ``bse``, ``llf``, ``aic``, ``conf_int()``, ``summary()``).
+
+    Attributes
+    ----------
+    model : Model
+        The fitted model.
+    params : pandas.DataFrame
+        One row per parameter: ``estimate``, ``std_error``, ``t_value``,
+        ``p_value``, ``lower_bound``, ``upper_bound``, ``fixed``, ``at_bound``,
+        ``reliable``, ``gradient`` (and ``unit`` where the model has units).
+    cov : pandas.DataFrame
+        The covariance of the free parameters' estimates (``cov_type``).
+    loglik : float
+        The Gaussian log-likelihood at the estimates.
+    criterion_value : float
+        The value of the criterion maximised (the log-posterior for MAP, the
+        robust or k-step criterion), equal to ``loglik`` for plain ML.
+    n_obs : int
+        The number of observed output values.
+    converged : bool
+        True only at a minimum: the optimiser stopped, the Hessian is positive
+        definite in the parameters not at a bound, and every free parameter
+        affects the likelihood.
+    message : str
+        Why the optimiser stopped, or why the fit is not converged.
+    iterations : int
+        The optimiser's steps.
+    settings : dict
+        The settings the fit used (time, hold, method, criterion, ...).
+    warnings : list of str
+        What the summary's warnings say (a bound, a flat direction, ...).
+    data : list of pandas.DataFrame or None
+        The data fitted; None for a loaded fit until
+        [`attach_stored_data()`][greyid.estimate.results.FitResult.attach_stored_data]
+        or [`with_data()`][greyid.estimate.results.FitResult.with_data].
+    starts : list of dict
+        One per start: its label, criterion, convergence, iterations and message.
+    data_file : str or None
+        Where the data came from: a file's path or ``dataset:NAME``.
+    """
 
     model: object
     params: pd.DataFrame
@@ -76,6 +119,7 @@ class FitResult:
 
     @property
     def corr(self) -> pd.DataFrame:
+        """The correlation matrix of the free parameters' estimates."""
         sd = np.sqrt(np.diag(self.cov.to_numpy()))
         return self.cov / np.outer(sd, sd)
 
@@ -113,7 +157,13 @@ class FitResult:
         return self.settings.get("cov_type", "hessian")
 
     def cov_params(self) -> pd.DataFrame:
-        """Covariance matrix of the free parameters' estimates."""
+        """The covariance matrix of the free parameters' estimates.
+
+        Returns
+        -------
+        pandas.DataFrame
+            A copy of ``cov``.
+        """
         return self.cov.copy()
 
     @property
@@ -122,14 +172,28 @@ class FitResult:
         return max(self.n_obs - self.n_params, 1)
 
     def conf_int(self, level: float = 0.95, method: str = "wald") -> pd.DataFrame:
-        """Confidence intervals ``lower``, ``upper`` per parameter.
+        """Confidence intervals of the parameters.
 
-        ``method="wald"``: estimate ± t_{N−k} quantile × SE (NaN where there is no
-        standard error: fixed parameters, estimates at a bound).
-        ``method="profile"``: the likelihood-ratio interval from the profile of each
-        free parameter ([`greyid.uncertainty.profile_intervals()`][greyid.uncertainty.profile.profile_intervals]),
-        which follows
-        a skewed likelihood; an end that runs into a bound is that bound, with a warning.
+        Parameters
+        ----------
+        level : float
+            The confidence level, between 0 and 1.
+        method : {"wald", "profile"}
+            ``"wald"``: estimate ± the Student-t quantile (N − k degrees of freedom) ×
+            the standard error (NaN where there is none: fixed parameters, estimates at
+            a bound).  ``"profile"``: the likelihood-ratio interval from the profile of
+            each free parameter, which follows a skewed likelihood; an end that runs
+            into a bound is that bound, with a warning.
+
+        Returns
+        -------
+        pandas.DataFrame
+            Columns ``lower`` and ``upper``, one row per parameter.
+
+        Raises
+        ------
+        ModelError
+            An unknown method or a level outside (0, 1).
         """
         if method not in ("wald", "profile"):
             raise ModelError(f"confidence intervals by method {method!r} are not available; "
@@ -146,22 +210,85 @@ class FitResult:
 
     def profile(self, name: str, values=None, n: int = 21, span: float = 3.0, expression: str | None = None
                 ) -> pd.DataFrame:
-        """The profile likelihood of a parameter or derived quantity; see `greyid.uncertainty.profile()`."""
+        """The profile likelihood of a parameter or derived quantity.
+
+        Parameters
+        ----------
+        name : str
+            A parameter, or a derived quantity declared on the model.
+        values : array_like, optional
+            Where to hold it (default: ``n`` points over the estimate ± ``span``
+            standard errors, within the bounds).
+        n : int
+            The number of points.
+        span : float
+            The half-width of the default grid, in standard errors.
+        expression : str, optional
+            A derived quantity given as an expression in the parameters.
+
+        Returns
+        -------
+        pandas.DataFrame
+            The quantity, ``loglik`` (``criterion`` for MAP, robust or k-step fits),
+            the re-estimated parameters, ``converged`` and ``deviance``; ``attrs`` holds
+            the estimate, the maximum and the 95 % χ² threshold.  See
+            `greyid.uncertainty.profile()`.
+        """
         from ..uncertainty.profile import profile
 
         return profile(self, name, values=values, n=n, span=span, expression=expression)
 
     def sample(self, draws: int = 1000, chains: int = 4, seed: int = 0, warmup: int = 500,
                target_accept: float = 0.8):
-        """NUTS draws from the posterior of the fit's criterion; see
-        [`greyid.uncertainty.sample()`][greyid.uncertainty.sampling.sample]."""
+        """NUTS draws from the posterior of the fit's criterion (BlackJAX).
+
+        Parameters
+        ----------
+        draws : int
+            Draws kept per chain.
+        chains : int
+            Chains run in parallel, each started from a draw of the Laplace approximation.
+        seed : int
+            The random seed.
+        warmup : int
+            Adaptation steps before the kept draws.
+        target_accept : float
+            The step-size adaptation's target acceptance rate.
+
+        Returns
+        -------
+        Posterior
+            Draws, R-hat, effective sample sizes and divergences; ArviZ's
+            ``InferenceData`` through ``to_inference_data()``.  See
+            [`greyid.uncertainty.sample()`][greyid.uncertainty.sampling.sample].
+
+        Raises
+        ------
+        ModelError
+            BlackJAX or ArviZ is not installed (``pip install "greyid[sampling]"``).
+        """
         from ..uncertainty.sampling import sample
 
         return sample(self, draws=draws, chains=chains, seed=seed, warmup=warmup, target_accept=target_accept)
 
     def plot_profile(self, name: str, ax=None, **options):
-        """Plot `profile()` of ``name`` (deviance, χ² threshold, Wald parabola); returns the Figure
-        (drawn on ``ax`` where given)."""
+        """Plot the profile of ``name``: deviance, χ² threshold and the Wald parabola.
+
+        Parameters
+        ----------
+        name : str
+            A parameter or derived quantity.
+        ax : matplotlib.axes.Axes, optional
+            Where to draw (default: a new figure).
+        **options
+            Passed to [`profile()`][greyid.estimate.results.FitResult.profile]
+            (``values``, ``n``, ``span``, ``expression``).
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+            The figure.
+        """
         from ..uncertainty.profile import plot_profile
 
         table = self.profile(name, **options)
@@ -185,7 +312,19 @@ class FitResult:
 
     # -------------------------------------------------------------- report
     def summary(self, level: float = 0.95) -> str:
-        """A readable table of the fit, like statsmodels' summary, with ``level`` confidence intervals."""
+        """A readable table of the fit, like statsmodels' summary.
+
+        Parameters
+        ----------
+        level : float
+            The confidence level of the intervals shown.
+
+        Returns
+        -------
+        str
+            The criterion, filter and hold, log-likelihood, information criteria,
+            convergence, the parameter table with units, bounds and flags, and the warnings.
+        """
         s = self.settings
         crit = s["criterion"].upper()
         if s.get("robust"):
@@ -243,7 +382,19 @@ class FitResult:
         return "\n".join(lines)
 
     def start_spread(self, tolerance: float = 0.01) -> str:
-        """How many starts reached the best criterion (within ``tolerance``), and the next best value."""
+        """How many starts reached the best criterion, and the next best value.
+
+        Parameters
+        ----------
+        tolerance : float
+            Criterion values within this of the best count as the best.
+
+        Returns
+        -------
+        str
+            One line, e.g. ``"4, 2 reached the best value 5434.59; next best 5434.58 (the
+            criterion has several optima)"``.
+        """
         # Pruned and failed starts ended nowhere in particular: not optima of their own.
         stopped = {"pruned": 0, "failed": 0}
         ended = []
@@ -275,8 +426,21 @@ class FitResult:
     def derived(self, expressions: Mapping[str, str] | None = None) -> pd.DataFrame:
         """Functions of the parameters with delta-method standard errors (6.35).
 
-        Without ``expressions``, the quantities declared on the model
-        (``model.add_derived`` or a model file's ``[derived]``).
+        Parameters
+        ----------
+        expressions : mapping of str to str, optional
+            ``{name: expression in the parameters}`` (default: the quantities declared
+            on the model with ``add_derived`` or a model file's ``[derived]``).
+
+        Returns
+        -------
+        pandas.DataFrame
+            ``estimate`` and ``std_error`` per quantity (and ``unit`` where the model has units).
+
+        Raises
+        ------
+        ModelError
+            An expression that uses a name that is not a parameter.
         """
         if expressions is None:
             expressions = self.model.derived
@@ -315,10 +479,23 @@ class FitResult:
     def to_prior(self, names=None) -> dict:
         """This fit's estimates as a Gaussian prior for the next experiment (section 7.4, 3.46).
 
-        ``{"mean", "sd", "corr"}`` over ``names`` (default: every free parameter with
-        a standard error), the correlations those of the estimates, so
         ``model.fit(new_data, criterion="map", prior=fit.to_prior())`` carries this
         experiment's knowledge, and its uncertainty, into the next.
+
+        Parameters
+        ----------
+        names : sequence of str, optional
+            The parameters (default: every free parameter with a standard error).
+
+        Returns
+        -------
+        dict
+            ``{"mean", "sd", "corr"}``, the correlations those of the estimates.
+
+        Raises
+        ------
+        ModelError
+            A name that is not a free parameter, or one without a standard error.
         """
         free = list(self.cov.index)
         if names is None:
@@ -342,7 +519,20 @@ class FitResult:
 
     # -------------------------------------------------------------- filtering on the fitted model
     def with_data(self, data, data_file: str | None = None) -> "FitResult":
-        """This fit with data attached (e.g. a loaded fit), so residuals and validation work."""
+        """This fit with data attached (e.g. to a loaded fit), so residuals and validation work.
+
+        Parameters
+        ----------
+        data : pandas.DataFrame or list of pandas.DataFrame
+            The data.
+        data_file : str, optional
+            Where they came from, kept with the fit.
+
+        Returns
+        -------
+        FitResult
+            A copy holding the data.
+        """
         from ..data.prepare import as_frames
         from ..model.options import rename_columns
 
@@ -351,7 +541,13 @@ class FitResult:
                        _cache={})
 
     def attach_stored_data(self) -> list | None:
-        """The fit's data; a loaded fit reads the data file it stores (``data_file``) on first use."""
+        """The fit's data; a loaded fit reads the data file it stores (``data_file``) on first use.
+
+        Returns
+        -------
+        list of pandas.DataFrame or None
+            The data, or None where the fit has none and names no file.
+        """
         if self.data is None and self.data_file:
             from ..data.prepare import as_frames
             from ..errors import DataError
@@ -377,24 +573,72 @@ class FitResult:
         return filter_settings(self.settings)
 
     def filter(self, data=None):
-        """The filter run at the estimates (a FilterResult, or a list for several data sets)."""
+        """The filter run at the estimates.
+
+        Parameters
+        ----------
+        data : pandas.DataFrame, optional
+            Other data (default: the fit's).
+
+        Returns
+        -------
+        FilterResult or list of FilterResult
+            One per data set.
+        """
         return self.model.filter(self.values, self._data(data), **self._filter_settings())
 
     def smooth(self, data=None):
-        """Rauch–Tung–Striebel smoothed states at the estimates."""
+        """Rauch–Tung–Striebel smoothed states at the estimates.
+
+        Parameters
+        ----------
+        data : pandas.DataFrame, optional
+            Other data (default: the fit's).
+
+        Returns
+        -------
+        SmootherResult or list of SmootherResult
+            One per data set.
+        """
         return self.model.smooth(self.values, self._data(data), **self._filter_settings())
 
     def predict(self, data=None, steps: int = 1, states: bool = False, interval: float | None = None,
                 parameter_uncertainty: bool = False, draws: int = 200, seed: int = 0, posterior=None):
-        """``steps``-ahead predictions of the outputs (and states) with standard deviations.
+        """Output (and state) predictions ``steps`` samples ahead, with standard deviations.
 
-        As [`Model.predict()`][greyid.model.model.Model.predict] at the estimates; append rows of future inputs with
-        missing outputs to ``data`` to forecast past its end.  ``interval=0.95``
-        adds ``<y>_lower``/``<y>_upper`` columns.  With ``parameter_uncertainty=True``
-        the prediction also carries the parameters' uncertainty: ``draws`` parameter
-        vectors from the Laplace approximation (or from ``posterior=fit.sample()``),
-        the predictive mixture's mean, total ``<y>_sd`` and quantiles
-        ([`greyid.uncertainty.intervals.predict()`][greyid.uncertainty.intervals.predict]).
+        As [`Model.predict()`][greyid.model.model.Model.predict] at the estimates;
+        append rows of future inputs with missing outputs to ``data`` to forecast past its end.
+
+        Parameters
+        ----------
+        data : pandas.DataFrame, optional
+            Other data (default: the fit's).
+        steps : int
+            The horizon in samples.
+        states : bool
+            Also the states' predictions.
+        interval : float, optional
+            A level such as 0.95: adds ``<y>_lower`` and ``<y>_upper`` columns.
+        parameter_uncertainty : bool
+            Also carry the parameters' uncertainty: ``draws`` parameter vectors from the
+            Laplace approximation (or from ``posterior``), the predictive mixture's mean,
+            total ``<y>_sd`` and quantiles.
+        draws : int
+            The parameter draws of ``parameter_uncertainty``.
+        seed : int
+            Their random seed.
+        posterior : Posterior, optional
+            Draws from [`sample()`][greyid.estimate.results.FitResult.sample] to use instead.
+
+        Returns
+        -------
+        pandas.DataFrame or list of pandas.DataFrame
+            The time column, each output and ``<output>_sd`` (and the interval's columns).
+
+        Raises
+        ------
+        ModelError
+            ``states=True`` with ``parameter_uncertainty=True``, or a level outside (0, 1).
         """
         if parameter_uncertainty:
             from ..uncertainty.intervals import predict
@@ -419,13 +663,32 @@ class FitResult:
 
     def simulate(self, data=None, n_paths: int | None = None, seed: int = 0, method: str = "euler",
                  interval: float | None = None, parameter_uncertainty: bool = False, posterior=None, **options):
-        """Sample paths of the fitted model driven by the data's inputs (``n_paths``, default 1).
+        """Sample paths of the fitted model driven by the data's inputs.
 
-        With ``interval`` (e.g. 0.95) or ``parameter_uncertainty=True``, a DataFrame
-        of the paths' mean and central interval per output instead, each path with
-        its own parameter draw when ``parameter_uncertainty`` (Laplace, or
-        ``posterior=``), over ``n_paths`` (default 200) paths; see
-        [`greyid.uncertainty.intervals.simulate()`][greyid.uncertainty.intervals.simulate].
+        Parameters
+        ----------
+        data : pandas.DataFrame, optional
+            Times and inputs (default: the fit's data).
+        n_paths : int, optional
+            The number of paths (default 1; 200 with ``interval`` or ``parameter_uncertainty``).
+        seed : int
+            The random seed.
+        method : {"euler", "milstein", "heun", "exact"}
+            The integration scheme.
+        interval : float, optional
+            A level such as 0.95: the paths' mean and central interval per output instead of the paths.
+        parameter_uncertainty : bool
+            Each path with its own parameter draw (Laplace, or ``posterior``).
+        posterior : Posterior, optional
+            Draws from [`sample()`][greyid.estimate.results.FitResult.sample].
+        **options
+            ``substeps``, ``calculus``, ``noise`` (see [`Model.simulate()`][greyid.model.model.Model.simulate]).
+
+        Returns
+        -------
+        Simulation or pandas.DataFrame
+            The paths, or (with ``interval`` or ``parameter_uncertainty``) their summary; see
+            [`greyid.uncertainty.intervals.simulate()`][greyid.uncertainty.intervals.simulate].
         """
         if interval is not None or parameter_uncertainty:
             from ..uncertainty.intervals import simulate
@@ -441,7 +704,7 @@ class FitResult:
 
     @property
     def residuals(self):
-        """Standardised one-step innovations per output (NaN where unobserved)."""
+        """The standardised one-step innovations per output (NaN where unobserved)."""
         if "residuals" not in self._cache:
             res = self.filter()
             self._cache["residuals"] = ([r.standardized_innovations for r in res] if isinstance(res, list)
@@ -449,33 +712,69 @@ class FitResult:
         return self._cache["residuals"]
 
     def validate(self, level: float = 0.05, lags: int | None = None, m: int | None = None):
-        """Residual tests of chapter 5 on every output: a [`Validation`][greyid.validation.validate.Validation].
+        """The residual tests of chapter 5 on every output.
 
-        Its ``tests`` DataFrame has columns ``test, output, statistic, df,
-        p_value, reject``; ``plot()``, ``plot_coherency()``,
-        ``plot_simulation()``, ``plot_bootstrap()`` and ``plot_prediction()``
-        return matplotlib figures.
+        Parameters
+        ----------
+        level : float
+            The significance level of the tests.
+        lags : int, optional
+            Lags of the autocorrelation tests (default: from the series' length).
+        m : int, optional
+            The smoothing of the spectral estimates (default: from the series' length).
+
+        Returns
+        -------
+        Validation
+            Its ``tests`` DataFrame has columns ``test, output, statistic, df, p_value,
+            reject``; ``plot()``, ``plot_coherency()``, ``plot_simulation()``,
+            ``plot_bootstrap()`` and ``plot_prediction()`` return matplotlib figures.
         """
         from ..validation.validate import validate
 
         return validate(self, level=level, lags=lags, m=m)
 
     def report(self, path=None, **options) -> str:
-        """The self-contained HTML report of this fit; written to ``path`` when given.
+        """The self-contained HTML report of this fit.
 
-        Options: ``level`` (tests), ``steps`` (prediction horizon shown),
-        ``n_paths`` (Monte Carlo band), ``seed``, ``title``, ``profile`` (False
-        leaves the profile-likelihood intervals out of the parameter table).
+        Parameters
+        ----------
+        path : str or pathlib.Path, optional
+            Where to write it (atomically); without it, nothing is written.
+        **options
+            ``level`` (the tests' significance level), ``steps`` (the prediction
+            horizon shown), ``n_paths`` (the Monte Carlo band), ``seed``, ``title``,
+            ``profile`` (False leaves the profile-likelihood intervals out of the
+            parameter table).
+
+        Returns
+        -------
+        str
+            The HTML document.
+
+        Raises
+        ------
+        ModelError
+            A fit that carries no data (a loaded fit whose data file is gone).
         """
         from ..report import html_report
 
         text = html_report(self, **options)
         if path is not None:
-            Path(path).write_text(text, encoding="utf-8")
+            from ..outputs import write_atomic
+
+            write_atomic(path, text)
         return text
 
     # -------------------------------------------------------------- saving
     def to_dict(self) -> dict:
+        """The fit as plain data (what [`save()`][greyid.estimate.results.FitResult.save] writes as JSON).
+
+        Returns
+        -------
+        dict
+            The model's text, the estimates, covariance, settings, warnings and starts.
+        """
         def clean(v):
             if isinstance(v, (float, np.floating)):
                 return None if not np.isfinite(v) else float(v)
@@ -510,8 +809,15 @@ class FitResult:
         }
 
     def save(self, path) -> None:
-        """Write the fit as JSON (model text, estimates, covariance, settings), atomically: a
-        process killed meanwhile leaves the previous file whole."""
+        """Write the fit as JSON (model text, estimates, covariance, settings), atomically.
+
+        A process killed meanwhile leaves the previous file whole.
+
+        Parameters
+        ----------
+        path : str or pathlib.Path
+            The file.
+        """
         from ..outputs import write_atomic
 
         write_atomic(path, json.dumps(self.to_dict(), indent=2))
@@ -537,8 +843,24 @@ def filter_settings(settings: dict) -> dict:
 
 
 def load_fit(path) -> FitResult:
-    """Read a fit written by [`FitResult.save()`][greyid.estimate.results.FitResult.save]; its ``model`` reproduces the
-    log-likelihood."""
+    """Read a fit written by [`FitResult.save()`][greyid.estimate.results.FitResult.save] (or ``greyid fit --out``).
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The JSON file.
+
+    Returns
+    -------
+    FitResult
+        The fit; its ``model`` reproduces the log-likelihood, and its data are read
+        from ``data_file`` when first needed.
+
+    Raises
+    ------
+    ModelError
+        A file that is missing, a folder, not JSON, or not a greyid fit (names the key).
+    """
     from ..outputs import complete_generation
 
     path = Path(path)

@@ -93,8 +93,62 @@ def member_inits(init, names: list) -> list[dict | None]:
 def fit_many(model, datasets, time: str | None = None, hold: str | None = None, scheduler=None,
              progress=False, init=None, chunk_size: int = 256, worker_timeout: float | None = None,
              **options) -> FleetResult:
-    """Fit ``model`` to each of ``datasets``; see `greyid.fit_many()` (``worker_timeout``: seconds a
-    cluster may have no worker before its pending members are given up as failed rows)."""
+    """Fit one model to each of many data sets in one call (a fleet of houses, an engine's operating points).
+
+    Every data set is checked and prepared (one that fails becomes a row with its
+    error; the others go on), the data sets are grouped by padded length, and the
+    searches of a group's members run together: each keeps its own trust region and
+    convergence, and every request is evaluated by one program vectorised over the
+    members.  Each member's fit is the [`FitResult`][greyid.estimate.results.FitResult]
+    a separate ``model.fit`` gives.
+
+    Parameters
+    ----------
+    model : Model
+        The model.
+    datasets : mapping or sequence
+        ``{name: DataFrame or CSV path}``, or a list (named 0, 1, ...).
+    time : str, optional
+        The name of the time column.
+    hold : {"zoh", "foh"}, optional
+        How inputs are held between samples.
+    scheduler : dask.distributed.Client, optional
+        Run the members on a Dask cluster, in chunks of ``chunk_size``.
+    progress : bool or callable
+        Print (or pass to the callable) how many members have finished.
+    init : mapping or pandas.DataFrame, optional
+        Starting values: one mapping for every member, a DataFrame indexed by the
+        data sets' names, or ``{name: mapping}``.
+    chunk_size : int
+        Members per task on a cluster.
+    worker_timeout : float, optional
+        Seconds a cluster may have no worker before its pending members are given
+        up as failed rows (default 60).
+    **options
+        The settings of [`Model.fit()`][greyid.model.model.Model.fit] (``method``,
+        ``criterion``, ``starts``, ``maxiter``, ...), but ``steady_state``.
+
+    Returns
+    -------
+    FleetResult
+        A table with one row per data set, and each data set's fit.
+
+    Raises
+    ------
+    DataError
+        ``datasets`` that are one DataFrame or not a mapping or list, or names that are not unique.
+    ModelError
+        ``steady_state=True`` (a single fit's setting).
+
+    Examples
+    --------
+    >>> import greyid
+    >>> from greyid.datasets import building_model, load_building_data
+    >>> data = load_building_data()
+    >>> fleet = greyid.fit_many(building_model(), {"week 1": data.iloc[:500], "week 2": data.iloc[500:]})
+    >>> list(fleet.table.index)
+    ['week 1', 'week 2']
+    """
     if resolve(model._options, options, ("steady_state",)).get("steady_state"):
         raise ModelError("steady_state=True is for single fits (model.fit, model.likelihood): a fleet evaluates "
                          "its data sets together in one program, where each series' switch would run both forms")

@@ -34,13 +34,39 @@ class Relation:
 
 def relate(fleet, covariates: pd.DataFrame, parameter: str, candidates=None, weighted: bool = True,
            max_terms: int | None = None) -> Relation:
-    """Regress ``parameter``'s estimates on covariates of the data sets, best subset by Mallows' C_p.
+    """Regress a parameter's estimates across a fleet on covariates of the data sets (section 8.4).
 
-    ``fleet`` is a [`FleetResult`][greyid.fleet.result.FleetResult] (or its ``table``); ``covariates`` is
-    indexed by the data sets' names; ``candidates`` the covariate columns to
-    try (default: all).  Data sets without a fit or with a missing covariate
-    are left out (and counted in the result's subsets table as ``n``).  C_p =
-    RSS_p/σ̂² − n + 2p with σ̂² the full model's residual mean square.
+    The best subset of covariates by Mallows' C_p = RSS_p/σ̂² − n + 2p, with σ̂²
+    the full model's residual mean square.
+
+    Parameters
+    ----------
+    fleet : FleetResult or pandas.DataFrame
+        The fleet, or its ``table``.
+    covariates : pandas.DataFrame
+        Indexed by the data sets' names.
+    parameter : str
+        The parameter whose estimates are regressed.
+    candidates : sequence of str, optional
+        The covariate columns to try (default: all).
+    weighted : bool
+        Weight each estimate by its inverse variance.
+    max_terms : int, optional
+        The largest subset tried (default: all candidates).
+
+    Returns
+    -------
+    Relation
+        ``subsets``: every subset of the covariates ranked by C_p (``covariates``,
+        ``n_terms``, ``cp``, ``r2``, ``aic``; data sets without a fit are left out);
+        ``best``: the fitted statsmodels WLS of the first; ``summary()``.
+
+    Raises
+    ------
+    DataError
+        An unknown parameter or covariate, data sets without a covariates row, a
+        missing standard error with ``weighted=True``, or too few data sets for the
+        covariates.
     """
     import statsmodels.api as sm
 

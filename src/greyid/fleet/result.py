@@ -9,11 +9,28 @@ import pandas as pd
 class FleetResult:
     """Estimates of one model on many data sets.
 
-    ``table``: one row per data set (index = the data sets' names) with a column
-    per parameter (its estimate), ``<parameter>_se`` (standard errors),
-    ``loglik``, ``aic``, ``n_obs``, ``converged``, ``iterations``, ``message``
-    and ``error`` (why a data set has no fit, else None).  ``fits``: name →
-    `FitResult`, None where the data set failed.
+    Made by [`fit_many()`][greyid.fleet.fit.fit_many].
+
+    Parameters
+    ----------
+    model : Model
+        The model fitted.
+    names : list
+        The data sets' names.
+    rows : list of dict
+        Per data set, ``{"error": message}`` where it has no fit.
+    fits : list
+        Per data set, its [`FitResult`][greyid.estimate.results.FitResult] or None.
+
+    Attributes
+    ----------
+    table : pandas.DataFrame
+        One row per data set (index: the names) with a column per parameter (its
+        estimate), ``<parameter>_se`` (standard errors), ``loglik``, ``aic``,
+        ``n_obs``, ``converged``, ``iterations``, ``message`` and ``error`` (why a
+        data set has no fit, else None).
+    fits : dict
+        Name → [`FitResult`][greyid.estimate.results.FitResult], None where the data set failed.
     """
 
     def __init__(self, model, names: list, rows: list[dict], fits: list):
@@ -45,7 +62,13 @@ class FleetResult:
         return self.table["error"].dropna()
 
     def estimates(self) -> pd.DataFrame:
-        """The free parameters' estimates of the data sets that were fitted (one row each)."""
+        """The free parameters' estimates of the data sets that were fitted.
+
+        Returns
+        -------
+        pandas.DataFrame
+            One row per fitted data set, one column per free parameter.
+        """
         free = [p for p in self.model.parameter_names if not self._fixed(p)]
         return self.table.loc[self.table["error"].isna(), free]
 
@@ -54,7 +77,13 @@ class FleetResult:
         return p is not None and p.fixed
 
     def summary(self) -> str:
-        """How many data sets were fitted and converged, and the spread of each estimate across them."""
+        """How many data sets were fitted and converged, and the spread of each estimate across them.
+
+        Returns
+        -------
+        str
+            The summary's text.
+        """
         t = self.table
         fitted = int(t["error"].isna().sum())
         lines = [f"fleet of {len(t)} data sets of model {self.model.name}: {fitted} fitted, "
@@ -72,10 +101,20 @@ class FleetResult:
         return self.summary()
 
     def plot(self, parameters=None, bins: int = 20):
-        """Histograms of the estimates across the fleet (one panel per free parameter); a Figure.
+        """Histograms of the estimates across the fleet, one panel per free parameter.
 
-        At most four ticks per axis and a shared power of ten (×10⁶) under it, so that the tick labels of
-        estimates such as 1.5086e7 or 0.0018 do not run into each other."""
+        Parameters
+        ----------
+        parameters : sequence of str, optional
+            The parameters to show (default: every free parameter).
+        bins : int
+            Histogram bins.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+            The figure (tick labels in a compact number format).
+        """
         from matplotlib.figure import Figure
         from matplotlib.ticker import MaxNLocator, ScalarFormatter
 

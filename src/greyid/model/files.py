@@ -284,7 +284,9 @@ def write_model(model, path=None) -> str:
     """Write ``model`` as a TOML model file to ``path`` (when given); returns the text."""
     text = model_to_toml(model)
     if path is not None:
-        Path(path).write_text(text, encoding="utf-8")
+        from ..outputs import write_atomic
+
+        write_atomic(path, text)
     return text
 
 

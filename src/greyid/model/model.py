@@ -36,7 +36,33 @@ _COVARIANCE_KINDS = ("process", "stationary")
 
 
 class Model:
-    """A continuous–discrete stochastic state-space model (thesis eq. 4.1–4.2)."""
+    """A continuous–discrete stochastic state-space model written as equations (4.1)–(4.2).
+
+    ``dx = f(x, u, t, θ) dt + G(x, u, t, θ) dω`` with discrete observations
+    ``y_k = h(x_k, u_k, t_k, θ) + e_k``, ``e_k ~ N(0, S)``.  Build it with the
+    ``add_*`` and ``set_*`` methods (each returns the model, so calls chain), read
+    it from a model file ([`from_toml()`][greyid.model.model.Model.from_toml]) or
+    write it as Python functions ([`from_functions()`][greyid.model.model.Model.from_functions]).
+
+    Parameters
+    ----------
+    name : str
+        The model's name, shown in summaries and reports.
+    description : str
+        A sentence on what the model is (units, what the states stand for).
+
+    Examples
+    --------
+    >>> import greyid
+    >>> m = greyid.Model("TiTe")
+    >>> m = (m.add_inputs("Ta", "Ph")
+    ...       .add_system("dTi = (1/(Ci*Rie)*(Te - Ti) + Ph/Ci)*dt + exp(p1)*dw1",
+    ...                   "dTe = (1/(Ce*Rie)*(Ti - Te) + 1/(Ce*Rea)*(Ta - Te))*dt + exp(p2)*dw2")
+    ...       .add_observation("yTi = Ti", variance="exp(e1)")
+    ...       .set_initial_state({"Ti": "Ti0", "Te": "Te0"}))
+    >>> m.state_names
+    ('Ti', 'Te')
+    """
 
     def __init__(self, name: str = "model", description: str = ""):
         self.name = name
@@ -64,7 +90,31 @@ class Model:
         self._structure = None
 
     def add_system(self, *equations: str) -> "Model":
-        """Add state equations ``d<state> = ...*dt + ...*dw<j>``."""
+        """Add state equations.
+
+        Parameters
+        ----------
+        *equations : str
+            One equation per state, ``"d<state> = <drift>*dt + <g1>*dw1 + ..."``: the
+            drift f and the diffusion terms G dω (the Wiener processes ``dw1``,
+            ``dw2``, ... may be shared between states).
+
+        Returns
+        -------
+        Model
+            The model itself.
+
+        Raises
+        ------
+        ModelError
+            An equation that cannot be read (names the equation and the problem), a
+            state defined twice, or a model defined by Python functions.
+
+        Examples
+        --------
+        >>> import greyid
+        >>> m = greyid.Model().add_system("dx = -a*x*dt + s*dw1")
+        """
         if self._functions is not None:
             raise ModelError("this model is defined by Python functions; equations cannot be added")
         for text in equations:
@@ -76,7 +126,25 @@ class Model:
         return self
 
     def add_inputs(self, *names: str) -> "Model":
-        """Declare input columns (known external signals u)."""
+        """Declare the inputs: known external signals u, one data column each.
+
+        Parameters
+        ----------
+        *names : str
+            The inputs' names (the data's column names, or names mapped to them by the
+            ``columns`` setting).
+
+        Returns
+        -------
+        Model
+            The model itself.
+
+        Raises
+        ------
+        ModelError
+            A name that is not an identifier, declared twice, or reserved (``t``,
+            ``dt``, ``dw1``, ...).
+        """
         for name in names:
             if not isinstance(name, str) or not name.isidentifier():
                 raise ModelError(f"input name {name!r} is not a valid name")
@@ -89,7 +157,26 @@ class Model:
         return self
 
     def add_observation(self, equation: str, variance: str | float) -> "Model":
-        """Add ``y = h(x, u, t, θ)`` measured with noise of the given variance."""
+        """Add an observation ``y = h(x, u, t, θ)`` measured with Gaussian noise.
+
+        Parameters
+        ----------
+        equation : str
+            ``"<output> = <expression>"``; the output's name is its data column.
+        variance : str or float
+            The noise variance S, a number or an expression of the parameters (and of
+            the inputs and time), e.g. ``"exp(e11)"`` or ``"sigv^2"``.
+
+        Returns
+        -------
+        Model
+            The model itself.
+
+        Raises
+        ------
+        ModelError
+            An output defined twice, or an equation holding ``dt`` or ``dw`` terms.
+        """
         eq = parse_equation(equation, "observation equation")
         if any(o[0].lhs == eq.lhs for o in self._observations):
             raise ModelError(f"observation '{eq.lhs}' is defined twice")
@@ -105,7 +192,23 @@ class Model:
         return self
 
     def add_algebraic(self, equation: str) -> "Model":
-        """Define a name by an expression, e.g. ``theta = exp(logtheta)``."""
+        """Define a name by an expression, usable in every equation.
+
+        Parameters
+        ----------
+        equation : str
+            ``"<name> = <expression>"``, e.g. ``"theta = exp(logtheta)"``.
+
+        Returns
+        -------
+        Model
+            The model itself.
+
+        Raises
+        ------
+        ModelError
+            A name defined twice (a cycle of definitions is refused when the model is built).
+        """
         eq = parse_equation(equation, "algebraic equation")
         if any(a.lhs == eq.lhs for a in self._algebraics):
             raise ModelError(f"algebraic name '{eq.lhs}' is defined twice")
@@ -122,9 +225,31 @@ class Model:
         fixed: bool = False,
         prior: tuple[float, float] | None = None,
     ) -> "Model":
-        """Declare a parameter's initial value and bounds, or fix it (``fixed=True``).
+        """Declare a parameter's initial value and bounds, or fix it.
 
-        ``prior=(mean, sd)`` gives it a Gaussian prior for ``criterion="map"``.
+        Parameters
+        ----------
+        name : str
+            The parameter, as the equations name it.
+        init : float, optional
+            The starting value of the estimation (the value, where ``fixed``).
+        lower, upper : float, optional
+            Bounds; the optimiser works in a transformed coordinate that keeps the
+            estimate inside them.
+        fixed : bool
+            Not estimated: held at ``init``.
+        prior : tuple of float, optional
+            ``(mean, sd)`` of a Gaussian prior, used with ``criterion="map"`` (3.46).
+
+        Returns
+        -------
+        Model
+            The model itself.
+
+        Raises
+        ------
+        ModelError
+            A name that is not an identifier, bounds that cross, or ``init`` outside them.
         """
         if not isinstance(name, str) or not name.isidentifier():
             raise ModelError(f"parameter name {name!r} is not a valid name")
@@ -133,17 +258,52 @@ class Model:
         return self
 
     def fix_parameter(self, name: str, value: float) -> "Model":
-        """Fix a parameter at a value (it is then not estimated)."""
+        """Fix a parameter at a value (it is then not estimated).
+
+        Parameters
+        ----------
+        name : str
+            The parameter.
+        value : float
+            Its value.
+
+        Returns
+        -------
+        Model
+            The model itself.
+        """
         return self.set_parameter(name, init=value, fixed=True)
 
     def set_options(self, **options) -> "Model":
-        """Default settings for data, filter and estimation calls.
+        """Set the model's default settings for data, filter and estimation calls.
 
-        Data: ``time`` (column), ``hold`` ("zoh"/"foh"), ``time_unit``,
-        ``columns`` (model name → data column).  Filter: ``method``, ``form``,
-        ``substeps``, ``iterations``, ``steady_state``.  Estimation: ``criterion``, ``robust``,
-        ``horizon``, ``starts``, ``seed``, ``maxiter``, ``prior_correlation``.
-        An argument given to ``fit``/``loglik``/... overrides the default.
+        A setting given to [`fit()`][greyid.model.model.Model.fit],
+        [`loglik()`][greyid.model.model.Model.loglik] and the other calls overrides the
+        default set here.  A model file's ``[data]``, ``[filter]`` and ``[estimation]``
+        tables set the same names.
+
+        Parameters
+        ----------
+        **options
+            Data: ``time`` (the time column), ``hold`` (``"zoh"``/``"foh"``),
+            ``time_unit`` (the unit of elapsed time for timestamps: ``"s"``, ``"min"``,
+            ``"h"``, ``"d"``), ``time_format`` (a ``strftime`` format for dates written as
+            text), ``time_zone`` (an IANA zone for naive timestamps), ``columns``
+            (model name → data column).  Filter: ``method``, ``form`` (``"sqrt"`` or
+            ``"plain"``), ``substeps``, ``iterations`` (IEKF), ``alpha``, ``beta``,
+            ``kappa`` (UKF), ``steady_state``.  Estimation: ``criterion``, ``robust``,
+            ``horizon``, ``starts``, ``seed``, ``maxiter``, ``prior_correlation``,
+            ``cov_type``, ``optimizer``.
+
+        Returns
+        -------
+        Model
+            The model itself.
+
+        Raises
+        ------
+        ModelError
+            An unknown setting or a value of the wrong kind (names the setting).
         """
         self._options.update(check_options(options))
         return self
@@ -154,12 +314,27 @@ class Model:
         return dict(self._options)
 
     def set_observation_covariance(self, matrix) -> "Model":
-        """Correlated measurement noise: the full covariance of the outputs, in their order.
+        """Declare correlated measurement noise: the full covariance of the outputs.
 
-        ``matrix`` is square (numbers or expressions); its diagonal must repeat the
-        outputs' variances and it must be symmetric and free of the states.
-        Missing outputs are handled per element (the observed subset is
+        Missing outputs are handled element by element (the observed subset is
         decorrelated by its Cholesky factor before the updates).
+
+        Parameters
+        ----------
+        matrix : sequence of sequences or numpy.ndarray
+            Square, in the outputs' order, numbers or expressions of the parameters;
+            its diagonal must repeat the outputs' variances, and it must be symmetric
+            and free of the states.
+
+        Returns
+        -------
+        Model
+            The model itself.
+
+        Raises
+        ------
+        ModelError
+            A matrix that is not square or not of the outputs' size.
         """
         if isinstance(matrix, np.ndarray):
             matrix = matrix.tolist()
@@ -176,11 +351,26 @@ class Model:
     def set_nested_start(self, rule) -> "Model":
         """Declare where this model reduces to a smaller one it extends.
 
-        ``rule(values) -> {parameter: initial value}`` receives the estimates of
-        the smaller model's fit (by name) and returns starting values for the
-        parameters it lacks (and any it wants to change), e.g. a sensor state's
-        ``{"Ris": 0.01, "Cs": 0.001, "Ts0": values["Ti0"]}``.  Used by
-        ``fit(..., init_from=small_fit)`` and by forward selection.
+        Used by ``fit(..., init_from=smaller_fit)`` and by forward selection
+        ([`select_forward()`][greyid.validation.selection.select_forward]).
+
+        Parameters
+        ----------
+        rule : callable
+            ``rule(values) -> {parameter: initial value}``: given the smaller model's
+            estimates by name, the starting values of the parameters this model adds
+            (and of any it changes), e.g. a sensor state's
+            ``{"Ris": 0.01, "Cs": 0.001, "Ts0": values["Ti0"]}``.
+
+        Returns
+        -------
+        Model
+            The model itself.
+
+        Raises
+        ------
+        ModelError
+            ``rule`` is not callable.
         """
         if not callable(rule):
             raise ModelError("set_nested_start takes a function of the smaller model's estimates")
@@ -188,9 +378,26 @@ class Model:
         return self
 
     def add_derived(self, name: str, expression: str) -> "Model":
-        """Name a physical quantity computed from the parameters, e.g. ``UA = 1/(Ri+Ro)``.
+        """Name a physical quantity computed from the parameters.
 
         ``fit.derived()`` reports it with a delta-method standard error (6.35).
+
+        Parameters
+        ----------
+        name : str
+            The quantity's name, e.g. ``"UA [kW/K]"``.
+        expression : str
+            Its expression in the parameters, e.g. ``"1/(Ri + Ro)"``.
+
+        Returns
+        -------
+        Model
+            The model itself.
+
+        Raises
+        ------
+        ModelError
+            An empty name or an expression that cannot be read.
         """
         if not isinstance(name, str) or not name.strip():
             raise ModelError(f"derived quantity name {name!r} must be a non-empty string")
@@ -199,10 +406,34 @@ class Model:
         return self
 
     def set_population(self, random=None, effects=None, omega=None, covariates=None, omega_init=None) -> "Model":
-        """Defaults of `greyid.fit_population()` for this model (a model file's ``[population]``):
-        ``random`` {parameter: "normal" | "lognormal"}, ``effects`` {parameter: [covariate, ...]},
-        ``omega`` "diagonal" | "full", ``covariates`` a CSV file with a row per data set (first
-        column: the data sets' names; relative to the model file), ``omega_init`` {parameter: sd}."""
+        """Set the defaults of [`fit_population()`][greyid.population.fit.fit_population] for this model.
+
+        A model file's ``[population]`` table sets the same names.
+
+        Parameters
+        ----------
+        random : dict, optional
+            ``{parameter: "normal" | "lognormal"}``: the parameters with a random effect.
+        effects : dict, optional
+            ``{parameter: [covariate, ...]}``: covariate effects on the parameters' means.
+        omega : {"diagonal", "full"}, optional
+            Independent or correlated random effects.
+        covariates : str, optional
+            A CSV file with a row per data set (first column: the data sets' names),
+            relative to the model file.
+        omega_init : dict, optional
+            ``{parameter: sd}``: starting standard deviations of the random effects.
+
+        Returns
+        -------
+        Model
+            The model itself.
+
+        Raises
+        ------
+        ModelError
+            A value of the wrong kind (names the key).
+        """
         from ..errors import ModelError
 
         given = dict(random=random, effects=effects, omega=omega, covariates=covariates, omega_init=omega_init)
@@ -216,11 +447,26 @@ class Model:
         return self
 
     def set_units(self, units: Mapping[str, str]) -> "Model":
-        """Units of the model's names, the time column's included, as Pint reads them.
+        """Give the units of the model's names, the time column's included, as Pint reads them.
 
-        ``{"t": "h", "Ti": "degC", "Ci": "kWh/K", "s1": "K/h^0.5"}``; names
-        without a unit count as dimensionless.  Every equation is then checked for
-        dimensional consistency before a fit (`check_units()`).
+        Every equation is then checked for dimensional consistency before a fit
+        ([`check_units()`][greyid.model.model.Model.check_units]); names without a unit
+        count as dimensionless.
+
+        Parameters
+        ----------
+        units : mapping of str to str
+            E.g. ``{"t": "h", "Ti": "degC", "Ci": "kWh/K", "s1": "K/h^0.5"}``.
+
+        Returns
+        -------
+        Model
+            The model itself.
+
+        Raises
+        ------
+        ModelError
+            A unit Pint does not know.
         """
         from .units import parse_units
 
@@ -234,7 +480,18 @@ class Model:
         return dict(self._units)
 
     def unit_report(self, time: str | None = None) -> pd.DataFrame:
-        """Every term of every equation with its unit, the expected one and whether they agree."""
+        """Every term of every equation with its unit, the expected unit and whether they agree.
+
+        Parameters
+        ----------
+        time : str, optional
+            The time column's name (default: the model's ``time`` setting, else ``"t"``).
+
+        Returns
+        -------
+        pandas.DataFrame
+            Columns ``equation``, ``term``, ``unit``, ``expected``, ``ok``, ``note``.
+        """
         from .units import check_model_units
 
         terms = check_model_units(self, self._units, time or self._options.get("time", "t"))
@@ -242,9 +499,22 @@ class Model:
                                   note=t.note.lstrip(" :")) for t in terms])
 
     def check_units(self, time: str | None = None) -> list[str]:
-        """Check the equations' dimensions (see `greyid.model.units`); the report's lines.
+        """Check the equations' dimensions.
 
-        Raises a ModelError naming every term whose unit is not the expected one.
+        Parameters
+        ----------
+        time : str, optional
+            The time column's name (default: the model's ``time`` setting, else ``"t"``).
+
+        Returns
+        -------
+        list of str
+            The report's lines, one per term.
+
+        Raises
+        ------
+        ModelError
+            Names every term whose unit is not the expected one.
         """
         from .units import check_model_units
 
@@ -261,7 +531,14 @@ class Model:
         return dict(self._derived)
 
     def prior(self) -> dict | None:
-        """The Gaussian prior declared on the parameters (3.46), or ``None``."""
+        """The Gaussian prior declared on the free parameters (3.46).
+
+        Returns
+        -------
+        dict or None
+            ``{"mean": {...}, "sd": {...}}`` (and ``"corr"`` where the
+            ``prior_correlation`` setting gives one), or None where no parameter has a prior.
+        """
         with_prior = {n: p.prior for n, p in self._parameters.items() if p.prior is not None and not p.fixed}
         if not with_prior:
             return None
@@ -277,12 +554,30 @@ class Model:
         covariance: str | Sequence | np.ndarray = "process",
         scale: float = 1.0,
     ) -> "Model":
-        """Set x(t0) ~ N(mean, covariance).
+        """Set the initial state, x(t0) ~ N(mean, covariance).
 
-        ``mean`` maps every state to a number or to a parameter name or expression
-        (then estimated).  ``covariance`` is a matrix (numbers or expressions), a
-        vector of variances, ``"process"`` (the process noise integrated over the
-        first sampling interval times ``scale``, as in CTSM) or ``"stationary"``.
+        Parameters
+        ----------
+        mean : mapping of str to float or str
+            Every state's mean: a number, or a parameter name or expression (then estimated).
+        covariance : {"process", "stationary"} or array_like
+            A matrix (numbers or expressions), a vector of variances, ``"process"``
+            (the process noise integrated over the first sampling interval, times
+            ``scale``, as in CTSM) or ``"stationary"`` (the stationary covariance of a
+            stable linear model).
+        scale : float
+            The factor of the ``"process"`` covariance.
+
+        Returns
+        -------
+        Model
+            The model itself.
+
+        Raises
+        ------
+        ModelError
+            A name that is not a state, a covariance of the wrong shape or not a
+            covariance (negative variance, not symmetric, not positive semi-definite).
         """
         if not isinstance(mean, Mapping):
             raise ModelError("initial state mean must be a mapping from state name to value")
@@ -332,10 +627,37 @@ class Model:
     ) -> "Model":
         """A model from JAX-traceable Python functions of ``(x, u, t, p)``.
 
-        ``p`` is a dict from parameter name to scalar; ``drift`` returns shape (n,),
-        ``diffusion`` shape (n, m), ``observation`` and ``observation_variance``
-        shape (s,).  ``kind`` declares the class ("lti", "ltv" or "nonlinear");
-        it cannot be derived from opaque functions.
+        Parameters
+        ----------
+        states, outputs : sequence of str
+            The states' and outputs' names.
+        drift : callable
+            ``f(x, u, t, p)`` of shape (n,); ``p`` maps parameter names to scalars.
+        diffusion : callable
+            ``G(x, u, t, p)`` of shape (n, m).
+        observation : callable
+            ``h(x, u, t, p)`` of shape (s,).
+        observation_variance : callable
+            The outputs' noise variances, shape (s,).
+        parameters : sequence of str
+            The parameters' names.
+        inputs : sequence of str
+            The inputs' names.
+        kind : {"lti", "ltv", "nonlinear"}
+            The model's class, which opaque functions cannot reveal: it chooses the
+            default filter (exact for linear models).
+        name : str
+            The model's name.
+
+        Returns
+        -------
+        Model
+            A model whose programs are never kept on disk (functions have no stable key).
+
+        Raises
+        ------
+        ModelError
+            An unknown ``kind``.
         """
         if kind not in (LTI, LTV, NONLINEAR):
             raise ModelError(f"unknown model kind '{kind}'; use 'lti', 'ltv' or 'nonlinear'")
@@ -373,18 +695,22 @@ class Model:
 
     @property
     def state_names(self) -> tuple[str, ...]:
+        """The states' names, in the order of the state vector."""
         return self.structure.state_names
 
     @property
     def input_names(self) -> tuple[str, ...]:
+        """The inputs' names, in the order of the input vector."""
         return self.structure.input_names
 
     @property
     def output_names(self) -> tuple[str, ...]:
+        """The outputs' names (their data columns), in the order of the observation vector."""
         return self.structure.output_names
 
     @property
     def parameter_names(self) -> tuple[str, ...]:
+        """The parameters' names, in the order of θ (fixed ones included)."""
         return self.structure.parameter_names
 
     @property
@@ -425,10 +751,23 @@ class Model:
 
     # ------------------------------------------------------------------ parameters
     def parameter_vector(self, params: Mapping[str, float] | None = None) -> np.ndarray:
-        """The parameter vector θ in `parameter_names` order.
+        """The parameter vector θ in [`parameter_names`][greyid.model.model.Model.parameter_names] order.
 
-        Values come from ``params``; parameters not named there take their fixed
-        value.  A parameter with neither is an error.
+        Parameters
+        ----------
+        params : mapping of str to float, optional
+            Values by name; parameters not named take their fixed value.
+
+        Returns
+        -------
+        numpy.ndarray
+            θ, float64.
+
+        Raises
+        ------
+        ModelError
+            A name that is not a parameter, a parameter with no value, or a value that
+            is not a finite number.
         """
         names = self.parameter_names
         params = {} if params is None else dict(params)
@@ -453,32 +792,93 @@ class Model:
         return np.asarray(values, dtype=np.float64)
 
     def initial_values(self) -> dict[str, float]:
-        """The declared initial (or fixed) value of every parameter that has one."""
+        """The declared initial (or fixed) value of every parameter that has one.
+
+        Returns
+        -------
+        dict
+            ``{parameter: value}``.
+        """
         return {n: p.init for n, p in self._parameters.items() if p.init is not None}
 
     # ------------------------------------------------------------------ saving
     def to_dict(self) -> dict:
-        """Everything needed to rebuild this model (equations as text)."""
+        """Everything needed to rebuild this model, equations as text.
+
+        Returns
+        -------
+        dict
+            What [`from_dict()`][greyid.model.model.Model.from_dict] reads (and a saved fit keeps).
+        """
         from .files import model_to_dict
 
         return model_to_dict(self)
 
     @classmethod
     def from_dict(cls, spec: Mapping) -> "Model":
-        """Rebuild a model written by `to_dict()`."""
+        """Rebuild a model written by [`to_dict()`][greyid.model.model.Model.to_dict].
+
+        Parameters
+        ----------
+        spec : mapping
+            The dictionary.
+
+        Returns
+        -------
+        Model
+            The model.
+
+        Raises
+        ------
+        ModelError
+            A dictionary that does not describe a model (names the key).
+        """
         from .files import model_from_dict
 
         return model_from_dict(spec, cls)
 
     @classmethod
     def from_toml(cls, source) -> "Model":
-        """Read a model file (TOML; a path, or the text itself). See `greyid.model.files`."""
+        """Read a model file.
+
+        Parameters
+        ----------
+        source : str or pathlib.Path
+            The file's path, or the TOML text itself.
+
+        Returns
+        -------
+        Model
+            The model, with its settings, units, derived quantities and data source
+            (``model.source`` is the file's path).
+
+        Raises
+        ------
+        ModelError
+            A file that cannot be read as a model: names the file, section, key or equation.
+
+        Examples
+        --------
+        >>> import greyid
+        >>> m = greyid.Model.from_toml("examples/armadillo.toml")  # doctest: +SKIP
+        """
         from .files import read_model
 
         return read_model(source)
 
     def to_toml(self, path=None) -> str:
-        """The model as a TOML model file; written to ``path`` when given."""
+        """The model as a TOML model file.
+
+        Parameters
+        ----------
+        path : str or pathlib.Path, optional
+            Where to write it (atomically); without it, nothing is written.
+
+        Returns
+        -------
+        str
+            The file's text.
+        """
         from .files import write_model
 
         return write_model(self, path)
@@ -499,33 +899,87 @@ class Model:
             **options):
         """Estimate the free parameters by maximum likelihood or MAP (chapter 3).
 
-        ``criterion`` is ``"ml"`` or ``"map"`` (with ``prior={"mean": ..., "sd":
-        ..., "corr": ...}`` by parameter name, 3.46, or the priors declared with
-        ``set_parameter(..., prior=(mean, sd))``); ``robust`` is ``None``,
-        ``("huber", c)`` or ``("tukey", c)`` (3.57–3.58); ``horizon`` > 1 uses
-        k-step prediction errors (section 7.2); ``starts`` > 1 adds starting
-        points of a space-filling design inside the bounds; ``init_from`` (the fit
-        of a model this one extends) adds a start at that fit's estimates, with the
-        new parameters where this model reduces to the other (see
-        `set_nested_start()` and `greyid.estimate.starts`).  ``progress=True`` prints the
-        optimiser's iterations (or pass a callable taking one dict per
-        iteration).  ``cov_type`` chooses the covariance of the estimates:
-        ``"hessian"`` (the default for ML and MAP), ``"sandwich"`` H⁻¹JH⁻¹ (the
-        default for k-step and robust criteria, which are not likelihoods) or
-        ``"opg"`` (see `greyid.estimate.covariance`).  ``optimizer`` is ``"auto"``
-        (Fisher scoring far from the optimum where a Hessian is costly, then exact
-        Newton steps), ``"scoring"``, ``"newton"`` or ``"quasi-newton"`` (L-BFGS steps on
-        the value and exact gradient, then exact Newton steps: the same optimum, compiled
-        fits of small models in half to 0.6 of the default's time (Armadillo), a first fit
-        compiling one program more; see `greyid.estimate.optimize`).
-        ``steady_state=True``: a regular series of 128 rows or more of a linear
-        time-invariant model runs the fit's programs in the filter's steady state
-        once the filter has settled (as ``likelihood`` does): later fits of the model in
-        the process take about half the time, the first one compiles 2–3 times as long
-        (docs/performance.md); the same optimum (log-likelihood within 1e-8).
-        Settings not given come from `set_options()`, then
-        from the defaults (time column "t", zero-order hold, ML).  Returns a
-        `FitResult`.
+        Parameters
+        ----------
+        data : pandas.DataFrame or list of pandas.DataFrame
+            The time column, one column per input and per output (NaN: not observed);
+            a list of frames is independent experiments whose log-likelihoods add.
+        time : str, optional
+            The name of the time column (default ``"t"``).
+        hold : {"zoh", "foh"}, optional
+            How inputs are held between samples: zero-order hold (the default) or
+            first-order hold (linear interpolation, eq. 4.37).
+        method : str, optional
+            The filter: ``"kalman"``, ``"ekf"``, ``"iekf"``, ``"ekf2"``, ``"ukf"``, ``"gaussian2"``
+            or ``"truncated2"`` (default: the exact Kalman filter for linear models, the EKF otherwise).
+        criterion : {"ml", "map"}, optional
+            Maximum likelihood (default) or maximum a posteriori with ``prior``.
+        prior : dict, optional
+            ``{"mean": {...}, "sd": {...}, "corr": {...}}`` by parameter name (3.46);
+            with ``criterion="map"`` and no ``prior``, the priors declared with
+            ``set_parameter(..., prior=(mean, sd))``.
+        robust : tuple, optional
+            ``("huber", c)`` or ``("tukey", c)``: a robust criterion (3.57–3.58).
+        horizon : int, optional
+            Greater than 1: k-step prediction errors (section 7.2).
+        starts : int, optional
+            Starting points: the initial values, then points of a space-filling design
+            inside the bounds (where the ``"auto"`` optimizer takes scoring steps, the
+            first of them repeats the initial values with Newton steps only).  They run
+            side by side; the best optimum is the fit.
+        seed : int, optional
+            Seed of the space-filling starts (non-negative).
+        init : mapping of str to float, optional
+            Starting values by name, in place of the declared initial values.
+        init_from : FitResult, optional
+            The fit of a smaller model this one extends: adds a start at its estimates,
+            with the new parameters where this model reduces to it
+            ([`set_nested_start()`][greyid.model.model.Model.set_nested_start]).
+        progress : bool or callable
+            True prints the optimiser's iterations; a callable receives one dict per iteration.
+        **options
+            Other settings by name (as [`set_options()`][greyid.model.model.Model.set_options]):
+            ``cov_type`` (``"hessian"``, the default for ML and MAP; ``"sandwich"``
+            H⁻¹JH⁻¹, the default for k-step and robust criteria; ``"opg"``),
+            ``optimizer`` (``"auto"``: Fisher scoring far from the optimum where a
+            Hessian is costly, then exact Newton steps; ``"scoring"``; ``"newton"``;
+            ``"quasi-newton"``: L-BFGS steps on the value and exact gradient, then
+            Newton steps, the same optimum, faster compiled fits of small models, one
+            program more to compile), ``steady_state`` (True: a regular series of 128
+            rows or more of a linear time-invariant model is filtered in the filter's
+            steady state once it has settled; later fits take about half the time, the
+            first one compiles 2–3 times as long), ``maxiter``, ``time_unit``,
+            ``time_format``, ``time_zone``, ``columns`` and the filter's ``form``,
+            ``substeps``, ``iterations``, ``alpha``, ``beta``, ``kappa``.
+
+        Returns
+        -------
+        FitResult
+            Estimates, standard errors, the log-likelihood, convergence and warnings.
+            ``converged`` is True only at a minimum where every free parameter is
+            determined by the data.
+
+        Raises
+        ------
+        DataError
+            Data that do not fit the model (names the column and row).
+        ModelError
+            Bad settings, or a criterion not finite at the start (names the equation
+            and row where it can tell).
+
+        See Also
+        --------
+        greyid.estimate.results.FitResult : what a fit holds and what it can do next.
+        greyid.model.model.Model.likelihood : the criterion as a function, for other optimisers and samplers.
+
+        Examples
+        --------
+        >>> import greyid
+        >>> from greyid.datasets import building_model, load_building_data
+        >>> fit = building_model().fit(load_building_data().iloc[:300])
+        >>> fit.converged
+        True
+        >>> print(fit.summary())  # doctest: +SKIP
         """
         from ..estimate.estimation import fit
 
@@ -541,13 +995,49 @@ class Model:
 
     def likelihood(self, data, time: str | None = None, hold: str | None = None, method: str | None = None,
                    criterion: str | None = None, prior=None, robust=None, horizon: int | None = None, **options):
-        """The negative log-likelihood of ``data`` (or the criterion ``fit`` would minimise: MAP, robust,
-        k-step) as a function of the free parameters: a [`Likelihood`][greyid.estimate.likelihood.Likelihood]
-        with ``.names``, ``.value(x)``, ``.value_and_grad(x)`` and ``.hessian(x)`` (x in the parameters'
-        own units, one vector or one row per vector; ``unconstrained=True`` for the optimiser's z), and
-        ``.function()``, the pure JAX function for ``jax.grad``, ``vmap``, samplers and optimisers.
-        Its single evaluations of a regular series of a linear model switch to the filter's steady
-        state where it has settled; ``steady_state=False`` steps through every row."""
+        """The negative log-likelihood as a function of the free parameters.
+
+        Or the criterion ``fit`` would minimise: MAP, robust, k-step.  Its single
+        evaluations of a regular series of a linear model switch to the filter's
+        steady state where it has settled.
+
+        Parameters
+        ----------
+        data : pandas.DataFrame or list of pandas.DataFrame
+            As for [`fit()`][greyid.model.model.Model.fit].
+        time : str, optional
+            The name of the time column.
+        hold : {"zoh", "foh"}, optional
+            How inputs are held between samples.
+        method : str, optional
+            The filter.
+        criterion : {"ml", "map"}, optional
+            With ``"map"``, the negative log-posterior.
+        prior : dict, optional
+            The prior of ``criterion="map"`` (else the declared priors).
+        robust : tuple, optional
+            ``("huber", c)`` or ``("tukey", c)``.
+        horizon : int, optional
+            k-step prediction errors.
+        **options
+            Other settings; ``steady_state=False`` steps through every row.
+
+        Returns
+        -------
+        Likelihood
+            ``.names``, ``.value(x)``, ``.value_and_grad(x)``, ``.hessian(x)`` (``x`` in
+            the parameters' own units, one vector or one row per vector;
+            ``unconstrained=True`` for the optimiser's z) and ``.function()``, the pure
+            JAX function for ``jax.grad``, ``vmap``, samplers and optimisers.
+
+        Examples
+        --------
+        >>> from greyid.datasets import building_model, load_building_data
+        >>> model = building_model()
+        >>> L = model.likelihood(load_building_data().iloc[:100])
+        >>> x = [model.initial_values()[n] for n in L.names]
+        >>> value, gradient = L.value_and_grad(x)
+        """
         from ..estimate.likelihood import Likelihood
 
         given = dict(time=time, hold=hold, method=method, criterion=criterion, robust=robust, horizon=horizon,
@@ -561,11 +1051,33 @@ class Model:
 
     def predict(self, params, data, steps: int = 1, time: str | None = None, hold: str | None = None,
                 method: str | None = None, states: bool = False, **options):
-        """``steps``-ahead output predictions with standard deviations (a DataFrame).
+        """Output predictions ``steps`` samples ahead, with standard deviations.
 
-        Columns: the time column, each output and ``<output>_sd`` and, with
-        ``states=True``, each state and ``<state>_sd``.  Rows with missing outputs
-        are predicted too: append future inputs to forecast past the data.
+        Parameters
+        ----------
+        params : mapping of str to float
+            The parameters' values by name.
+        data : pandas.DataFrame
+            Times, inputs and (where known) outputs.  Rows with missing outputs are
+            predicted too: append future inputs to forecast past the data.
+        steps : int
+            The prediction horizon in samples.
+        time : str, optional
+            The name of the time column.
+        hold : {"zoh", "foh"}, optional
+            How inputs are held between samples.
+        method : str, optional
+            The filter.
+        states : bool
+            Also the states' predictions.
+        **options
+            Other data and filter settings.
+
+        Returns
+        -------
+        pandas.DataFrame
+            The time column, each output and ``<output>_sd`` and, with
+            ``states=True``, each state and ``<state>_sd``.
         """
         from ..filters.api import predict_data
 
@@ -575,15 +1087,36 @@ class Model:
 
     def loglik(self, params, data, time: str | None = None, hold: str | None = None, method: str | None = None,
                **options) -> float:
-        """Gaussian log-likelihood (3.18) of the data at the given parameters.
+        """The Gaussian log-likelihood (3.18) of the data at given parameters.
 
-        ``data`` is a DataFrame or a list of DataFrames (independent experiments;
-        their log-likelihoods add).  ``method`` is ``"kalman"``, ``"ekf"``,
-        ``"iekf"`` or ``"ukf"``; by default the exact Kalman filter for linear
-        models and the EKF otherwise.  Other options: ``form`` ("sqrt" or
-        "plain"), ``substeps``, ``iterations`` (IEKF), ``time_unit`` (datetime
-        columns) and ``robust=("huber", c)`` or ``("tukey", c)`` for the robust
-        criterion (3.57–3.58) instead of the Gaussian one.
+        Parameters
+        ----------
+        params : mapping of str to float
+            The parameters' values by name.
+        data : pandas.DataFrame or list of pandas.DataFrame
+            A list holds independent experiments; their log-likelihoods add.
+        time : str, optional
+            The name of the time column.
+        hold : {"zoh", "foh"}, optional
+            How inputs are held between samples.
+        method : str, optional
+            The filter (default: the exact Kalman filter for linear models, the EKF otherwise).
+        **options
+            ``form``, ``substeps``, ``iterations`` (IEKF), ``time_unit`` and
+            ``robust=("huber", c)`` or ``("tukey", c)`` for the robust criterion
+            (3.57–3.58) instead of the Gaussian one.
+
+        Returns
+        -------
+        float
+            The log-likelihood.
+
+        Raises
+        ------
+        DataError
+            Data that do not fit the model.
+        ModelError
+            Parameter values that make a variance negative or the initial covariance invalid.
         """
         from ..estimate.criteria import loglik
 
@@ -593,7 +1126,29 @@ class Model:
 
     def filter(self, params, data, time: str | None = None, hold: str | None = None, method: str | None = None,
                **options):
-        """Run the filter and return a `FilterResult`."""
+        """Run the filter through the data.
+
+        Parameters
+        ----------
+        params : mapping of str to float
+            The parameters' values by name.
+        data : pandas.DataFrame
+            Times, inputs and outputs.
+        time : str, optional
+            The name of the time column.
+        hold : {"zoh", "foh"}, optional
+            How inputs are held between samples.
+        method : str, optional
+            The filter.
+        **options
+            Other data and filter settings.
+
+        Returns
+        -------
+        FilterResult
+            Predicted and filtered means and covariances, innovations and their
+            covariances, per row.
+        """
         from ..filters.api import filter_data
 
         data, settings = self._call_settings(data, dict(time=time, hold=hold, method=method, **options),
@@ -602,7 +1157,28 @@ class Model:
 
     def smooth(self, params, data, time: str | None = None, hold: str | None = None, method: str | None = None,
                **options):
-        """Rauch–Tung–Striebel smoothed states (linear and EKF cases)."""
+        """Rauch–Tung–Striebel smoothed states (linear models and the EKF).
+
+        Parameters
+        ----------
+        params : mapping of str to float
+            The parameters' values by name.
+        data : pandas.DataFrame
+            Times, inputs and outputs.
+        time : str, optional
+            The name of the time column.
+        hold : {"zoh", "foh"}, optional
+            How inputs are held between samples.
+        method : str, optional
+            The filter.
+        **options
+            Other data and filter settings.
+
+        Returns
+        -------
+        SmootherResult
+            Smoothed means and covariances of the states at the sample times.
+        """
         from ..filters.api import smooth_data
 
         data, settings = self._call_settings(data, dict(time=time, hold=hold, method=method, **options),
@@ -610,7 +1186,30 @@ class Model:
         return smooth_data(self, params, data, **settings)
 
     def simulate(self, params, data_or_times, n_paths: int = 1, method: str = "euler", seed: int = 0, **options):
-        """Sample paths of states and noisy observations (section 2.5)."""
+        """Sample paths of the states and noisy observations (section 2.5).
+
+        Parameters
+        ----------
+        params : mapping of str to float
+            The parameters' values by name.
+        data_or_times : pandas.DataFrame or array_like
+            The times and the inputs (a frame), or the times alone for a model without inputs.
+        n_paths : int
+            The number of paths.
+        method : {"euler", "milstein", "heun", "exact"}
+            The integration scheme (``"exact"``: the exact discretisation of a linear model).
+        seed : int
+            The random seed.
+        **options
+            ``time``, ``hold``, ``time_unit``, ``columns``, ``substeps`` (integration
+            steps per sampling interval, default 10), ``calculus`` (``"ito"`` or
+            ``"stratonovich"``) and ``noise`` (False: the noise-free solution).
+
+        Returns
+        -------
+        Simulation
+            ``.frame(i)`` the i-th path, ``.to_frame()`` all of them.
+        """
         from ..simulate.simulate import simulate
 
         data_or_times, settings = self._call_settings(data_or_times, options, ("time", "hold", "time_unit", "columns"))

@@ -282,33 +282,93 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
                    method: str | None = None, init=None, omega_init=None, start: str = "pooled",
                    maxiter: int = 200, scheduler=None, chunk_size: int | None = None,
                    worker_timeout: float | None = None, progress=False, **options):
-    """Fit a population (nonlinear mixed-effects) SDE model to many data sets; a
-    [`PopulationResult`][greyid.population.result.PopulationResult].
+    """Fit a population (nonlinear mixed-effects) SDE model to many data sets.
 
-    ``datasets``: a mapping name → DataFrame or CSV path (or a list, named 0..n−1),
-    one data set per member.  ``random`` maps parameters to their random effect:
-    ``"normal"`` (θ_i = θ + η_i) or ``"lognormal"`` (θ_i = θ·exp(η_i)), η_i ~ N(0, Ω),
-    Ω diagonal or, with ``omega="full"``, with correlations.  ``covariates``: a
-    DataFrame with a row per data set (index: the data sets' names); ``effects``
-    maps parameters to covariate columns whose β·covariate is added to the
-    parameter's mean (on the log scale for a lognormal parameter).  Parameters
-    without a random effect are shared by all members.  The marginal likelihood is
-    the Laplace approximation over each member's η (exact where η enters the
-    outputs linearly in a linear Gaussian model); see `greyid.population`.
-    ``random``, ``effects``, ``omega``, ``covariates`` (a CSV file's path) and
-    ``omega_init`` not given are the model's (`set_population()`,
-    a model file's ``[population]`` table).
-    ``scheduler=`` a ``dask.distributed.Client``: the members' inner optimisations run
-    by chunks (``chunk_size``, default one per worker) on the cluster, the outer
-    search here; ``worker_timeout`` (default 60 s): how long the cluster may have no
-    worker before the fit stops with an error.
+    Every data set (a house, a patient, an engine) has its own parameters, drawn
+    from a population whose typical values, covariate effects and spread are
+    estimated together from all data sets.  For data set i, with ψ = θ (a
+    ``"normal"`` random effect) or ψ = log θ (``"lognormal"``),
+    ψ_i = ψ_typical + Σ_c β_c (x_ic − x̄_c) + η_i, η_i ~ N(0, Ω).  The marginal
+    likelihood is the Laplace approximation over each member's η (exact where η
+    enters the outputs linearly in a linear Gaussian model).
 
-    The search starts from the typical values of a fit of the model to the first
-    `POOLED_MEMBERS` data sets together (``start="pooled"``; from ``init`` or
-    the model's initial values where that fit fails) or, with ``start="init"``,
-    from the initial values themselves; ω starts at ``omega_init`` ({parameter: standard deviation}, or Ω
-    itself as a square DataFrame labelled by the random parameters, positive definite; default 0.3 on
-    the log scale, 30 % of the typical value on the natural scale).
+    Parameters
+    ----------
+    model : Model
+        The model each data set follows.
+    datasets : mapping or sequence
+        ``{name: DataFrame or CSV path}``, one data set per member, or a list
+        (named 0, 1, ...).  A data set that cannot be prepared is left out with a
+        ``PopulationWarning`` and listed in the result's ``left_out``.
+    random : mapping of str to {"normal", "lognormal"}, optional
+        The parameters with a random effect (default: the model's
+        [`set_population()`][greyid.model.model.Model.set_population] or model file's
+        ``[population] random``).  Parameters without one are shared by all members.
+    covariates : pandas.DataFrame or str, optional
+        A row per data set (index: the data sets' names, read as text) or a CSV
+        file of them (first column: the names).
+    effects : mapping, optional
+        ``{parameter: [covariate, ...]}``: covariate effects on the parameters'
+        typical values (on the log scale for a lognormal parameter).
+    omega : {"diagonal", "full"}, optional
+        Independent random effects, or correlated ones.
+    time : str, optional
+        The name of the time column.
+    hold : {"zoh", "foh"}, optional
+        How inputs are held between samples.
+    method : str, optional
+        The filter.
+    init : mapping of str to float, optional
+        Starting values of the typical values (default: the model's initial values).
+    omega_init : mapping or pandas.DataFrame, optional
+        Starting standard deviations ``{parameter: sd}``, or Ω itself as a square
+        DataFrame labelled by the random parameters (default 0.3 on the log scale,
+        30 % of the typical value on the natural scale).
+    start : {"pooled", "init"}
+        ``"pooled"``: start from a fit of the model to the first eight data sets
+        together (from ``init`` where that fit fails); ``"init"``: from the initial values.
+    maxiter : int
+        The outer search's largest number of steps.
+    scheduler : dask.distributed.Client, optional
+        Run the members' inner optimisations on a Dask cluster, by chunks; the outer
+        search runs here.
+    chunk_size : int, optional
+        Members per chunk on a cluster (default: one chunk per worker).
+    worker_timeout : float, optional
+        Seconds the cluster may have no worker before the fit stops with an error (default 60).
+    progress : bool or callable
+        Print (or pass to the callable) the outer search's iterations.
+    **options
+        The filter's settings (``form``, ``substeps``, ``iterations``, ...),
+        ``time_unit`` and ``columns``; not ``steady_state``.
+
+    Returns
+    -------
+    PopulationResult
+        The population parameters with their uncertainty, each member's random
+        effects and the fit's statistics.
+
+    Raises
+    ------
+    DataError
+        Names that are not unique, a covariates table without a row for a data set
+        or with two, a covariate that is missing or not a number.
+    ModelError
+        No random effects, a random effect on a fixed or unknown parameter, an
+        unknown setting, or a criterion not finite at the start.
+
+    See Also
+    --------
+    greyid.population.result.likelihood_ratio : tests between nested population models.
+    greyid.fleet.fit.fit_many : each data set on its own, no population.
+
+    Examples
+    --------
+    The population tutorial (docs/population.md) runs this on six simulated houses:
+
+    >>> pop = greyid.fit_population(model, houses, random={"Ci": "lognormal"},
+    ...                             covariates=covariates, effects={"Ci": ["floor_area"]})  # doctest: +SKIP
+    >>> print(pop.summary())  # doctest: +SKIP
     """
     from .result import PopulationResult
 
@@ -370,7 +430,7 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
         outer.close()
     call = dict(time=time, hold=hold, method=fo.method, form=fo.form, substeps=fo.substeps,
                 iterations=fo.iterations, time_unit=time_unit, omega=omega)
-    result = PopulationResult.from_optimum(model, spec, members, optimum, modes, call)
+    result = PopulationResult._at_optimum(model, spec, members, optimum, modes, call)
     if covariates is not None:
         kept = {str(n) for n in result.names}
         result.covariates = covariates.loc[[n for n in covariates.index if str(n) in kept]].copy()

@@ -12,6 +12,7 @@ from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
 import jax
 import jax.numpy as jnp
 
+from ..errors import DataError
 from ..scaled import ScaledInformation, scaled_inverse
 from .spec import PopulationSpec
 
@@ -41,27 +42,45 @@ def _reporting(spec: PopulationSpec):
         from ..estimate.transforms import Transform
 
         n = len(spec.free)
-        typical = Transform(free_kind, spec.transform.lower, spec.transform.upper).to_theta(r[:n], np)
-        typical = np.where(spec.log_scale, np.exp(np.where(spec.log_scale, r[:n], 0.0)), typical)
-        a, b = n + len(spec.effects), n + len(spec.effects) + spec.n_random
-        return np.concatenate([typical, r[n:a], np.exp(r[a:b]), np.tanh(r[b:])])
+        # An interval's end far out on the log scale (ω → 0, its standard error large) is +inf or 0
+        # on the natural scale: the intended value, so no overflow warning.
+        with np.errstate(over="ignore", under="ignore"):
+            typical = Transform(free_kind, spec.transform.lower, spec.transform.upper).to_theta(r[:n], np)
+            typical = np.where(spec.log_scale, np.exp(np.where(spec.log_scale, r[:n], 0.0)), typical)
+            a, b = n + len(spec.effects), n + len(spec.effects) + spec.n_random
+            return np.concatenate([typical, r[n:a], np.exp(r[a:b]), np.tanh(r[b:])])
 
     return rho, value
 
 
 class PopulationResult:
-    """Population parameters with their uncertainty, each member's random effects, and the fit's statistics.
+    """A population fit: its parameters with their uncertainty, each member's random effects, its statistics.
 
-    ``params``: one row per population parameter — the typical values of the free
-    parameters (for a lognormal parameter, its median over the population; with
-    covariates, at their mean), ``beta_<parameter>_<covariate>`` (per unit of the
-    covariate, on the parameter's scale: log for lognormal), ``omega_<parameter>``
-    (the standard deviation of η; for a lognormal parameter on the log scale,
-    about its coefficient of variation) and ``corr_<a>_<b>`` — with standard
-    errors from the exact Hessian of the Laplace marginal likelihood and 95 %
-    intervals taken where each is unbounded (see `_reporting()`).
-    ``random_effects``: one row per member, each random parameter's value at the
-    conditional mode of η with its conditional standard error (given φ).
+    Made by [`fit_population()`][greyid.population.fit.fit_population] and
+    [`load_population()`][greyid.population.saved.load_population].
+
+    Attributes
+    ----------
+    params : pandas.DataFrame
+        One row per population parameter: the typical values of the free
+        parameters (for a lognormal parameter, its median over the population; with
+        covariates, at their mean), ``beta_<parameter>_<covariate>`` (per unit of
+        the covariate, on the parameter's scale: log for lognormal),
+        ``omega_<parameter>`` (the standard deviation of η; for a lognormal
+        parameter about its coefficient of variation) and ``corr_<a>_<b>``; with
+        standard errors from the exact Hessian of the Laplace marginal likelihood
+        and 95 % intervals taken where each quantity is unbounded, then mapped back.
+    random_effects : pandas.DataFrame
+        One row per member: each random parameter at the conditional mode of η,
+        its conditional standard error (given the population parameters) and η.
+    individual : pandas.DataFrame
+        One row per member: every parameter's value.
+    loglik : float
+        The Laplace approximation of the marginal log-likelihood.
+    converged : bool
+        Whether the outer search converged.
+    left_out : dict
+        The data sets that could not be prepared, with the reason.
     """
 
     def __init__(self, model, spec, members, phi, hessian, modes, call, converged, message, iterations):
@@ -83,7 +102,8 @@ class PopulationResult:
         self._build_random_effects()
 
     @classmethod
-    def from_optimum(cls, model, spec, members, optimum, modes, call):
+    def _at_optimum(cls, model, spec, members, optimum, modes, call):
+        """The result at the outer search's optimum, with the members' modes (for fit_population)."""
         from .laplace import laplace_values
 
         call = dict(call, loglik=-float(np.sum(laplace_values(modes))))
@@ -154,15 +174,17 @@ class PopulationResult:
     # ------------------------------------------------------------------ statistics
     @property
     def n_params(self) -> int:
+        """The number of population parameters estimated."""
         return self.spec.size
 
     @property
     def aic(self) -> float:
+        """Akaike's information criterion, −2 log L + 2k."""
         return -2 * self.loglik + 2 * self.n_params
 
     @property
     def bic(self) -> float:
-        """−2 log L + k log n with n the observed output values (as R's nlme counts them)."""
+        """The Bayesian information criterion, −2 log L + k log n (n: observed output values, as nlme)."""
         return -2 * self.loglik + self.n_params * np.log(self.n_obs)
 
     @property
@@ -184,11 +206,28 @@ class PopulationResult:
         return pd.Series(out, name="shrinkage")
 
     def member(self, name):
-        """That member's `FitResult` at its individual parameters: the random
-        parameters at their conditional modes (standard errors conditional on the population parameters),
-        the others at the population estimates (their population standard errors); residual tests,
-        predictions and plots work on it as on any fit.  Its ``loglik`` is the member's own
-        log-likelihood at these parameters."""
+        """One member's fit at its individual parameters.
+
+        Parameters
+        ----------
+        name : str
+            The member's name.
+
+        Returns
+        -------
+        FitResult
+            The random parameters at their conditional modes (standard errors
+            conditional on the population parameters), the others at the population
+            estimates (their population standard errors); residual tests, predictions
+            and plots work on it as on any fit.  Its ``loglik`` is the member's own
+            log-likelihood at these parameters.
+
+        Raises
+        ------
+        KeyError
+            A name that is not a member (or was left out: the reason), or a member of a
+            loaded fit whose data are not at hand.
+        """
 
         if name not in self.frames:
             known = ", ".join(map(str, self.names[:10]))
@@ -248,10 +287,31 @@ class PopulationResult:
                          iterations=self.iterations, settings=settings, data=frames)
 
     def predict(self, new_data, covariates=None, name: str = "new"):
-        """A data set not in the fit, with the population as its prior: its random effects' conditional
-        mode given its data and the population estimates (MAP), as a FitResult at its parameters
-        (``.predict()``, ``.residuals``, ``.validate()`` on it).  ``covariates``: a mapping or one-row
-        table of the covariates the population's effects use."""
+        """A data set not in the fit, with the population as its prior (MAP).
+
+        Its random effects' conditional mode given its data and the population estimates.
+
+        Parameters
+        ----------
+        new_data : pandas.DataFrame
+            The new data set.
+        covariates : mapping or pandas.DataFrame, optional
+            The covariates the population's effects use (a mapping or a one-row table);
+            needed where the population has covariate effects.
+        name : str
+            The name the result carries.
+
+        Returns
+        -------
+        FitResult
+            A fit at its parameters (``.predict()``, ``.residuals``, ``.validate()`` on it).
+
+        Raises
+        ------
+        DataError
+            Covariates missing where the population has covariate effects, or data that
+            do not fit the model.
+        """
         from .fit import _prepare_members, population_programs
         from .laplace import MemberPrograms, conditional_modes
         from ..filters.api import filter_options
@@ -259,12 +319,12 @@ class PopulationResult:
         spec = self.spec
         if spec.covariates:
             if covariates is None:
-                raise ValueError(f"the population has covariate effects; give covariates= with "
+                raise DataError(f"the population has covariate effects; give covariates= with "
                                  f"{', '.join(spec.covariates)}")
             row = covariates if isinstance(covariates, pd.DataFrame) else pd.DataFrame([dict(covariates)])
             missing = [c for c in spec.covariates if c not in row.columns]
             if missing:
-                raise ValueError(f"covariates= lacks '{missing[0]}'")
+                raise DataError(f"covariates= lacks '{missing[0]}'")
             raw = row[list(spec.covariates)].to_numpy(dtype=float)[:1]
         else:
             raw = np.zeros((1, 0))
@@ -291,8 +351,24 @@ class PopulationResult:
         return self._fit_at(name, theta, random_se, members.frames[0], int(members.n_obs[0]), "new data set")
 
     def report(self, path=None, level: float = 0.05, title: str | None = None, members: bool = True) -> str:
-        """The self-contained HTML report of this population fit (`greyid.report.population`); written
-        atomically to ``path`` when given.  ``members=False`` leaves out the members' residual tests."""
+        """The self-contained HTML report of this population fit.
+
+        Parameters
+        ----------
+        path : str or pathlib.Path, optional
+            Where to write it (atomically); without it, nothing is written.
+        level : float
+            The significance level of the members' residual tests.
+        title : str, optional
+            The report's title.
+        members : bool
+            False leaves out the members' residual tests.
+
+        Returns
+        -------
+        str
+            The HTML document.
+        """
         from ..outputs import write_atomic
         from ..report.population import population_report
 
@@ -302,13 +378,28 @@ class PopulationResult:
         return text
 
     def save(self, path) -> None:
-        """Write the fit as JSON (see `saved`), atomically."""
+        """Write the fit as JSON, atomically.
+
+        Parameters
+        ----------
+        path : str or pathlib.Path
+            The file; [`load_population()`][greyid.population.saved.load_population] reads it.
+        """
         from ..outputs import write_atomic
         from .saved import population_to_dict
 
         write_atomic(path, json.dumps(population_to_dict(self), indent=1))
 
     def summary(self) -> str:
+        """A readable table of the population fit.
+
+        Returns
+        -------
+        str
+            The log-likelihood, information criteria, convergence, the random effects'
+            kinds, the population parameters with standard errors and intervals, the
+            shrinkage and the data sets left out.
+        """
         spec = self.spec
         lines = [f"Population fit of model {self.model.name}: {self.n_members} data sets, {self.n_obs} observations",
                  f"log-likelihood (Laplace) {self.loglik:.6f}   AIC {self.aic:.4f}   BIC {self.bic:.4f}   "
@@ -348,13 +439,31 @@ class LikelihoodRatio:
 
 
 def likelihood_ratio(restricted: PopulationResult, general: PopulationResult) -> LikelihoodRatio:
-    """Test ``restricted`` against ``general`` (which adds random effects, correlations or covariate
-    effects to it), both fitted to the same data sets.
+    """Test a population model against a larger one that nests it.
 
-    LR = 2(ℓ_general − ℓ_restricted).  Where the general model adds k variances (random effects) that
-    the restricted one holds at 0 — a value on the boundary of their range — LR is not χ²_df but the
-    mixture Σ_j C(k, j)/2^k χ²_{df−k+j} (Self & Liang 1987; for one variance ½χ²_{df−1} + ½χ²_df); the
-    p-value says which it used.
+    LR = 2(ℓ_general − ℓ_restricted).  Where the general model adds k variances
+    (random effects) that the restricted one holds at 0, a value on the boundary
+    of their range, LR is not χ²_df but the mixture Σ_j C(k, j)/2^k χ²_{df−k+j}
+    (Self & Liang 1987; for one variance ½χ²_{df−1} + ½χ²_df).
+
+    Parameters
+    ----------
+    restricted : PopulationResult
+        The smaller model's fit.
+    general : PopulationResult
+        The larger model's fit (more random effects, correlations or covariate
+        effects), to the same data sets.
+
+    Returns
+    -------
+    LikelihoodRatio
+        ``statistic``, ``df``, ``p_value``, ``variances`` (the k variances added)
+        and ``note`` (which distribution the p-value used).
+
+    Raises
+    ------
+    ValueError
+        Fits of different data sets, or models that are not nested.
     """
     from scipy.special import comb
 

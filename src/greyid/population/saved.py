@@ -45,9 +45,25 @@ def population_to_dict(result) -> dict:
 
 
 def load_population(path, data=None):
-    """The [`PopulationResult`][greyid.population.result.PopulationResult] saved at ``path``; ``data`` (name →
-    DataFrame) gives
-    ``member()`` the data sets that were not CSV files."""
+    """Read a population fit written by [`PopulationResult.save()`][greyid.population.result.PopulationResult.save].
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The JSON file.
+    data : mapping of str to pandas.DataFrame, optional
+        The members' data sets that were not CSV files (``member()`` needs them).
+
+    Returns
+    -------
+    PopulationResult
+        The fit.
+
+    Raises
+    ------
+    DataError
+        A file that is missing, not JSON, not a saved population fit, or damaged.
+    """
     from ..model import Model
     from .fit import Members
     from .result import PopulationResult
