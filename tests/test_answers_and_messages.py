@@ -246,3 +246,17 @@ def test_an_unusable_cache_folder_is_said_once(tmp_path):
     assert done.returncode == 0, done.stderr
     assert done.stderr.count("CacheWarning") == 1 and "programs are not kept" in done.stderr
     assert np.isfinite(float(done.stdout.split()[-1]))
+
+
+def test_command_line_hints_name_the_options_and_keys_a_user_writes(tmp_path):
+    folder = tmp_path / "houses"
+    folder.mkdir()
+    for k in range(2):
+        load_building_data().iloc[:50].to_csv(folder / f"{k:03d}.csv", index=False)
+    code, message = run_cli(["population", str(model_file()), str(folder), "--quiet"])
+    assert code == 2 and "--random PARAMETER:lognormal" in message and "Traceback" not in message
+    no_state = model_file().read_text().replace('[model.initial_state]\nTi = "Ti0"\nTw = "Tw0"\n', "")
+    no_state = no_state.replace('file = "building.csv"', f'file = "{model_file().parent / "building.csv"}"')
+    (tmp_path / "no_state.toml").write_text(no_state)
+    code, message = run_cli(["fit", str(tmp_path / "no_state.toml"), "--quiet"])
+    assert code == 2 and "[model.initial_state]" in message, message

@@ -92,7 +92,25 @@ DOCUMENTED = ["greyid.model.model.Model", "greyid.estimate.results.FitResult", "
               "greyid.estimate.likelihood.Likelihood", "greyid.fleet.fit.fit_many", "greyid.fleet.result.FleetResult",
               "greyid.fleet.population.relate", "greyid.population.fit.fit_population",
               "greyid.population.result.PopulationResult", "greyid.population.result.likelihood_ratio",
-              "greyid.population.saved.load_population", "greyid.data.named.fetch"]
+              "greyid.population.saved.load_population", "greyid.data.named.fetch",
+              "greyid.design.information.fisher_information", "greyid.design.information.local_identifiability",
+              "greyid.design.criteria.cramer_rao_bound", "greyid.design.criteria.criterion",
+              "greyid.design.criteria.average_criterion", "greyid.design.criteria.minimax_criterion",
+              "greyid.design.criteria.with_prior", "greyid.design.compare.compare_inputs",
+              "greyid.design.frequency.frequency_information", "greyid.design.frequency.frequency_information_grid",
+              "greyid.design.frequency.frequency_information_points", "greyid.design.multisine.optimal_multisine",
+              "greyid.design.sampling.sampling_table", "greyid.design.sampling.aliased",
+              "greyid.design.identifiability.identifiability",
+              "greyid.uncertainty.profile.profile", "greyid.uncertainty.profile.profile_interval",
+              "greyid.uncertainty.profile.profile_intervals", "greyid.uncertainty.profile.plot_profile",
+              "greyid.uncertainty.sampling.sample", "greyid.uncertainty.intervals.predict",
+              "greyid.uncertainty.intervals.simulate", "greyid.uncertainty.intervals.parameter_draws",
+              "greyid.uncertainty.intervals.plot_intervals", "greyid.simulate.signals.prbs",
+              "greyid.simulate.signals.steps", "greyid.simulate.signals.multisine",
+              "greyid.simulate.simulate.simulate", "greyid.library.available", "greyid.library.load_model",
+              "greyid.library.names", "greyid.library.rc_network", "greyid.library.walls.wall_model",
+              "greyid.library.walls.lumped_wall", "greyid.library.walls.wall_frequency_response",
+              "greyid.library.walls.ladder_polynomials"]
 
 
 #: Classes greyid makes (a fit's result, a likelihood), never built by a user: their constructor's arguments
@@ -153,6 +171,7 @@ def test_the_docstrings_examples_run():
     import doctest
     import importlib
 
-    for module in ("greyid.model.model", "greyid.estimate.likelihood", "greyid.fleet.fit", "greyid.data.named"):
+    for module in ("greyid.model.model", "greyid.estimate.likelihood", "greyid.fleet.fit", "greyid.data.named",
+                   "greyid.design.information", "greyid.design.identifiability", "greyid.simulate.signals"):
         result = doctest.testmod(importlib.import_module(module), optionflags=doctest.ELLIPSIS)
         assert result.failed == 0, module

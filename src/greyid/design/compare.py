@@ -34,17 +34,45 @@ def _spec(label, spec) -> dict:
 
 def compare_inputs(model, params, candidates: Mapping[str, pd.DataFrame], criteria=None, interest=None,
                    **information_options) -> pd.DataFrame:
-    """Criteria (columns) of each candidate plan (rows), with a ``<criterion> rank`` column each.
+    """Candidate experiments side by side: each criterion's value and rank (tables 7.4–7.5).
 
-    ``criteria`` maps a column label to a criterion name (``"D"``, ``"A"``, ``"C"``,
-    ``"E"``, ``"L"``, ``"Ds"``) or to a mapping with the name and its options
-    (``interest=``, ``derived=`` expressions of the parameters, ``V=``, ``k=``),
-    e.g. ``{"UA": {"name": "A", "derived": {"UA": "Hi*Hm/(Hi+Hm)"}}}``; default
-    D, Ds, C and E (Ds with ``interest``).  Other keyword arguments go to
-    [`fisher_information()`][greyid.design.information.fisher_information] (``time``, ``hold``, ``free``, ``method``,
-    ``n_paths``, ``seed``).  ``attrs["information"]`` holds each candidate's matrix,
-    ``attrs["undetermined"]`` the directions a candidate does not determine (its
-    criteria of them are +inf; one `UndeterminedWarning` per candidate).
+    Parameters
+    ----------
+    model : Model
+        The model.
+    params : mapping of str to float
+        The assumed parameter values.
+    candidates : mapping of str to pandas.DataFrame
+        ``{label: plan}``, each plan the times and inputs of an experiment.
+    criteria : mapping, optional
+        ``{column label: criterion name}`` or ``{label: {"name": ..., "interest":
+        ..., "derived": {...}, "V": ..., "k": ...}}``, e.g.
+        ``{"UA": {"name": "A", "derived": {"UA": "Hi*Hm/(Hi+Hm)"}}}`` (default: D,
+        C, E, and Ds with ``interest``).
+    interest : sequence of str, optional
+        The parameters of interest of ``"Ds"``.
+    **information_options
+        For [`fisher_information()`][greyid.design.information.fisher_information]
+        (``time``, ``hold``, ``free``, ``method``, ``n_paths``, ``seed``).
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per candidate: each criterion and its ``<criterion> rank`` (1 = best;
+        empty where the criterion is undefined).  ``attrs["information"]`` holds each
+        candidate's matrix, ``attrs["undetermined"]`` the directions a candidate does
+        not determine (its criteria of them are +inf; one
+        [`UndeterminedWarning`][greyid.errors.UndeterminedWarning] each) and
+        ``attrs["undefined"]`` the criteria not defined at ``params`` (C where a
+        parameter is 0: NaN; one
+        [`UndefinedCriterionWarning`][greyid.errors.UndefinedCriterionWarning] each).
+
+    Raises
+    ------
+    DataError
+        No candidates, or a plan that is not a DataFrame (names the plan).
+    ModelError
+        A criterion that is not known or lacks its options.
     """
     if not isinstance(candidates, Mapping) or not candidates:
         raise DataError("candidates must be a non-empty mapping name → plan DataFrame")

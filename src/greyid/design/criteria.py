@@ -40,8 +40,18 @@ def _matrix(info) -> tuple[np.ndarray, list[str]]:
 def with_prior(info, prior) -> pd.DataFrame:
     """The posterior information M + Σ_prior⁻¹ (6.53) of a Gaussian prior on some of the parameters.
 
-    ``prior`` as for ``fit(criterion="map")``: ``{"mean": {...}, "sd": {...}, "corr": ...}``
-    (the means do not enter); parameters without a prior get no prior information.
+    Parameters
+    ----------
+    info : pandas.DataFrame
+        An information matrix.
+    prior : dict
+        As for ``fit(criterion="map")``: ``{"mean": {...}, "sd": {...}, "corr": ...}``
+        (the means do not enter); parameters without a prior get no prior information.
+
+    Returns
+    -------
+    pandas.DataFrame
+        The posterior information, over the same parameters.
     """
     from ..estimate.criteria import GaussianPrior
 
@@ -79,19 +89,47 @@ def _schur_information(scaled: ScaledInformation, interest: list[str]) -> np.nda
 
 def criterion(info, name: str, params=None, interest=None, V=None, k: float = 1.0, derived=None,
               prior=None) -> float:
-    """The value of criterion ``name`` for the information ``info`` (smaller is better).
+    """The value of a design criterion for an information matrix (smaller is better; 6.32–6.35).
 
-    ``params`` (a mapping) gives θ for ``"C"``; ``interest`` names the parameters
-    of ``"Ds"``; ``V`` and ``k`` define ``"L"`` (``V`` also scales ``"E"``).  ``derived`` — a mapping of
-    names to expressions, with ``params`` — replaces M⁻¹ by the covariance of
-    those quantities (6.35, 7.47) for ``"D"`` (log det J M⁻¹ Jᵀ), ``"A"``, ``"C"``
-    (V = diag(1/f(θ))), ``"E"`` and ``"L"``.  ``prior`` (a Gaussian prior as for
-    MAP fits) adds its precision first: the MAP criteria (6.53).
+    Ranks, inverses and determinants are taken on M scaled to unit diagonal, so
+    that units alone never make M singular; a criterion of quantities that M does
+    not determine is +inf, with an [`UndeterminedWarning`][greyid.errors.UndeterminedWarning]
+    naming the direction.
 
-    Ranks, inverses and determinants are taken on M scaled to unit diagonal
-    (`greyid.scaled`), so that units alone never make M singular; a
-    criterion of quantities that M does not determine is +inf (6.32), with an
-    `UndeterminedWarning` naming the direction.
+    Parameters
+    ----------
+    info : pandas.DataFrame
+        An information matrix.
+    name : {"D", "A", "C", "E", "L", "Ds"}
+        The criterion: −log det M; the mean variance; the mean variance relative to
+        θ² (V = diag(1/θ)); the largest eigenvalue of M⁻¹ (of V M⁻¹ Vᵀ with ``V``);
+        the ``k``-norm of V M⁻¹ Vᵀ's eigenvalues; −log det of the Schur
+        complement of the parameters of ``interest``.
+    params : mapping of str to float, optional
+        θ, for ``"C"`` and for ``derived`` quantities.
+    interest : sequence of str, optional
+        The parameters of interest of ``"Ds"``.
+    V : array_like, optional
+        The weight matrix of ``"L"`` and ``"E"``.
+    k : float
+        The power of ``"L"``.
+    derived : mapping of str to str, optional
+        ``{name: expression}``: the criterion of these quantities' covariance
+        J M⁻¹ Jᵀ instead (6.35, 7.47); for ``"C"``, V = diag(1/f(θ)).
+    prior : dict, optional
+        A Gaussian prior as for MAP fits: its precision is added first (the MAP criteria, 6.53).
+
+    Returns
+    -------
+    float
+        The criterion's value; +inf where M does not determine what it measures,
+        NaN for ``"C"`` where a parameter is 0 (with an
+        [`UndefinedCriterionWarning`][greyid.errors.UndefinedCriterionWarning]).
+
+    Raises
+    ------
+    ModelError
+        An unknown criterion, or one that lacks its argument (``interest``, ``params``, ``k``).
     """
     if name not in CRITERIA:
         raise ModelError(f"unknown criterion {name!r}; use one of {list(CRITERIA)}")
@@ -174,14 +212,27 @@ def _derived_jacobian(names, params, derived):
 
 
 def cramer_rao_bound(info, params=None, derived=None) -> pd.Series:
-    """The Cramér–Rao bound: the least variance of an unbiased estimate of each parameter (the
-    diagonal of M⁻¹, 6.30) and of each ``derived`` quantity (J M⁻¹ Jᵀ by Gauss' formula, 6.35).
+    """The Cramér–Rao bound: the least variance of an unbiased estimate (6.30, 6.35).
 
-    M is inverted scaled to unit diagonal (`greyid.scaled`), so the bounds
-    convert between unit systems by the units' factors.  An infinite bound marks
-    a parameter or quantity along a direction the experiment does not determine
-    (a singular M, see [`local_identifiability()`][greyid.design.information.local_identifiability]); the others
-    keep their finite bounds.
+    M is inverted scaled to unit diagonal, so the bounds convert between unit
+    systems by the units' factors.  An infinite bound marks a parameter or
+    quantity along a direction the experiment does not determine (see
+    [`local_identifiability()`][greyid.design.information.local_identifiability]);
+    the others keep their finite bounds.
+
+    Parameters
+    ----------
+    info : pandas.DataFrame
+        An information matrix.
+    params : mapping of str to float, optional
+        The parameters' values, needed for ``derived`` quantities.
+    derived : mapping of str to str, optional
+        ``{name: expression in the parameters}``: their bounds J M⁻¹ Jᵀ by Gauss' formula.
+
+    Returns
+    -------
+    pandas.Series
+        The bound of each parameter (the diagonal of M⁻¹) and of each derived quantity.
     """
     M, names = _matrix(info)
     scaled = ScaledInformation.of(M, names)
@@ -251,18 +302,38 @@ def parameter_points(model, params, prior=None, minimax=None, draws: int = 20, s
 
 def average_criterion(model, plan, name: str, prior, draws: int = 20, seed: int = 0, map_prior: bool = False,
                       params=None, **options) -> dict:
-    """The criterion averaged over a Gaussian prior of θ (the Bayesian criterion J₃, 6.36–6.38).
+    """The criterion averaged over a prior of θ: the Bayesian criterion J₃ (6.36–6.38).
 
-    The information of ``plan`` is computed at ``draws`` seeded draws from the
-    prior (``{"mean": ..., "sd": ..., "corr": ...}`` on some parameters; the others
-    at ``params``, by default their declared initial values), or at the rows of a
-    DataFrame of points (a quadrature rule, optional ``weight`` column), and the
-    criterion averaged; with
-    ``map_prior=True`` each draw's information includes the prior's precision
-    (J₄).  Returns ``{"value", "standard_error", "values"}``; ``options`` go to
-    [`criterion()`][greyid.design.criteria.criterion] (``interest``, ``derived`` ...) and
-    [`fisher_information()`][greyid.design.information.fisher_information] (``time``, ``hold``, ``free``, ``method``
-    ...).
+    Parameters
+    ----------
+    model : Model
+        The model.
+    plan : pandas.DataFrame
+        The planned experiment's times and inputs.
+    name : str
+        The criterion (as [`criterion()`][greyid.design.criteria.criterion]).
+    prior : dict or pandas.DataFrame
+        A Gaussian prior ``{"mean": ..., "sd": ..., "corr": ...}`` on some
+        parameters (``draws`` seeded draws), or a DataFrame of points (a quadrature
+        rule, with an optional ``weight`` column).
+    draws : int
+        Draws from a Gaussian prior.
+    seed : int
+        Their random seed.
+    map_prior : bool
+        Each draw's information includes the prior's precision (J₄).
+    params : mapping of str to float, optional
+        The values of the parameters without a prior (default: their initial values).
+    **options
+        For [`criterion()`][greyid.design.criteria.criterion] (``interest``,
+        ``derived``, ...) and [`fisher_information()`][greyid.design.information.fisher_information]
+        (``time``, ``hold``, ``free``, ``method``, ...).
+
+    Returns
+    -------
+    dict
+        ``{"value", "standard_error", "values"}``: the average, its Monte Carlo
+        standard error and the value at each point.
     """
     from ..estimate.criteria import GaussianPrior
     from .information import fisher_information
@@ -282,10 +353,27 @@ def average_criterion(model, plan, name: str, prior, draws: int = 20, seed: int 
 def minimax_criterion(model, plan, name: str, box, levels: int = 2, params=None, **options) -> dict:
     """The worst value of the criterion over a box of parameter values (6.39).
 
-    ``box`` maps parameter names to ``(low, high)``; the criterion is evaluated
-    on a grid of ``levels`` values per parameter (the corners for 2; the others
-    at ``params``, by default their declared initial values).  Returns ``{"value", "at"}`` with the
-    worst point.
+    Parameters
+    ----------
+    model : Model
+        The model.
+    plan : pandas.DataFrame
+        The planned experiment's times and inputs.
+    name : str
+        The criterion.
+    box : mapping of str to tuple
+        ``{parameter: (low, high)}``.
+    levels : int
+        Grid values per parameter (2: the corners).
+    params : mapping of str to float, optional
+        The values of the parameters outside the box (default: their initial values).
+    **options
+        As for [`average_criterion()`][greyid.design.criteria.average_criterion].
+
+    Returns
+    -------
+    dict
+        ``{"value", "at"}``: the worst value and the point where it is.
     """
     from .information import fisher_information
 

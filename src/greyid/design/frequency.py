@@ -150,14 +150,30 @@ def _setup(model, params, input, free, several: bool = False):
 
 def frequency_information(model, params, omega: float, input: str, sampling_interval: float,
                           free=None) -> pd.DataFrame:
-    """Information per sample of a unit-power sinusoid of angular frequency ``omega`` on ``input``.
+    """The information per sample of a unit-power sinusoid on one input (6.47–6.49).
 
-    ``omega`` in radians per time unit of the model (0 for a constant input of
-    unit power), the other inputs held at zero, the model sampled every
-    ``sampling_interval``.  A DataFrame over the free parameters that enter the
-    equations (``free=`` names others: parameters of the initial state only are
-    not seen per sample); ``attrs["input_independent"]`` holds M̄_c (6.49),
-    the information per sample that no input changes.  See the module doc.
+    Parameters
+    ----------
+    model : Model
+        A linear time-invariant model.
+    params : mapping of str to float
+        The assumed parameter values.
+    omega : float
+        The angular frequency in radians per time unit of the model (0: a constant
+        input of unit power).
+    input : str
+        The input carrying the sinusoid (the others held at zero).
+    sampling_interval : float
+        The time between samples.
+    free : sequence of str, optional
+        The parameters (default: the free ones that enter the equations; those of
+        the initial state only are not seen per sample).
+
+    Returns
+    -------
+    pandas.DataFrame
+        Over the parameters; ``attrs["input_independent"]`` holds M̄_c (6.49), the
+        information per sample that no input changes.
     """
     names, theta, (input_information, noise_information) = _setup(model, params, input, free)
     tau = float(sampling_interval)
@@ -169,11 +185,28 @@ def frequency_information(model, params, omega: float, input: str, sampling_inte
 
 
 def frequency_information_grid(model, params, omegas, input: str, sampling_interval: float, free=None):
-    """``(M_u, M_c, names)``: [`frequency_information()`][greyid.design.frequency.frequency_information] on a grid of
-    frequencies at once.
+    """[`frequency_information()`][greyid.design.frequency.frequency_information] on a grid of frequencies at once.
 
-    ``M_u`` has one p × p matrix per frequency (unit power), ``M_c`` is the
-    input-independent part; both NumPy arrays over the parameters ``names``.
+    Parameters
+    ----------
+    model : Model
+        A linear time-invariant model.
+    params : mapping of str to float
+        The assumed parameter values.
+    omegas : array_like
+        The angular frequencies.
+    input : str
+        The input carrying the sinusoid.
+    sampling_interval : float
+        The time between samples.
+    free : sequence of str, optional
+        The parameters.
+
+    Returns
+    -------
+    tuple
+        ``(M_u, M_c, names)``: one p × p matrix per frequency (unit power), the
+        input-independent part, and the parameters' names (NumPy arrays).
     """
     names, theta, (input_information, noise_information) = _setup(model, params, input, free)
     tau = float(sampling_interval)
@@ -184,12 +217,30 @@ def frequency_information_grid(model, params, omegas, input: str, sampling_inter
 
 def frequency_information_points(model, points, omegas, input: str, sampling_interval: float, free=None,
                                  input_independent: bool = True):
-    """``(M_u, M_c, names)`` of [`frequency_information_grid()`][greyid.design.frequency.frequency_information_grid] at
-    several parameter points at once.
+    """[`frequency_information_grid()`][greyid.design.frequency.frequency_information_grid] at several points at once.
 
-    ``points`` a list of parameter mappings; ``M_u`` has shape (points,
-    frequencies, p, p) and ``M_c`` (points, p, p), or ``None`` without
-    ``input_independent`` (it costs more than a few frequencies' M_u).
+    Parameters
+    ----------
+    model : Model
+        A linear time-invariant model.
+    points : sequence of mapping
+        The parameter points.
+    omegas : array_like
+        The angular frequencies.
+    input : str
+        The input carrying the sinusoid.
+    sampling_interval : float
+        The time between samples.
+    free : sequence of str, optional
+        The parameters.
+    input_independent : bool
+        Also M̄_c at each point (it costs more than a few frequencies' M_u).
+
+    Returns
+    -------
+    tuple
+        ``(M_u, M_c, names)``: shapes (points, frequencies, p, p) and (points, p, p),
+        M_c None without ``input_independent``.
     """
     names, thetas, (input_information, noise_information) = _setup(model, points, input, free, several=True)
     tau = float(sampling_interval)

@@ -39,24 +39,74 @@ def _free_names(model, free):
 def fisher_information(model, params, plan: pd.DataFrame, time: str = "t", hold: str = "zoh", free=None,
                        method: str | None = None, n_paths: int = 100, seed: int = 0, filter_method=None,
                        simulation: str | None = None, substeps: int = 20) -> pd.DataFrame:
-    """Information matrix of the experiment ``plan`` at ``params`` (natural parameters).
+    """The information matrix of a planned experiment at assumed parameter values (6.26–6.29).
 
-    ``plan`` holds the time column and the inputs (every output is planned to be
-    observed at every row); ``free`` names the parameters the matrix is taken for
-    (default: the model's non-fixed ones).  ``method`` is ``"exact"`` (linear
-    models; the default for them) or ``"montecarlo"`` (any model; the default for
-    nonlinear ones), with ``n_paths`` simulated data sets.  Returns a DataFrame
-    indexed and columned by those names; ``attrs["method"]`` says how it was
-    computed, and for Monte Carlo ``attrs["standard_error"]`` holds the standard
-    error of each entry and ``attrs["n_paths"]`` the number of simulated data sets.
+    Parameters
+    ----------
+    model : Model
+        The model.
+    params : mapping of str to float
+        A value for every parameter.
+    plan : pandas.DataFrame
+        The time column and the inputs; no outputs (every output is planned to be
+        observed at every row).
+    time : str
+        The name of the time column.
+    hold : {"zoh", "foh"}
+        How inputs are held between samples.
+    free : sequence of str, optional
+        The parameters the matrix is taken for (default: the non-fixed ones).
+    method : {"exact", "montecarlo"}, optional
+        ``"exact"`` (linear models, their default): the expected information of the
+        exact Kalman filter's innovations; ``"montecarlo"`` (any model, the default
+        for nonlinear ones): the average of the observed information over
+        ``n_paths`` simulated data sets.
+    n_paths : int
+        Simulated data sets of the Monte Carlo information.
+    seed : int
+        Their random seed.
+    filter_method : str, optional
+        The filter of the Monte Carlo information's likelihood (default: the model's).
+    simulation : str, optional
+        The scheme the data sets are simulated with (default: ``"exact"`` for linear
+        models, ``"milstein"`` otherwise).
+    substeps : int
+        Integration steps per sampling interval of the simulation.
+
+    Returns
+    -------
+    pandas.DataFrame
+        Indexed and columned by the parameters, in the model's natural parameters;
+        ``attrs["method"]`` says how it was computed, and for Monte Carlo
+        ``attrs["standard_error"]`` holds the standard error of each entry and
+        ``attrs["n_paths"]`` the number of data sets.
+
+    Raises
+    ------
+    ModelError
+        The exact information of a nonlinear model, or an unknown method.
+    DataError
+        A plan that is not a DataFrame of times and inputs, or that holds an output.
+
+    Examples
+    --------
+    >>> import numpy as np, pandas as pd
+    >>> from greyid import design, library
+    >>> model = library.load_model("test_cell")
+    >>> t = np.arange(200.0)
+    >>> plan = pd.DataFrame({"t": t, "Te": 5.0, "Qh": 150.0 * (np.sin(t / 8) > 0)})
+    >>> info = design.fisher_information(model, model.initial_values(), plan)
+    >>> info.attrs["method"]
+    'exact'
     """
     if method is None:
         method = "exact" if model.structure.is_linear else "montecarlo"
     if method not in METHODS:
         raise ModelError(f"unknown method {method!r}; use one of {list(METHODS)}")
     if method == "exact" and not model.structure.is_linear:
-        raise ModelError(f"method='exact' needs a linear model, and model '{model.name}' is "
-                         f"{model.structure.kind}; use method='montecarlo'")
+        raise ModelError(f"the exact information needs a linear model, and model '{model.name}' is "
+                         f"{model.structure.kind}; use the Monte Carlo information (--method montecarlo on the "
+                         "command line, method='montecarlo' in Python)")
     if not isinstance(plan, pd.DataFrame):
         raise DataError("the plan must be a DataFrame with the time column and the inputs")
     present = [o for o in model.output_names if o in plan.columns]
@@ -97,15 +147,26 @@ def fisher_information(model, params, plan: pd.DataFrame, time: str = "t", hold:
 
 
 def local_identifiability(info: pd.DataFrame, tolerance: float = RANK_TOLERANCE) -> pd.DataFrame:
-    """Which parameters the planned experiment determines, from the information matrix.
+    """Which parameters a planned experiment determines, from its information matrix.
 
-    The matrix is scaled to unit diagonal (`greyid.scaled`: the verdict does
-    not depend on the parameters' units); eigenvalues below ``tolerance`` times
-    the largest are flat directions, whose loadings (above 0.05 of the largest)
-    name the parameters involved.  Returns one row per flat direction
-    (``eigenvalue``, ``parameters``, ``loadings``); an empty table means locally
-    identifiable at these values.  The same directions make
+    The matrix is scaled to unit diagonal, so the verdict does not depend on the
+    parameters' units; eigenvalues below ``tolerance`` times the largest are flat
+    directions.  The same directions make
     [`cramer_rao_bound()`][greyid.design.criteria.cramer_rao_bound] infinite.
+
+    Parameters
+    ----------
+    info : pandas.DataFrame
+        An information matrix ([`fisher_information()`][greyid.design.information.fisher_information]).
+    tolerance : float
+        The relative size of an eigenvalue below which its direction is flat.
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per flat direction: ``eigenvalue``, ``parameters`` and ``loadings``
+        (those above 0.05 of the largest); empty where the experiment determines
+        every parameter locally.
     """
     scaled = ScaledInformation.of(info.to_numpy(dtype=np.float64), list(info.index), tolerance)
     eigenvalues = scaled.eigenvalues[scaled.null_mask]

@@ -256,22 +256,58 @@ def optimal_multisine(model, params, input: str, sampling_interval: float, crite
                       power: float = 1.0, band=None, free=None, include_noise: bool = True,
                       grid: int = 400, iterations: int = 5000, prior=None, minimax=None, draws: int = 20,
                       seed: int = 0, levels: int = 2) -> MultisineDesign:
-    """The input of ``power`` (variance) on ``input`` that minimises ``criterion`` per sample (6.3, 7.49).
+    """The input of a given power on one input that minimises a criterion per sample (6.3, 7.49).
 
-    Candidate frequencies: 0 and a logarithmic grid up to the Nyquist frequency
-    π/τ (or within ``band = (low, high)``).  The information is M̄_c +
-    power·Σ α_l M_u(ω_l), or without M̄_c with ``include_noise=False`` (the form
-    of (7.50)).  ``criterion`` is ``"D"`` or ``"A"``.
+    Candidate frequencies are 0 and a logarithmic grid up to the Nyquist frequency
+    π/τ (or within ``band``); the information is M̄_c + power·Σ α_l M_u(ω_l).
+    The result's ``max_derivative`` and ``support_derivative`` check the general
+    equivalence theorem.
 
-    By default the design is local, at ``params``.  ``prior=`` averages the
-    criterion over a prior (J₃, 6.36–6.38): a Gaussian ``{"mean", "sd", "corr"}``
-    (``draws`` seeded draws) or a DataFrame of points with an optional
-    ``weight`` column.  ``minimax=`` a box ``{name: (low, high)}`` minimises the
-    worst value over a grid of ``levels`` values per parameter (6.39), or
-    ``minimax=`` a DataFrame over its rows.  The
-    result's ``max_derivative`` and ``support_derivative`` check the general
-    equivalence theorem; ``points`` holds the parameter points, their weights
-    (for minimax the least favourable distribution) and the design's value at each.
+    Parameters
+    ----------
+    model : Model
+        A linear time-invariant model.
+    params : mapping of str to float
+        The assumed parameter values (a local design).
+    input : str
+        The input to design.
+    sampling_interval : float
+        The time between samples, τ.
+    criterion : {"D", "A"}
+        The criterion minimised.
+    power : float
+        The input's variance.
+    band : tuple of float, optional
+        ``(low, high)`` angular frequencies the design may use.
+    free : sequence of str, optional
+        The parameters the information is taken for.
+    include_noise : bool
+        Include M̄_c, the information no input changes (False: the form of (7.50)).
+    grid : int
+        Candidate frequencies.
+    iterations : int
+        Steps of the design's weight iteration.
+    prior : dict or pandas.DataFrame, optional
+        Average the criterion over a prior (J₃, 6.36–6.38): a Gaussian
+        ``{"mean", "sd", "corr"}`` (``draws`` seeded draws) or a DataFrame of points
+        with an optional ``weight`` column.
+    minimax : mapping or pandas.DataFrame, optional
+        Minimise the worst value over a box ``{name: (low, high)}`` (a grid of
+        ``levels`` values per parameter) or over a DataFrame's rows (6.39).
+    draws : int
+        Draws from a Gaussian prior.
+    seed : int
+        Their random seed.
+    levels : int
+        Grid values per parameter of a minimax box.
+
+    Returns
+    -------
+    MultisineDesign
+        ``frequencies``, ``weights`` (fractions of the power), ``value``,
+        ``information``, the equivalence check, and for robust designs the ``points``
+        with their weights (for minimax the least favourable distribution);
+        ``signal(times)`` gives the input's time series.
     """
     if criterion not in ("D", "A"):
         raise ModelError(f"optimal_multisine supports criterion 'D' or 'A', not {criterion!r}")

@@ -11,7 +11,20 @@ from .multisine import optimal_multisine
 
 
 def aliased(omegas, sampling_interval: float) -> np.ndarray:
-    """The frequencies in [0, π/τ] that sampled (held) sinusoids at ``omegas`` are indistinguishable from."""
+    """The frequencies in [0, π/τ] that sampled (held) sinusoids at ``omegas`` cannot be told from.
+
+    Parameters
+    ----------
+    omegas : array_like
+        Angular frequencies.
+    sampling_interval : float
+        τ.
+
+    Returns
+    -------
+    numpy.ndarray
+        The aliases, one per frequency.
+    """
     band = 2 * np.pi / sampling_interval
     return np.abs((np.asarray(omegas, dtype=np.float64) + band / 2) % band - band / 2)
 
@@ -21,13 +34,36 @@ def sampling_table(model, params, input: str, intervals, frequencies=None, weigh
     """The D-criterion per sample and per unit time against the sampling interval (section 6.4, (6.72)).
 
     For each interval τ the information per sample M(τ) = M̄_c(τ) + power·Σ w_l M_u(ω_l; τ)
-    of the input design — the given ``frequencies`` (rad per time unit; one above
-    the Nyquist frequency π/τ acts as its alias) and power ``weights``, or, without
-    ``frequencies``, the D-optimal multisine for that τ (the joint input and
-    sampling design of a fixed number of samples) — and the information per
-    unit time M(τ)/τ (a fixed experiment time).  Columns ``interval``,
-    ``D_per_sample`` = −log det M, ``D_per_time`` = −log det(M/τ), ``frequencies``
-    and ``weights`` of the design used.
+    of the input design, and per unit time M(τ)/τ (a fixed experiment time).
+
+    Parameters
+    ----------
+    model : Model
+        A linear time-invariant model.
+    params : mapping of str to float
+        The assumed parameter values.
+    input : str
+        The input designed.
+    intervals : array_like
+        The sampling intervals τ.
+    frequencies : array_like, optional
+        The design's frequencies (rad per time unit; one above the Nyquist
+        frequency π/τ acts as its alias); without them, the D-optimal multisine for
+        each τ (the joint input and sampling design of a fixed number of samples).
+    weights : array_like, optional
+        Their power shares.
+    power : float
+        The input's variance.
+    free : sequence of str, optional
+        The parameters.
+    include_noise : bool
+        Include M̄_c.
+
+    Returns
+    -------
+    pandas.DataFrame
+        Columns ``interval``, ``D_per_sample`` = −log det M, ``D_per_time`` =
+        −log det(M/τ), and the ``frequencies`` and ``weights`` of the design used.
     """
     rows = []
     for tau in np.asarray(intervals, dtype=np.float64):

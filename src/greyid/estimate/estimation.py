@@ -105,7 +105,9 @@ def check_settings(criterion, prior, robust, horizon, cov_type, optimizer, start
     if criterion not in CRITERIA:
         raise ModelError(f"unknown criterion '{criterion}'; use 'ml' or 'map'")
     if criterion == "map" and prior is None:
-        raise ModelError("criterion='map' needs a prior: prior={'mean': {...}, 'sd': {...}}")
+        raise ModelError("criterion 'map' needs a prior: declare one on the parameters (prior = { mean = ..., sd = "
+                         "... } in a model file's [parameters], set_parameter(..., prior=(mean, sd)) in Python) or "
+                         "give prior={'mean': {...}, 'sd': {...}} to fit")
     if criterion == "ml" and prior is not None:
         raise ModelError("a prior was given with criterion='ml'; use criterion='map'")
     robust = check_robust(robust)

@@ -105,7 +105,8 @@ def build_result(model, frames, theta, problem, best, optima, settings, scores=N
     # At a bound, a criterion that does not depend on a parameter at all has exactly zero slope and
     # curvature in it (JAX differentiates an absent term to 0.0): the bound did not hold it back, the
     # data simply do not determine it.
-    independent = at_bound & (best.gradient == 0.0) & np.all(best.hessian == 0.0, axis=1)
+    # (Where dθ/dz has underflowed, z's derivatives are 0 whatever θ's are: no verdict there.)
+    independent = at_bound & (np.abs(d1) > 0) & (best.gradient == 0.0) & np.all(best.hessian == 0.0, axis=1)
     for i in np.flatnonzero(at_bound & ~independent):
         warn.append(f"parameter '{free_names[i]}' is at a bound ({theta_free[i]:.6g}); "
                     "its standard error is not given")

@@ -43,13 +43,29 @@ def _rc_states(name: str) -> tuple[str, ...] | None:
 
 
 def rc_network(states: Iterable[str] = ()) -> Model:
-    """The RC building model with Ti and the extra ``states`` (any of Te, Th, Tm, Ts).
+    """The RC building model with Ti and the extra ``states``.
 
     Ti exchanges heat with the ambient through Ria, or with the envelope Te
-    through Rie (Te then with the ambient through Rea); the heating power
-    enters Ti, or the heater Th (through Rih); the medium Tm exchanges with Ti
-    through Rim; the sensor Ts follows Ti through Ris·Cs and is what yTi
-    measures.  Solar gains enter Ti through the effective window area Aw.
+    through Rie (Te then with the ambient through Rea); the heating power enters
+    Ti, or the heater Th (through Rih); the medium Tm exchanges with Ti through
+    Rim; the sensor Ts follows Ti through Ris·Cs and is what yTi measures.  Solar
+    gains enter Ti through the effective window area Aw.  Inputs Ta [°C], Ps
+    [kW/m²], Ph [kW]; time in hours.
+
+    Parameters
+    ----------
+    states : iterable of str
+        Any of ``"Te"``, ``"Th"``, ``"Tm"``, ``"Ts"``.
+
+    Returns
+    -------
+    Model
+        The model, named by its states (``"TiTeTh"``), with its nested-start rule.
+
+    Raises
+    ------
+    ModelError
+        An unknown or repeated state.
     """
     extra = tuple(states)
     unknown = [s for s in extra if s not in RC_STATES]
@@ -148,12 +164,35 @@ WALL_MODELS = ("wall1", "wall2")
 
 
 def names() -> list[str]:
-    """Every model in the library."""
+    """Every model in the library.
+
+    Returns
+    -------
+    list of str
+        Their names.
+    """
     return list(BUILDING_MODELS) + list(WALL_MODELS) + sorted(_model_files())
 
 
 def load_model(name: str) -> Model:
-    """A fresh copy of the library model ``name`` (see [`names()`][greyid.library.names])."""
+    """A fresh copy of a library model.
+
+    Parameters
+    ----------
+    name : str
+        One of [`names()`][greyid.library.names], or an RC network by its states
+        in any order (``"TiTeTh"``, ``"TiThTe"``).
+
+    Returns
+    -------
+    Model
+        The model, with its units, bounds, derived quantities and nested-start rule.
+
+    Raises
+    ------
+    ModelError
+        An unknown name (the message lists the library).
+    """
     states = _rc_states(name)
     if states is not None:
         return rc_network(states)
@@ -166,7 +205,13 @@ def load_model(name: str) -> Model:
 
 
 def available() -> dict[str, str]:
-    """Library model names with their descriptions."""
+    """The library's models with their descriptions.
+
+    Returns
+    -------
+    dict
+        ``{name: description}``.
+    """
     return {name: load_model(name).description for name in names()}
 
 

@@ -30,7 +30,22 @@ from ..model import Model
 
 
 def ladder_polynomials(r, c, s):
-    """``(B_n(s), D_n(s))`` of the ladder r₁, c₁, r₂, …, c_n, r_{n+1} at complex ``s`` (any shape)."""
+    """The polynomials ``(B_n(s), D_n(s))`` of the ladder r₁, c₁, r₂, …, c_n, r_{n+1}.
+
+    Parameters
+    ----------
+    r : array_like
+        The n + 1 resistances.
+    c : array_like
+        The n capacitances.
+    s : array_like
+        Complex frequencies (any shape).
+
+    Returns
+    -------
+    tuple of numpy.ndarray
+        B_n(s) and D_n(s), shaped as ``s``.
+    """
     s = np.asarray(s, dtype=complex)
     a, b = np.ones_like(s), np.zeros_like(s) + r[0]
     cc, d = np.zeros_like(s), np.ones_like(s)
@@ -48,8 +63,22 @@ def lumped_wall(order: int) -> tuple[np.ndarray, np.ndarray]:
     The truncated products B_n(s) = Π_{k≤n}(1 + s/(k²π²)) and D_n(s) =
     Π_{k≤n}(1 + s/((k − ½)²π²)) (R = C = 1) are the ladder's own polynomials, so
     its elements follow from the continued-fraction (Cauer) expansion of the
-    impedance B_n/D_n = r₁ + 1/(c₁s + 1/(r₂ + …)): each division peels off one
-    element, exactly (no iteration).
+    impedance B_n/D_n = r₁ + 1/(c₁s + 1/(r₂ + …)), exactly.
+
+    Parameters
+    ----------
+    order : int
+        n, the number of capacitances.
+
+    Returns
+    -------
+    tuple of numpy.ndarray
+        ``(r, c)``: n + 1 resistances and n capacitances as fractions of R and C.
+
+    Raises
+    ------
+    ModelError
+        An expansion that gives a non-physical network.
     """
     if not isinstance(order, (int, np.integer)) or order < 1:
         raise ModelError(f"the order of a lumped wall must be a positive integer, got {order!r}")
@@ -74,12 +103,24 @@ def lumped_wall(order: int) -> tuple[np.ndarray, np.ndarray]:
 def wall_frequency_response(R: float, C: float, omega, orders=(1, 2)) -> pd.DataFrame:
     """Exact and lumped frequency responses of a homogeneous wall (figures 7.4–7.5).
 
-    ``R`` [K m²/W] and ``C`` [J/(K m²)] per unit area (or any consistent units),
-    ``omega`` angular frequencies [rad per time unit of RC].  Columns: ``omega``,
-    then for ``exact`` and each order n: ``<model>_BD_gain``, ``<model>_BD_phase``
-    (the heat flux → inner temperature response B/D, gain in K/(W/m²), phase in
-    degrees) and ``<model>_D_gain``, ``<model>_D_phase`` (outer → inner
-    temperature, 1/D).
+    Parameters
+    ----------
+    R : float
+        The wall's resistance per unit area [K m²/W] (or any consistent units).
+    C : float
+        Its capacity per unit area [J/(K m²)].
+    omega : array_like
+        Angular frequencies [rad per time unit of RC].
+    orders : sequence of int
+        The lumped networks' orders.
+
+    Returns
+    -------
+    pandas.DataFrame
+        ``omega``, then for ``exact`` and each order n: ``<model>_BD_gain`` and
+        ``<model>_BD_phase`` (heat flux → inner temperature, B/D: gain in
+        K/(W/m²), phase in degrees) and ``<model>_D_gain``, ``<model>_D_phase``
+        (outer → inner temperature, 1/D).
     """
     if not (R > 0 and C > 0):
         raise ModelError(f"R and C must be positive, got R={R!r}, C={C!r}")
@@ -110,11 +151,23 @@ def wall_model(nodes: int = 2, name: str | None = None) -> Model:
 
     Inputs ``v1`` and ``v2`` (inner and outer surface temperatures), states
     ``T1 … Tn`` (node temperatures, from the inside out), output ``q1`` (the heat
-    flux entering the inner surface, (v1 − T1)/r1).  Parameters ``r1 … r_{n+1}``,
-    ``c1 … c_n`` (start values: the infinite-product network of a wall with
-    R = 1, C = 1 — set your own), process noise ``s1 … sn`` (log-intensities) and
-    the measurement variance ``e`` (log).  Each node obeys (7.25):
+    flux entering the inner surface, (v1 − T1)/r1).  Each node obeys (7.25):
     c_i dT_i = ((T_{i−1} − T_i)/r_i − (T_i − T_{i+1})/r_{i+1}) dt.
+
+    Parameters
+    ----------
+    nodes : int
+        The number of capacitances.
+    name : str, optional
+        The model's name.
+
+    Returns
+    -------
+    Model
+        Parameters ``r1 … r_{n+1}``, ``c1 … c_n`` (start values: the
+        infinite-product network of a wall with R = 1, C = 1; set your own),
+        process noise ``s1 … sn`` (log-intensities) and the measurement variance
+        ``e`` (log).
     """
     if not isinstance(nodes, (int, np.integer)) or nodes < 1:
         raise ModelError(f"a wall needs at least one node, got {nodes!r}")

@@ -204,7 +204,8 @@ def observation_covariance_expressions(model, outputs, variance, states):
 def initial_state_expressions(model, states: list[str]):
     """The initial mean (SymPy, per state) and the covariance: SymPy rows or its kind's name."""
     if model._initial_mean is None:
-        raise ModelError("the model has no initial state; set it with set_initial_state(mean={...})")
+        raise ModelError("the model has no initial state: give it a [model.initial_state] table in a model file "
+                         "(a value or parameter per state), or set_initial_state(mean={...}) in Python")
     unknown = [k for k in model._initial_mean if k not in states]
     if unknown:
         raise ModelError(f"initial state given for '{unknown[0]}', which is not a state (states: {states})")

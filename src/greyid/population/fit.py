@@ -378,8 +378,9 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
     defaults = getattr(model, "population", {}) or {}
     random = defaults.get("random") if random is None else random
     if random is None:
-        raise ModelError("no random effects: give random={'parameter': 'normal' or 'lognormal', ...} or a "
-                         "[population] table with random = { ... } in the model file")
+        raise ModelError("no random effects: name the parameters that vary between data sets, with --random "
+                         "PARAMETER:lognormal (or :normal) on the command line, random = { PARAMETER = \"lognormal\" } "
+                         "in the model file's [population] table, or random={'PARAMETER': 'lognormal'} in Python")
     effects = defaults.get("effects") if effects is None else effects
     omega = defaults.get("omega", "diagonal") if omega is None else omega
     omega_init = defaults.get("omega_init") if omega_init is None else omega_init

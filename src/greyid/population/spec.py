@@ -211,8 +211,9 @@ def make_spec(model, random, covariates, effects, omega, names_of_datasets, init
 
     effects = {} if effects is None else dict(effects)
     if effects and covariates is None:
-        raise DataError("effects name covariates, but no covariates table was given (covariates=DataFrame with "
-                        "a row per data set)")
+        raise DataError("effects name covariates, but no covariates table was given: a CSV file with a row per "
+                        "data set (--covariates FILE.csv on the command line, covariates = \"FILE.csv\" in the "
+                        "model file's [population] table) or covariates=DataFrame in Python")
     columns: list[str] = []
     pairs = []
     for name, listed in effects.items():

@@ -22,10 +22,36 @@ PRBS_TAPS = {
 
 def prbs(order: int, clock: int = 1, levels: tuple[float, float] = (0.0, 1.0), length: int | None = None,
          shift: int = 0) -> np.ndarray:
-    """Maximal-length PRBS of period 2ⁿ−1 bits, each bit held for ``clock`` samples.
+    """A maximal-length pseudo-random binary sequence (Godfrey 1980), each bit held for ``clock`` samples.
 
-    ``length`` samples are returned (default one period, (2ⁿ−1)·clock); the
-    sequence repeats periodically.  ``shift`` rotates the start of the sequence.
+    Parameters
+    ----------
+    order : int
+        The shift register's length n, 2 to 24: the period is 2ⁿ − 1 bits.
+    clock : int
+        Samples per bit.
+    levels : tuple of float
+        The low and high values.
+    length : int, optional
+        Samples returned (default one period, (2ⁿ − 1)·clock); the sequence repeats.
+    shift : int
+        Rotates the start of the sequence, in bits.
+
+    Returns
+    -------
+    numpy.ndarray
+        The signal, float64.
+
+    Raises
+    ------
+    ValueError
+        An order outside 2–24, a clock or length that is not a positive whole number.
+
+    Examples
+    --------
+    >>> from greyid.simulate import prbs
+    >>> prbs(3, levels=(0.0, 300.0))
+    array([300., 300., 300.,   0.,   0., 300.,   0.])
     """
     if order not in PRBS_TAPS:
         raise ValueError(f"PRBS order must be between 2 and 24, got {order}")
@@ -53,7 +79,22 @@ def prbs(order: int, clock: int = 1, levels: tuple[float, float] = (0.0, 1.0), l
 
 
 def steps(times: Sequence[float], changes: Sequence[tuple[float, float]], initial: float = 0.0) -> np.ndarray:
-    """A piecewise-constant signal: ``initial``, then ``level`` from each ``(time, level)`` on."""
+    """A piecewise-constant signal: ``initial``, then each ``level`` from its time on.
+
+    Parameters
+    ----------
+    times : array_like
+        The sample times.
+    changes : sequence of tuple
+        ``[(time, level), ...]``.
+    initial : float
+        The level before the first change.
+
+    Returns
+    -------
+    numpy.ndarray
+        The signal at ``times``.
+    """
     times = np.asarray(times, dtype=np.float64)
     out = np.full(times.shape, float(initial))
     for when, level in sorted(changes):
@@ -64,11 +105,29 @@ def steps(times: Sequence[float], changes: Sequence[tuple[float, float]], initia
 def multisine(times: Sequence[float], frequencies: Sequence[float], power: Sequence[float] | None = None,
               total_power: float = 1.0, phases: str | Sequence[float] = "schroeder", seed: int = 0,
               offset: float = 0.0) -> np.ndarray:
-    """Sum of sines at ``frequencies`` (cycles per time unit) with a chosen power split.
+    """A sum of sines at given frequencies with a chosen power split.
 
-    ``power`` gives the share of ``total_power`` (the signal variance) at each
-    frequency (equal shares by default).  Phases are Schroeder's (low crest
-    factor), ``"random"`` (seeded) or given explicitly.
+    Parameters
+    ----------
+    times : array_like
+        The sample times.
+    frequencies : sequence of float
+        In cycles per time unit.
+    power : sequence of float, optional
+        Each frequency's share of ``total_power`` (default: equal shares).
+    total_power : float
+        The signal's variance.
+    phases : {"schroeder", "random"} or sequence of float
+        Schroeder's phases (a low crest factor), seeded random ones, or given ones.
+    seed : int
+        The seed of random phases.
+    offset : float
+        The signal's mean.
+
+    Returns
+    -------
+    numpy.ndarray
+        The signal at ``times``.
     """
     times = np.asarray(times, dtype=np.float64)
     freqs = np.asarray(frequencies, dtype=np.float64)

@@ -118,11 +118,42 @@ def _fine_grid(series, substeps: int, hold: str):
 def simulate(model, params, data_or_times, n_paths: int = 1, method: str = "euler", seed: int = 0,
              substeps: int = 10, hold: str = "zoh", calculus: str = "ito", time: str = "t",
              time_unit: str | None = None, noise: bool = True) -> Simulation:
-    """Simulate ``n_paths`` seeded, reproducible sample paths; see the module docstring.
+    """Seeded, reproducible sample paths of a model's states and noisy observations (section 2.5).
 
-    With ``noise=False`` the deterministic part alone is solved (the ODE from
-    the initial mean, no process or observation noise): the model's simulation
-    of the measured outputs (section 5.3).
+    Parameters
+    ----------
+    model : Model
+        The model.
+    params : mapping of str to float
+        The parameters' values.
+    data_or_times : pandas.DataFrame or array_like
+        The times and the inputs, or the times alone for a model without inputs.
+    n_paths : int
+        The number of paths.
+    method : {"euler", "milstein", "heun", "exact"}
+        The scheme (``"exact"``: the exact discretisation of a linear model).
+    seed : int
+        The random seed.
+    substeps : int
+        Integration steps per sampling interval.
+    hold : {"zoh", "foh"}
+        How inputs are held between samples.
+    calculus : {"ito", "stratonovich"}
+        The stochastic calculus the equations are written in.
+    time : str
+        The name of the time column.
+    time_unit : str, optional
+        The unit of elapsed time for timestamps.
+    noise : bool
+        False: the deterministic part alone (the ODE from the initial mean, no
+        process or observation noise), the model's simulation of the measured
+        outputs (section 5.3).
+
+    Returns
+    -------
+    Simulation
+        ``frame(i)``: the i-th path as a DataFrame (time, inputs, states, outputs);
+        ``to_frame()``: all paths with a ``path`` column.
     """
     structure = model.structure
     if method not in METHODS:

@@ -24,12 +24,25 @@ from ..estimate.transforms import Transform
 
 
 def parameter_draws(fit, draws: int = 200, seed: int = 0, posterior=None) -> np.ndarray:
-    """θ vectors (draws, all parameters in the model's order) with the fit's uncertainty.
+    """Parameter vectors drawn with the fit's uncertainty.
 
-    From ``posterior`` (a [`Posterior`][greyid.uncertainty.sampling.Posterior]: its draws resampled,
-    seeded) or from the Laplace approximation in z.  Parameters without a
-    standard error (at a bound, fixed) stay at their estimates, with a warning
-    for free ones.
+    Parameters
+    ----------
+    fit : FitResult
+        The fit.
+    draws : int
+        The number of vectors.
+    seed : int
+        The random seed.
+    posterior : Posterior, optional
+        Resample its draws (seeded) instead of drawing from the Laplace approximation in z.
+
+    Returns
+    -------
+    numpy.ndarray
+        (draws, parameters), all parameters in the model's order; those without a
+        standard error (at a bound, fixed) stay at their estimates, with a warning
+        for free ones.
     """
     if not isinstance(draws, (int, np.integer)) or draws < 2:
         raise ModelError(f"draws must be an integer of at least 2, got {draws!r}")
@@ -88,11 +101,31 @@ def _check_level(interval):
 
 def predict(fit, data=None, steps: int = 1, interval: float = 0.95, draws: int = 200, seed: int = 0,
             posterior=None) -> pd.DataFrame:
-    """``steps``-ahead predictions with intervals that include the parameters' uncertainty.
+    """Predictions ``steps`` samples ahead with intervals that include the parameters' uncertainty.
 
-    Columns: the time column; per output its mean, ``<y>_sd`` (the total
-    standard deviation), ``<y>_lower``/``<y>_upper`` (the mixture's central
-    ``interval``) and ``<y>_sd_noise`` (at θ̂ alone, as ``fit.predict``).
+    Parameters
+    ----------
+    fit : FitResult
+        The fit.
+    data : pandas.DataFrame, optional
+        Other data (default: the fit's); rows of future inputs with missing outputs forecast.
+    steps : int
+        The horizon in samples.
+    interval : float
+        The level of the central interval.
+    draws : int
+        Parameter vectors drawn (Laplace approximation, or ``posterior``).
+    seed : int
+        Their random seed.
+    posterior : Posterior, optional
+        Draws from ``fit.sample()`` to use instead of the Laplace approximation.
+
+    Returns
+    -------
+    pandas.DataFrame
+        The time column; per output its mean, ``<y>_sd`` (the total standard
+        deviation), ``<y>_lower`` and ``<y>_upper`` (the mixture's central
+        interval) and ``<y>_sd_noise`` (at θ̂ alone, as ``fit.predict``).
     """
     from ..filters.api import predict_draws
 
@@ -124,8 +157,32 @@ def simulate(fit, data=None, n_paths: int = 200, interval: float = 0.95, seed: i
              parameter_uncertainty: bool = True, method: str = "euler", **options) -> pd.DataFrame:
     """Quantile bands of simulated outputs, each path with its own parameter draw (or all at θ̂).
 
-    Columns: the time column; per output the mean over paths and
-    ``<y>_lower``/``<y>_upper`` (the central ``interval`` of the paths).
+    Parameters
+    ----------
+    fit : FitResult
+        The fit.
+    data : pandas.DataFrame, optional
+        Times and inputs (default: the fit's data).
+    n_paths : int
+        The number of paths.
+    interval : float
+        The level of the central band.
+    seed : int
+        The random seed.
+    posterior : Posterior, optional
+        Draws from ``fit.sample()`` to use instead of the Laplace approximation.
+    parameter_uncertainty : bool
+        A parameter draw per path (False: every path at θ̂).
+    method : {"euler", "milstein", "heun", "exact"}
+        The integration scheme.
+    **options
+        ``substeps``, ``calculus``, ``noise`` (see ``Model.simulate``).
+
+    Returns
+    -------
+    pandas.DataFrame
+        The time column; per output the mean over paths and ``<y>_lower``,
+        ``<y>_upper`` (the central band of the paths).
     """
     _check_level(interval)
     if not isinstance(n_paths, (int, np.integer)) or n_paths < 2:
@@ -154,12 +211,23 @@ def simulate(fit, data=None, n_paths: int = 200, interval: float = 0.95, seed: i
 
 
 def plot_intervals(table: pd.DataFrame, data: pd.DataFrame | None = None, title: str | None = None):
-    """A figure of a [`predict()`][greyid.uncertainty.intervals.predict] or
-    [`simulate()`][greyid.uncertainty.intervals.simulate] table: the mean, the band and the measured outputs.
+    """A figure of a prediction or simulation table: the mean, the band and the measured outputs.
 
-    The outputs are the columns with ``_lower``/``_upper`` companions, the time
-    the table's first column; ``data`` (the measured outputs, rows aligned with
-    the table's) adds the measurements as dots.
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        A [`predict()`][greyid.uncertainty.intervals.predict] or
+        [`simulate()`][greyid.uncertainty.intervals.simulate] table: the outputs
+        are the columns with ``_lower`` and ``_upper`` companions, the time its first column.
+    data : pandas.DataFrame, optional
+        The measured outputs (rows aligned with the table's), drawn as dots.
+    title : str, optional
+        The figure's title.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure.
     """
     from ..validation.plots import band_figure
 

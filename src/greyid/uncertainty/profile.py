@@ -97,17 +97,39 @@ def _grid(fit, name, estimate, se, values, n, span, lower, upper):
 
 def profile(fit, name: str, values=None, n: int = 21, span: float = 3.0, expression: str | None = None
             ) -> pd.DataFrame:
-    """The profile of the fit's criterion in one parameter or derived quantity.
+    """The profile of a fit's criterion in one parameter or derived quantity.
 
-    ``values`` where to hold it (default: ``n`` points over the estimate ± ``span``
-    standard errors, within the bounds).  Each point re-estimates the other
-    parameters, warm-started from its neighbour towards the estimate, with the
-    fit's compiled programs.  A derived quantity is one declared on the model
-    (``model.add_derived``) or given as ``expression``.  Returns a DataFrame with
-    a column named as the quantity, ``loglik`` (the profile log-likelihood; for
-    MAP, robust or k-step fits the column is ``criterion``), the re-estimated
-    parameters, ``converged``, and ``deviance`` = 2(ℓ̂ − ℓ_p); ``attrs`` holds the
-    estimate, the maximum and the 95 % χ² threshold.
+    Each point re-estimates the other parameters, warm-started from its neighbour
+    towards the estimate, with the fit's compiled programs.
+
+    Parameters
+    ----------
+    fit : FitResult
+        The fit.
+    name : str
+        A parameter, or a derived quantity declared on the model (``add_derived``).
+    values : array_like, optional
+        Where to hold it (default: ``n`` points over the estimate ± ``span``
+        standard errors, within the bounds).
+    n : int
+        The number of points of the default grid.
+    span : float
+        The default grid's half-width, in standard errors.
+    expression : str, optional
+        A derived quantity given as an expression in the parameters, named ``name``.
+
+    Returns
+    -------
+    pandas.DataFrame
+        A column named as the quantity, ``loglik`` (the profile log-likelihood;
+        ``criterion`` for MAP, robust or k-step fits), the re-estimated parameters,
+        ``converged`` and ``deviance`` = 2(ℓ̂ − ℓ_p); ``attrs`` holds the estimate,
+        the maximum and the 95 % χ² threshold.
+
+    Raises
+    ------
+    ModelError
+        A name that is neither a parameter nor a derived quantity.
     """
     derived = expression is not None or (name not in fit.params.index and name in fit.model.derived)
     if derived:
@@ -217,17 +239,32 @@ def _derived_profile(fit, label, expression, values, n, span) -> pd.DataFrame:
 
 # ------------------------------------------------------------------ intervals
 def profile_interval(fit, name: str, level: float = 0.95, notes: list | None = None) -> tuple[float, float]:
-    """The ends of the profile-likelihood interval of one parameter (root finding on the profile).
+    """The ends of the profile-likelihood interval of one parameter.
 
-    On each side the root of √(2(ℓ̂ − ℓ_p)) = √χ²₁(level) along the optimiser's
-    coordinate of the parameter (log or logistic where it is bounded): that
-    signed root deviance is nearly linear there, so secant steps from the Wald
-    guess bracket the end in a few refits and regula falsi closes it.  An end
-    that reaches the parameter's bound is the bound, with a `FitWarning`
-    naming it; NaN where the profile stays below the threshold for MAX_STEPS steps.
-    With ``notes`` (a list) those messages are appended to it instead of warned
-    (the warnings machinery is process-wide: a report computes the intervals in a
-    thread of their own).
+    On each side, the root of √(2(ℓ̂ − ℓ_p)) = √χ²₁(level) along the optimiser's
+    coordinate of the parameter (log or logistic where it is bounded): that signed
+    root deviance is nearly linear there, so secant steps from the Wald guess
+    bracket the end in a few refits and regula falsi closes it.
+
+    Parameters
+    ----------
+    fit : FitResult
+        The fit.
+    name : str
+        A free parameter.
+    level : float
+        The confidence level.
+    notes : list, optional
+        Where to append the messages (an end at a bound, an end not found) instead
+        of warning them (the warnings machinery is process-wide: a report computes
+        the intervals in a thread of its own).
+
+    Returns
+    -------
+    tuple of float
+        ``(lower, upper)``: an end that reaches the parameter's bound is the bound,
+        with a ``FitWarning`` naming it; NaN where the profile stays below the
+        threshold.
     """
     threshold = float(stats.chi2.ppf(level, 1))
     with _ParameterProfile(fit, name) as points:
@@ -307,9 +344,23 @@ def _interval_end(fit, name, points, transform, z_hat, step, threshold, side, le
 
 
 def profile_intervals(fit, level: float = 0.95, names=None, notes: list | None = None) -> pd.DataFrame:
-    """``lower`` and ``upper`` of the profile-likelihood interval of each free parameter (NaN for fixed ones).
+    """The profile-likelihood interval of each free parameter.
 
-    ``notes``: see [`profile_interval()`][greyid.uncertainty.profile.profile_interval].
+    Parameters
+    ----------
+    fit : FitResult
+        The fit.
+    level : float
+        The confidence level.
+    names : sequence of str, optional
+        The parameters (default: every free one).
+    notes : list, optional
+        As for [`profile_interval()`][greyid.uncertainty.profile.profile_interval].
+
+    Returns
+    -------
+    pandas.DataFrame
+        ``lower`` and ``upper`` per parameter (NaN for fixed ones).
     """
     if not 0 < level < 1:
         raise ModelError(f"level must lie between 0 and 1, got {level!r}")
@@ -323,8 +374,22 @@ def profile_intervals(fit, level: float = 0.95, names=None, notes: list | None =
 
 
 def plot_profile(table: pd.DataFrame, ax=None, wald_se: float | None = None):
-    """The deviance 2(ℓ̂ − ℓ_p) of a `profile()` table with the 95 % χ² threshold (and the Wald parabola);
-    returns the Figure (drawn on ``ax`` where given, else on a new one), as greyid's other plots do."""
+    """The deviance 2(ℓ̂ − ℓ_p) of a profile, with the 95 % χ² threshold and the Wald parabola.
+
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        A `profile()` table.
+    ax : matplotlib.axes.Axes, optional
+        Where to draw (default: a new figure).
+    wald_se : float, optional
+        The parameter's standard error: draws the Wald parabola.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure (greyid's plots never show a window).
+    """
     if ax is None:
         from matplotlib.figure import Figure
 

@@ -137,12 +137,34 @@ def laplace_z(refit: Refit) -> np.ndarray:
 
 def sample(fit, draws: int = 1000, chains: int = 4, seed: int = 0, warmup: int = 500,
            target_accept: float = 0.8) -> Posterior:
-    """NUTS draws from the posterior of the fit's criterion; see the module doc.
+    """NUTS draws from the posterior of a fit's criterion (BlackJAX).
 
-    ``chains`` run in parallel (``vmap``), each from a draw of the Laplace
-    approximation, with ``warmup`` adaptation steps before ``draws`` kept ones.
-    Returns a [`Posterior`][greyid.uncertainty.sampling.Posterior] (draws, R-hat, ESS, divergences; ArviZ
-    ``InferenceData`` through ``to_inference_data()``).
+    Parameters
+    ----------
+    fit : FitResult
+        The fit: its criterion (with its prior, for MAP) is the log-density, in the
+        optimiser's coordinates with the transforms' Jacobian.
+    draws : int
+        Draws kept per chain.
+    chains : int
+        Chains, run in parallel (``vmap``), each started from a draw of the Laplace approximation.
+    seed : int
+        The random seed.
+    warmup : int
+        Adaptation steps before the kept draws.
+    target_accept : float
+        The step-size adaptation's target acceptance rate.
+
+    Returns
+    -------
+    Posterior
+        Draws, R-hat, effective sample sizes and divergences; ArviZ's
+        ``InferenceData`` through ``to_inference_data()``.
+
+    Raises
+    ------
+    ModelError
+        BlackJAX or ArviZ is not installed (``pip install "greyid[sampling]"``).
     """
     try:
         import blackjax
