@@ -92,7 +92,7 @@ DOCUMENTED = ["greyid.model.model.Model", "greyid.estimate.results.FitResult", "
               "greyid.estimate.likelihood.Likelihood", "greyid.fleet.fit.fit_many", "greyid.fleet.result.FleetResult",
               "greyid.fleet.population.relate", "greyid.population.fit.fit_population",
               "greyid.population.result.PopulationResult", "greyid.population.result.likelihood_ratio",
-              "greyid.population.saved.load_population", "greyid.data.named.fetch",
+              "greyid.population.saved.load_population", "greyid.data.named.fetch", "greyid.data.annex58.ten_minutes",
               "greyid.design.information.fisher_information", "greyid.design.information.local_identifiability",
               "greyid.design.criteria.cramer_rao_bound", "greyid.design.criteria.criterion",
               "greyid.design.criteria.average_criterion", "greyid.design.criteria.minimax_criterion",
@@ -110,7 +110,25 @@ DOCUMENTED = ["greyid.model.model.Model", "greyid.estimate.results.FitResult", "
               "greyid.simulate.simulate.simulate", "greyid.library.available", "greyid.library.load_model",
               "greyid.library.names", "greyid.library.rc_network", "greyid.library.walls.wall_model",
               "greyid.library.walls.lumped_wall", "greyid.library.walls.wall_frequency_response",
-              "greyid.library.walls.ladder_polynomials"]
+              "greyid.library.walls.ladder_polynomials",
+              "greyid.validation.independence.acf", "greyid.validation.independence.pacf",
+              "greyid.validation.independence.ljung_box", "greyid.validation.independence.turning_point_test",
+              "greyid.validation.independence.difference_sign_test", "greyid.validation.independence.rank_test",
+              "greyid.validation.independence.ks_normality", "greyid.validation.spectral.periodogram",
+              "greyid.validation.spectral.cumulative_periodogram",
+              "greyid.validation.spectral.cumulative_periodogram_test",
+              "greyid.validation.spectral.cross_correlation", "greyid.validation.spectral.input_correlation_test",
+              "greyid.validation.spectral.coherency", "greyid.validation.spectral.coherency_test",
+              "greyid.validation.bispectral.bispectrum", "greyid.validation.bispectral.gaussianity_test",
+              "greyid.validation.bispectral.linearity_test", "greyid.validation.structure.lr_test",
+              "greyid.validation.structure.wald_test", "greyid.validation.structure.lm_test",
+              "greyid.validation.structure.cross_validation_test", "greyid.validation.structure.approximation_test",
+              "greyid.validation.structure.simulated_datasets", "greyid.validation.structure.compare_fits",
+              "greyid.validation.structure.fpe", "greyid.validation.selection.select_forward",
+              "greyid.validation.bayes.posterior_odds", "greyid.validation.bayes.log_marginal_likelihood",
+              "greyid.validation.simulation.simulation_check", "greyid.validation.simulation.parameter_bootstrap",
+              "greyid.validation.validate.validate", "greyid.validation.plots.residual_dashboard",
+              "greyid.validation.plots.coherency_figure"]
 
 
 #: Classes greyid makes (a fit's result, a likelihood), never built by a user: their constructor's arguments

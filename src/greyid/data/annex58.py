@@ -74,7 +74,22 @@ def _azimuth(times, latitude: float, longitude: float) -> np.ndarray:
 
 
 def ten_minutes(minutes: pd.DataFrame) -> pd.DataFrame:
-    """The exercise's 10-minute data from the 1-minute series (``t`` timestamps in UTC)."""
+    """The Annex 58 exercise's 10-minute data from its 1-minute series, as the course's R code derives them.
+
+    Parameters
+    ----------
+    minutes : pandas.DataFrame
+        The 1-minute series (``greyid.datasets.fetch("annex58_ce4_1min")``), its
+        ``t`` timestamps in UTC.
+
+    Returns
+    -------
+    pandas.DataFrame
+        10-minute averages from the first whole hour after the removed start: ``t``,
+        ``Ti`` and ``Te`` (the means of the two sensors), ``deltaT``, ``Qi``, ``Gv``,
+        ``tod`` (the hour of day) and the sun's position; the data set
+        ``annex58_ce4_10min``.
+    """
     frame = minutes.copy()
     frame["t"] = pd.to_datetime(frame["t"])
     x = _resample(frame, 600)

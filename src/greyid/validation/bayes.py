@@ -33,7 +33,20 @@ class BayesComparison:
 
 
 def log_marginal_likelihood(fit, prior=None) -> float:
-    """Laplace approximation of log p(y|H) for a fit; ``prior`` as in ``fit(criterion='map')``."""
+    """The Laplace approximation of log p(y | H) for a fit.
+
+    Parameters
+    ----------
+    fit : FitResult
+        The fit.
+    prior : dict, optional
+        The parameter prior, as in ``fit(criterion="map")`` (default: the fit's).
+
+    Returns
+    -------
+    float
+        log p(y | H).
+    """
     spec = prior if prior is not None else fit.settings.get("prior")
     if spec is None:
         raise ModelError(f"the fit of '{fit.model.name}' has no prior; the marginal likelihood needs a proper "
@@ -62,11 +75,29 @@ def log_marginal_likelihood(fit, prior=None) -> float:
 
 def posterior_odds(fit0, fit1, prior_h0: float = 0.5, loss_accept_h1: float = 1.0, loss_accept_h0: float = 1.0,
                    prior0=None, prior1=None) -> BayesComparison:
-    """Compare H₀ (``fit0``) with H₁ (``fit1``) on the same data (5.16–5.24).
+    """Compare two hypotheses by their posterior odds and the Bayes decision (5.16–5.24).
 
-    ``loss_accept_h1`` is L(H₀, Ĥ₁), the loss of choosing H₁ when H₀ is true;
-    ``loss_accept_h0`` is L(H₁, Ĥ₀).  ``prior0``/``prior1`` give the parameter
-    priors where the fits were not MAP fits.
+    Parameters
+    ----------
+    fit0 : FitResult
+        The fit under H₀.
+    fit1 : FitResult
+        The fit under H₁, of the same data.
+    prior_h0 : float
+        The prior probability of H₀.
+    loss_accept_h1 : float
+        L(H₀, Ĥ₁), the loss of choosing H₁ when H₀ is true.
+    loss_accept_h0 : float
+        L(H₁, Ĥ₀), the loss of choosing H₀ when H₁ is true.
+    prior0, prior1 : dict, optional
+        The parameter priors where the fits were not MAP fits.
+
+    Returns
+    -------
+    BayesComparison
+        ``log_marginal`` (both hypotheses), ``log_bayes_factor``, ``posterior_odds``,
+        ``posterior_h0``, the expected losses of each decision (5.19–5.20) and the
+        ``decision``, ``"H0"`` or ``"H1"``.
     """
     if not 0 < prior_h0 < 1:
         raise ModelError(f"prior_h0 must lie strictly between 0 and 1, got {prior_h0}")

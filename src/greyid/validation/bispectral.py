@@ -47,10 +47,23 @@ def _spectrum(X: np.ndarray, n: int, half_width: int) -> np.ndarray:
 
 
 def bispectrum(x, side: int | None = None, dt: float = 1.0) -> Bispectrum:
-    """Normalised bispectrum averaged over squares of ``side`` × ``side`` frequency pairs.
+    """The normalised bispectrum, averaged over squares of ``side`` × ``side`` frequency pairs.
 
-    ``side`` defaults to ⌊n^0.5⌋ (Hinich's choice); squares holding fewer than a
-    quarter of their pairs inside the principal domain are left out.
+    Squares holding fewer than a quarter of their pairs inside the principal domain are left out.
+
+    Parameters
+    ----------
+    x : array_like or pandas.Series
+        The series (standardised residuals; NaN where unobserved are left out).
+    side : int, optional
+        The squares' side (default ⌊n^0.5⌋, Hinich's choice).
+    dt : float
+        The sampling interval.
+
+    Returns
+    -------
+    Bispectrum
+        ``squares`` (each square's frequencies and normalised bispectrum), ``side`` and ``n``.
     """
     values = residual_series(x, MINIMUM_LENGTH, "series for the bispectrum")
     n = len(values)
@@ -92,7 +105,20 @@ def bispectrum(x, side: int | None = None, dt: float = 1.0) -> Bispectrum:
 
 
 def gaussianity_test(x, side: int | None = None) -> TestResult:
-    """Hinich's test of a zero bispectrum: Σ 2|Z_s|² ~ χ²(2P) for a Gaussian series."""
+    """Hinich's test of a zero bispectrum: Σ 2|Z_s|² ~ χ²(2P) for a Gaussian series.
+
+    Parameters
+    ----------
+    x : array_like or pandas.Series
+        The series (standardised residuals; NaN where unobserved are left out).
+    side : int, optional
+        The squares' side (default ⌊n^0.5⌋).
+
+    Returns
+    -------
+    TestResult
+        ``test``, ``statistic``, ``df`` and ``p_value``; ``reject(level)``.
+    """
     b = bispectrum(x, side)
     stat = float(b.squares["statistic"].sum())
     df = 2.0 * len(b.squares)
@@ -109,14 +135,27 @@ def _iqr_excess(values: np.ndarray) -> float:
 
 
 def linearity_test(x, side: int | None = None, draws: int = 2000) -> TestResult:
-    """Hinich's test of a constant normalised bispectrum (linearity), one-sided on the IQR.
+    """Hinich's test of a constant normalised bispectrum (linearity), one-sided on the interquartile range.
 
     The statistic is the excess of the interquartile range of 2|Z_s|² over full
     squares above that of χ²(2, λ̂).  With the few squares a series of a few
-    hundred values gives, the asymptotic normal law of the IQR is far off (and
-    λ̂ is estimated), so the p-value comes from ``draws`` samples of the
-    χ²(2, λ̂) model itself with λ re-estimated in each (a fixed seed: the same
-    series always gets the same p-value).
+    hundred values gives, the asymptotic law of the IQR is far off, so the p-value
+    comes from ``draws`` samples of the χ²(2, λ̂) model itself (a fixed seed: the
+    same series always gets the same p-value).
+
+    Parameters
+    ----------
+    x : array_like or pandas.Series
+        The series (standardised residuals; NaN where unobserved are left out).
+    side : int, optional
+        The squares' side (default ⌊n^0.5⌋).
+    draws : int
+        Samples of the null model.
+
+    Returns
+    -------
+    TestResult
+        ``test``, ``statistic``, ``df`` and ``p_value``; ``reject(level)``.
     """
     b = bispectrum(x, side)
     full = b.squares[b.squares["n_pairs"] == b.side * b.side]["statistic"].to_numpy()

@@ -22,7 +22,22 @@ def _band(n: int, level: float) -> float:
 
 
 def acf(x, lags: int | None = None, level: float = 0.05) -> pd.DataFrame:
-    """Sample autocorrelation at lags 1..``lags`` with the white-noise band ±z/√n."""
+    """The sample autocorrelation at lags 1 to ``lags``, with the white-noise band ±z/√n.
+
+    Parameters
+    ----------
+    x : array_like or pandas.Series
+        The series (standardised residuals; NaN where unobserved are left out).
+    lags : int, optional
+        The largest lag (default: from the series' length).
+    level : float
+        The band's significance level.
+
+    Returns
+    -------
+    pandas.DataFrame
+        ``acf`` and the band's ``lower`` and ``upper``, indexed by lag.
+    """
     values = residual_series(x, 4)
     lags = check_lags(lags, len(values), 20)
     r = _acf(values, nlags=lags, fft=True)[1:]
@@ -31,7 +46,22 @@ def acf(x, lags: int | None = None, level: float = 0.05) -> pd.DataFrame:
 
 
 def pacf(x, lags: int | None = None, level: float = 0.05) -> pd.DataFrame:
-    """Sample partial autocorrelation (Durbin–Levinson) with the band ±z/√n."""
+    """The sample partial autocorrelation (Durbin–Levinson), with the band ±z/√n.
+
+    Parameters
+    ----------
+    x : array_like or pandas.Series
+        The series (standardised residuals; NaN where unobserved are left out).
+    lags : int, optional
+        The largest lag (default: from the series' length).
+    level : float
+        The band's significance level.
+
+    Returns
+    -------
+    pandas.DataFrame
+        ``pacf`` and the band's ``lower`` and ``upper``, indexed by lag.
+    """
     values = residual_series(x, 4)
     lags = check_lags(lags, len(values), 20)
     lags = min(lags, len(values) // 2 - 1)
@@ -41,7 +71,20 @@ def pacf(x, lags: int | None = None, level: float = 0.05) -> pd.DataFrame:
 
 
 def ljung_box(x, lags: int | None = None) -> TestResult:
-    """Portmanteau test Q = n(n+2) Σ r_h²/(n−h) ~ χ²(lags) for white residuals."""
+    """The portmanteau test of white residuals: Q = n(n+2) Σ r_h²/(n−h) ~ χ²(lags).
+
+    Parameters
+    ----------
+    x : array_like or pandas.Series
+        The series (standardised residuals; NaN where unobserved are left out).
+    lags : int, optional
+        The number of autocorrelations summed (default: from the series' length).
+
+    Returns
+    -------
+    TestResult
+        ``test``, ``statistic``, ``df`` and ``p_value``; ``reject(level)``.
+    """
     values = residual_series(x, 8)
     n = len(values)
     lags = check_lags(lags, n, 20)
@@ -56,7 +99,18 @@ def _normal_test(name: str, observed: float, mean: float, variance: float) -> Te
 
 
 def turning_point_test(x) -> TestResult:
-    """Number of turning points T: mean 2(n−2)/3, variance (16n−29)/90 under i.i.d."""
+    """The turning-point test of an i.i.d. series: T has mean 2(n−2)/3 and variance (16n−29)/90.
+
+    Parameters
+    ----------
+    x : array_like or pandas.Series
+        The series (standardised residuals; NaN where unobserved are left out).
+
+    Returns
+    -------
+    TestResult
+        ``test``, ``statistic``, ``df`` and ``p_value``; ``reject(level)``.
+    """
     values = residual_series(x, 8)
     n = len(values)
     a, b, c = values[:-2], values[1:-1], values[2:]
@@ -65,7 +119,18 @@ def turning_point_test(x) -> TestResult:
 
 
 def difference_sign_test(x) -> TestResult:
-    """Number of increases S: mean (n−1)/2, variance (n+1)/12 under i.i.d."""
+    """The difference-sign test of an i.i.d. series: the increases S have mean (n−1)/2 and variance (n+1)/12.
+
+    Parameters
+    ----------
+    x : array_like or pandas.Series
+        The series (standardised residuals; NaN where unobserved are left out).
+
+    Returns
+    -------
+    TestResult
+        ``test``, ``statistic``, ``df`` and ``p_value``; ``reject(level)``.
+    """
     values = residual_series(x, 8)
     n = len(values)
     increases = np.sum(np.diff(values) > 0)
@@ -73,7 +138,18 @@ def difference_sign_test(x) -> TestResult:
 
 
 def rank_test(x) -> TestResult:
-    """Pairs i < j with x_j > x_i, P: mean n(n−1)/4, variance n(n−1)(2n+5)/72 (a trend test)."""
+    """The rank test of a trend: the pairs i < j with x_j > x_i, P, have mean n(n−1)/4 and variance n(n−1)(2n+5)/72.
+
+    Parameters
+    ----------
+    x : array_like or pandas.Series
+        The series (standardised residuals; NaN where unobserved are left out).
+
+    Returns
+    -------
+    TestResult
+        ``test``, ``statistic``, ``df`` and ``p_value``; ``reject(level)``.
+    """
     values = residual_series(x, 8)
     n = len(values)
     pairs = n * (n - 1) / 2
@@ -83,10 +159,24 @@ def rank_test(x) -> TestResult:
 
 
 def ks_normality(x, mean: float = 0.0, sd: float = 1.0) -> TestResult:
-    """Kolmogorov–Smirnov D = sup |F_n − Φ| against N(mean, sd²) (5.2.2).
+    """The Kolmogorov–Smirnov test of normality, D = sup |F_n − Φ| against N(mean, sd²) (5.2.2).
 
-    Standardised residuals are N(0, 1) under the model, with nothing estimated
-    from them, so the exact KS distribution applies.
+    Standardised residuals are N(0, 1) under the model, with nothing estimated from
+    them, so the exact KS distribution applies.
+
+    Parameters
+    ----------
+    x : array_like or pandas.Series
+        The series (standardised residuals; NaN where unobserved are left out).
+    mean : float
+        The normal distribution's mean.
+    sd : float
+        Its standard deviation.
+
+    Returns
+    -------
+    TestResult
+        ``test``, ``statistic``, ``df`` and ``p_value``; ``reject(level)``.
     """
     values = residual_series(x, 8)
     res = stats.kstest((values - mean) / sd, "norm")

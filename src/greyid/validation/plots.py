@@ -28,7 +28,30 @@ def _stem(ax, frame: pd.DataFrame, column: str, title: str) -> None:
 def residual_dashboard(residuals: pd.Series, inputs: pd.DataFrame | None = None, times=None,
                        lags: int | None = None, level: float = 0.05, title: str | None = None,
                        time_label: str = "time") -> Figure:
-    """Residuals over time, ACF, PACF, cumulative periodogram, histogram, QQ and input cross-correlations."""
+    """A residual dashboard: residuals over time, ACF, PACF, cumulative periodogram, histogram, QQ, input correlations.
+
+    Parameters
+    ----------
+    residuals : pandas.Series
+        Standardised residuals.
+    inputs : pandas.DataFrame, optional
+        The inputs, for the cross-correlations.
+    times : array_like, optional
+        The residuals' times.
+    lags : int, optional
+        The correlations' largest lag.
+    level : float
+        The bands' significance level.
+    title : str, optional
+        The figure's title.
+    time_label : str
+        The time axis' label.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure.
+    """
     values = residual_series(residuals, 8)
     fig = Figure(figsize=(12, 9), layout="constrained")
     grid = fig.add_gridspec(3, 3)
@@ -84,7 +107,28 @@ def residual_dashboard(residuals: pd.Series, inputs: pd.DataFrame | None = None,
 
 def coherency_figure(residuals: pd.Series, inputs: pd.DataFrame, m: int | None = None, dt: float = 1.0,
                      level: float = 0.05, time_unit: str | None = None) -> Figure:
-    """Squared coherency with each input and the multiple coherency, with the (7.42) critical levels."""
+    """The squared coherency with each input and the multiple coherency, with the (7.42) critical levels.
+
+    Parameters
+    ----------
+    residuals : pandas.Series
+        Standardised residuals.
+    inputs : pandas.DataFrame
+        The inputs.
+    m : int, optional
+        The Daniell smoother's half-width.
+    dt : float
+        The sampling interval.
+    level : float
+        The critical levels' significance level.
+    time_unit : str, optional
+        The time unit, for the frequency axis' label.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure.
+    """
     from ..model.units import pretty
 
     coh = coherency(residuals, inputs, m=m, dt=dt, level=level)

@@ -39,15 +39,31 @@ def _why_below(fit) -> str:
 
 
 def select_forward(candidates, data, level: float = 0.05, **fit_options) -> ForwardSelection:
-    """Fit ``candidates`` in order and stop when the LR test no longer prefers the extension.
+    """Forward model selection: fit candidates in order and stop when the LR test no longer prefers the extension.
 
-    ``candidates`` is a list whose items are models, lists of alternative
-    models (the extensions tried at that step), or functions that take the
-    model chosen so far and return that list; each step's models must nest
-    the model chosen before.  ``fit_options`` go to every ``fit`` call.  Each
-    extension is fitted from the chosen model's fit (``init_from``, where the
+    Each extension is fitted from the chosen model's fit (``init_from``, where the
     extension reduces to it) as well as from the usual starts; an extension that
     still ends below the model it extends is reported with the reason.
+
+    Parameters
+    ----------
+    candidates : list
+        Items that are models, lists of alternative models (the extensions tried at
+        that step), or functions that take the model chosen so far and return that
+        list; each step's models must nest the model chosen before.
+    data : pandas.DataFrame
+        The data.
+    level : float
+        The LR test's significance level.
+    **fit_options
+        Settings of every ``fit`` call.
+
+    Returns
+    -------
+    ForwardSelection
+        ``table`` (every model tried: log L, parameters, the LR test against the
+        model it extends, whether it was chosen), ``fits`` by model name and
+        ``chosen``, the chosen model's fit.
     """
     steps = [c if isinstance(c, (list, tuple)) or callable(c) else [c] for c in candidates]
     if len(steps) < 2 or callable(steps[0]) or not steps[0]:

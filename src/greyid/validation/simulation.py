@@ -56,7 +56,29 @@ def _simulate(fit, params, data, **options):
 
 def simulation_check(fit, data=None, n_paths: int = 200, seed: int = 0, level: float = 0.05,
                      substeps: int = 20) -> SimulationCheck:
-    """Deterministic simulation and a ``n_paths`` Monte Carlo band against the measurements."""
+    """The deterministic simulation and a Monte Carlo band of ``n_paths`` paths against the measurements.
+
+    Parameters
+    ----------
+    fit : FitResult
+        The fit.
+    data : pandas.DataFrame, optional
+        Other data (default: the fit's).
+    n_paths : int
+        Simulated paths.
+    seed : int
+        Their random seed.
+    level : float
+        The band's significance level.
+    substeps : int
+        Integration steps per sampling interval.
+
+    Returns
+    -------
+    SimulationCheck
+        ``frame`` (per output: measured, simulated, the band and the paths' mean),
+        ``rmse`` and ``coverage`` (the fraction of measurements inside the band) per output.
+    """
     frame = _frame_of(fit, data)
     outputs = fit.model.output_names
     det = _simulate(fit, fit.values, frame, noise=False, substeps=substeps)
@@ -79,7 +101,29 @@ def simulation_check(fit, data=None, n_paths: int = 200, seed: int = 0, level: f
 
 def parameter_bootstrap(fit, data=None, n_samples: int = 100, seed: int = 0, level: float = 0.05,
                         substeps: int = 20) -> ParameterBootstrap:
-    """Deterministic simulations at ``n_samples`` draws from N(θ̂, Σ̂) (draws outside the bounds redrawn)."""
+    """Deterministic simulations at draws from N(θ̂, Σ̂) (draws outside the bounds redrawn).
+
+    Parameters
+    ----------
+    fit : FitResult
+        The fit.
+    data : pandas.DataFrame, optional
+        Other data (default: the fit's).
+    n_samples : int
+        Parameter draws.
+    seed : int
+        Their random seed.
+    level : float
+        The band's significance level.
+    substeps : int
+        Integration steps per sampling interval.
+
+    Returns
+    -------
+    ParameterBootstrap
+        ``samples`` (the accepted draws), ``frame`` (per output: measured, simulated at
+        θ̂ and the band) and ``rejected`` (draws outside the bounds, drawn again).
+    """
     frame = _frame_of(fit, data)
     free = list(fit.cov.index)
     cov = fit.cov.to_numpy()

@@ -31,7 +31,20 @@ def _fourier(values: np.ndarray) -> tuple[np.ndarray, int]:
 
 
 def periodogram(x, dt: float = 1.0) -> pd.Series:
-    """I(ω_j) = |Σ x_t e^{−iω_j t}|²/n at the Fourier frequencies j/(n·dt), j = 1..⌊(n−1)/2⌋."""
+    """The periodogram I(ω_j) = |Σ x_t e^{−iω_j t}|²/n at the Fourier frequencies j/(n·dt), j = 1 … ⌊(n−1)/2⌋.
+
+    Parameters
+    ----------
+    x : array_like or pandas.Series
+        The series (standardised residuals; NaN where unobserved are left out).
+    dt : float
+        The sampling interval.
+
+    Returns
+    -------
+    pandas.Series
+        I, indexed by frequency.
+    """
     values = residual_series(x, 8)
     X, q = _fourier(values)
     freq = np.arange(1, q + 1) / (len(values) * dt)
@@ -39,7 +52,23 @@ def periodogram(x, dt: float = 1.0) -> pd.Series:
 
 
 def cumulative_periodogram(x, dt: float = 1.0, levels=(0.05, 0.01)) -> pd.DataFrame:
-    """C(ω_k) = Σ_{j≤k} I_j / Σ_j I_j with the white-noise line and its KS bands."""
+    """The cumulative periodogram C(ω_k) = Σ_{j≤k} I_j / Σ_j I_j, with the white-noise line and its KS bands.
+
+    Parameters
+    ----------
+    x : array_like or pandas.Series
+        The series (standardised residuals; NaN where unobserved are left out).
+    dt : float
+        The sampling interval.
+    levels : sequence of float
+        The bands' significance levels.
+
+    Returns
+    -------
+    pandas.DataFrame
+        ``cumulative``, ``white`` (the white-noise line) and ``band_<level>`` per
+        level, indexed by frequency.
+    """
     I = periodogram(x, dt)
     q = len(I)
     if q < 3:
@@ -52,7 +81,18 @@ def cumulative_periodogram(x, dt: float = 1.0, levels=(0.05, 0.01)) -> pd.DataFr
 
 
 def cumulative_periodogram_test(x) -> TestResult:
-    """KS test of the cumulative periodogram against the white-noise line."""
+    """The Kolmogorov–Smirnov test of the cumulative periodogram against the white-noise line.
+
+    Parameters
+    ----------
+    x : array_like or pandas.Series
+        The series (standardised residuals; NaN where unobserved are left out).
+
+    Returns
+    -------
+    TestResult
+        ``test``, ``statistic``, ``df`` and ``p_value``; ``reject(level)``.
+    """
     values = residual_series(x, 8)
     X, q = _fourier(values)
     I = np.abs(X) ** 2
@@ -65,10 +105,26 @@ def cumulative_periodogram_test(x) -> TestResult:
 
 
 def cross_correlation(x, u, lags: int | None = None, level: float = 0.05) -> pd.DataFrame:
-    """r_εu(h) = corr(ε_{t+h}, u_t) for h = −lags..lags, with the band ±z/√n.
+    """The cross-correlation r_εu(h) = corr(ε_{t+h}, u_t) for h = −lags … lags, with the band ±z/√n.
 
     Positive lags mean the input leads the residuals, which is where a missing
     input effect shows.  The band holds for white residuals independent of u.
+
+    Parameters
+    ----------
+    x : array_like or pandas.Series
+        The series (standardised residuals; NaN where unobserved are left out).
+    u : array_like
+        The input.
+    lags : int, optional
+        The largest lag (default: from the series' length).
+    level : float
+        The band's significance level.
+
+    Returns
+    -------
+    pandas.DataFrame
+        ``ccf`` and the band's ``lower`` and ``upper``, indexed by lag.
     """
     a, b = paired_series(x, u, 8)
     n = len(a)
@@ -84,10 +140,24 @@ def cross_correlation(x, u, lags: int | None = None, level: float = 0.05) -> pd.
 
 
 def input_correlation_test(x, u, lags: int | None = None) -> TestResult:
-    """F test that ε_t does not depend linearly on u_t, …, u_{t−lags} (5.11).
+    """The F test that the residuals do not depend linearly on u_t, …, u_{t−lags} (5.11).
 
     The residuals are regressed on an intercept and the lagged input; for white
     Gaussian residuals independent of the input the F statistic is exact.
+
+    Parameters
+    ----------
+    x : array_like or pandas.Series
+        The series (standardised residuals; NaN where unobserved are left out).
+    u : array_like
+        The input.
+    lags : int, optional
+        The input's lags (default: from the series' length).
+
+    Returns
+    -------
+    TestResult
+        ``test``, ``statistic``, ``df`` and ``p_value``; ``reject(level)``.
     """
     a, b = paired_series(x, u, 12)
     n = len(a)
@@ -181,11 +251,27 @@ def _critical(q: int, ordinates: int, level: float) -> float:
 
 
 def coherency(x, inputs, m: int | None = None, dt: float = 1.0, level: float = 0.05) -> Coherency:
-    """Squared coherency (5.10) with each input and the multiple coherency (5.13).
+    """The squared coherency with each input (5.10) and the multiple coherency (5.13).
 
-    ``inputs`` is a DataFrame (one column per input), a Series or an array;
-    ``m`` the Daniell half-width (default ≈ √n/4); ``critical`` gives the level
-    of W² above which (7.42) rejects zero coherency at one frequency.
+    Parameters
+    ----------
+    x : array_like or pandas.Series
+        The series (standardised residuals; NaN where unobserved are left out).
+    inputs : pandas.DataFrame, pandas.Series or array_like
+        One column per input.
+    m : int, optional
+        The Daniell smoother's half-width (default ≈ √n/4).
+    dt : float
+        The sampling interval.
+    level : float
+        The significance level of ``critical``.
+
+    Returns
+    -------
+    Coherency
+        ``values`` (by frequency: each input's squared coherency and the multiple
+        coherency), ``critical`` (the level of W² above which (7.42) rejects zero
+        coherency at one frequency), ``m`` and ``level``.
     """
     names, n, m, j, s_xx, s_ux, s_uu = _smoothed_spectra(x, inputs, m)
     ordinates = 2 * m + 1
@@ -200,11 +286,25 @@ def coherency(x, inputs, m: int | None = None, dt: float = 1.0, level: float = 0
 
 
 def coherency_test(x, inputs, m: int | None = None) -> TestResult:
-    """Zero multiple coherency at all frequencies: (7.42) on independent bands, Šidák-combined.
+    """The test of zero multiple coherency at all frequencies: (7.42) on independent bands, Šidák-combined.
 
     Smoothed estimates 2m + 1 ordinates apart share no periodogram ordinate and
     are independent; the smallest of their B p-values gives p = 1 − (1 − p_min)^B.
     The statistic reported is the largest multiple coherency among them.
+
+    Parameters
+    ----------
+    x : array_like or pandas.Series
+        The series (standardised residuals; NaN where unobserved are left out).
+    inputs : pandas.DataFrame, pandas.Series or array_like
+        One column per input.
+    m : int, optional
+        The Daniell smoother's half-width (default ≈ √n/4).
+
+    Returns
+    -------
+    TestResult
+        ``test``, ``statistic``, ``df`` and ``p_value``; ``reject(level)``.
     """
     names, n, m, j, s_xx, s_ux, s_uu = _smoothed_spectra(x, inputs, m)
     ordinates, q = 2 * m + 1, len(names)

@@ -36,7 +36,22 @@ def _require_ml(fit, test: str) -> None:
 
 
 def lr_test(small, big, df: int | None = None) -> TestResult:
-    """LR = −2 log(L̂₀/L̂₁) ~ χ²(r), r = dim θ₁ − dim θ₀, for nested fits on the same data (5.3)."""
+    """The likelihood-ratio test of nested fits on the same data (5.3): LR = −2 log(L̂₀/L̂₁) ~ χ²(r).
+
+    Parameters
+    ----------
+    small : FitResult
+        The restricted model's fit.
+    big : FitResult
+        The larger model's fit.
+    df : int, optional
+        r (default: the difference in free parameters).
+
+    Returns
+    -------
+    TestResult
+        ``test``, ``statistic``, ``df`` and ``p_value``; ``reject(level)``.
+    """
     _require_ml(small, "likelihood-ratio test")
     _require_ml(big, "likelihood-ratio test")
     if small.n_obs != big.n_obs:
@@ -65,10 +80,19 @@ def _restriction_text(r: str) -> str:
 
 
 def wald_test(fit, restrictions: str | Sequence[str]) -> TestResult:
-    """W = R(θ̂)ᵀ[F Σ̂ Fᵀ]⁻¹R(θ̂) ~ χ²(k) for k restrictions R(θ) = 0 (5.5).
+    """The Wald test of restrictions R(θ) = 0 (5.5): W = R(θ̂)ᵀ[F Σ̂ Fᵀ]⁻¹R(θ̂) ~ χ²(k).
 
-    Restrictions are expressions in the parameter names, ``"Ri - Ro"`` or
-    ``"Ri = Ro"``; Σ̂ is the fit's covariance, F the Jacobian of R.
+    Parameters
+    ----------
+    fit : FitResult
+        The fit; Σ̂ its covariance, F the Jacobian of R.
+    restrictions : str or sequence of str
+        Expressions in the parameters' names, ``"Ri - Ro"`` or ``"Ri = Ro"``.
+
+    Returns
+    -------
+    TestResult
+        ``test``, ``statistic``, ``df`` and ``p_value``; ``reject(level)``.
     """
     if isinstance(restrictions, str):
         restrictions = [restrictions]
@@ -133,13 +157,30 @@ def _free_names(model) -> list[str]:
 
 def lm_test(fit, model, at: dict | None = None, data=None, df: int | None = None, information: str = "fisher",
             method: str | None = None) -> TestResult:
-    """LM = SᵀM⁻¹S at the restricted fit, with S and M from the larger ``model`` (5.6).
+    """The Lagrange multiplier (score) test at a restricted fit (5.6): LM = SᵀM⁻¹S, with no fit of the larger model.
 
-    ``fit`` is the ML fit of the restricted model; parameters of ``model`` that
-    it lacks take the values in ``at`` (the restriction).  No fit of the larger
-    model is needed.  M is the expected information of the innovations
-    (``"fisher"``, the default), the observed information (``"hessian"``) or
-    the outer product of scores (``"opg"``).  r = dim θ₁ − dim θ₀ unless ``df``.
+    Parameters
+    ----------
+    fit : FitResult
+        The ML fit of the restricted model.
+    model : Model
+        The larger model; S and M are its score and information at the fit's estimates.
+    at : mapping of str to float, optional
+        The values of the larger model's parameters that the fit lacks (the restriction).
+    data : pandas.DataFrame, optional
+        Other data (default: the fit's).
+    df : int, optional
+        r (default: the difference in free parameters).
+    information : {"fisher", "hessian", "opg"}
+        M: the expected information of the innovations, the observed information,
+        or the outer product of scores.
+    method : str, optional
+        The filter (default: the fit's).
+
+    Returns
+    -------
+    TestResult
+        ``test``, ``statistic``, ``df`` and ``p_value``; ``reject(level)``.
     """
     _require_ml(fit, "Lagrange-multiplier test")
     big_names = list(model.parameter_names)
@@ -160,13 +201,28 @@ def lm_test(fit, model, at: dict | None = None, data=None, df: int | None = None
 
 
 def cross_validation_test(fit, data, information: str = "fisher", estimation_error: bool = True) -> TestResult:
-    """LM at the fit's estimates on a new data set: do the same parameters also fit there? (5.4)
+    """The LM test at a fit's estimates on a new data set: do the same parameters fit there too? (5.4)
 
-    The score S₁ of the new data at θ̂ has variance M₁ from the new data's noise
-    plus M₁Σ̂M₁ from θ̂'s own estimation error (Σ̂ the fit's covariance), so by
-    default LM = S₁ᵀ(M₁ + M₁Σ̂M₁)⁻¹S₁ ~ χ²(dim θ).  With
-    ``estimation_error=False`` it is the thesis' S₁ᵀM₁⁻¹S₁, which treats θ̂ as
-    exact and rejects too often unless the new data set is much longer.
+    The score S₁ of the new data at θ̂ has variance M₁ from the new data's noise plus
+    M₁Σ̂M₁ from θ̂'s own estimation error, so by default LM = S₁ᵀ(M₁ + M₁Σ̂M₁)⁻¹S₁ ~
+    χ²(dim θ).
+
+    Parameters
+    ----------
+    fit : FitResult
+        The fit.
+    data : pandas.DataFrame
+        The new data set.
+    information : {"fisher", "hessian", "opg"}
+        M₁.
+    estimation_error : bool
+        False: the thesis' S₁ᵀM₁⁻¹S₁, which treats θ̂ as exact and rejects too often
+        unless the new data set is much longer.
+
+    Returns
+    -------
+    TestResult
+        ``test``, ``statistic``, ``df`` and ``p_value``; ``reject(level)``.
     """
     _require_ml(fit, "cross-validation test")
     free = list(fit.cov.index)
@@ -184,7 +240,26 @@ def cross_validation_test(fit, data, information: str = "fisher", estimation_err
 
 
 def simulated_datasets(fit, n_sim: int = 1, seed: int = 0, method: str | None = None, substeps: int = 20):
-    """Data sets simulated from the fitted model with the measured inputs, times and gaps."""
+    """Data sets simulated from a fitted model with the measured inputs, times and gaps.
+
+    Parameters
+    ----------
+    fit : FitResult
+        The fit.
+    n_sim : int
+        The number of data sets.
+    seed : int
+        Their random seed.
+    method : str, optional
+        The simulation scheme.
+    substeps : int
+        Integration steps per sampling interval.
+
+    Returns
+    -------
+    list of pandas.DataFrame
+        The data sets.
+    """
     settings = fit.settings
     method = method or ("exact" if fit.model.structure.is_linear else "milstein")
     outputs = list(fit.model.output_names)
@@ -205,11 +280,30 @@ def simulated_datasets(fit, n_sim: int = 1, seed: int = 0, method: str | None = 
 
 def approximation_test(fit, n_sim: int = 1, seed: int = 0, method: str | None = None, substeps: int = 20,
                        information: str = "fisher") -> TestResult:
-    """LM at θ̂ on data simulated from the fitted model: is the filter's approximation good enough? (5.1.1)
+    """The LM test on data simulated from the fitted model: is the filter's approximation good enough? (5.1.1)
 
-    Simulated with the exact discretisation for linear models and Milstein
-    steps (``substeps`` per interval) otherwise; ``n_sim`` independent data
-    sets are pooled.  Under an adequate filter LM ~ χ²(dim θ).
+    Under an adequate filter LM ~ χ²(dim θ).
+
+    Parameters
+    ----------
+    fit : FitResult
+        The fit.
+    n_sim : int
+        Independent simulated data sets, pooled.
+    seed : int
+        Their random seed.
+    method : str, optional
+        The simulation scheme (default: the exact discretisation for linear models,
+        Milstein steps otherwise).
+    substeps : int
+        Integration steps per sampling interval.
+    information : {"fisher", "hessian", "opg"}
+        M.
+
+    Returns
+    -------
+    TestResult
+        ``test``, ``statistic``, ``df`` and ``p_value``; ``reject(level)``.
     """
     _require_ml(fit, "approximation test")
     sims = simulated_datasets(fit, n_sim, seed, method, substeps)
@@ -229,10 +323,19 @@ def _innovations(fit) -> np.ndarray:
 
 
 def fpe(fit) -> float:
-    """Final prediction error (5.9): det Σ̂ (N + k)/(N − k), Σ̂ the innovations' mean square.
+    """The final prediction error (5.9): det Σ̂ (N + k)/(N − k), Σ̂ the innovations' mean square.
 
-    Rows with every output observed are used; for one output this is
-    ((N + k)/(N − k)) σ̂².
+    Rows with every output observed are used; for one output this is ((N + k)/(N − k)) σ̂².
+
+    Parameters
+    ----------
+    fit : FitResult
+        The fit.
+
+    Returns
+    -------
+    float
+        The FPE.
     """
     eps = _innovations(fit)
     eps = eps[~np.isnan(eps).any(axis=1)]
@@ -244,7 +347,20 @@ def fpe(fit) -> float:
 
 
 def compare_fits(fits: Iterable, names: Sequence[str] | None = None) -> pd.DataFrame:
-    """Log-likelihood, AIC, BIC and FPE (5.7–5.9) of several fits, with differences to the best."""
+    """The log-likelihood, AIC, BIC and FPE (5.7–5.9) of several fits, with differences to the best.
+
+    Parameters
+    ----------
+    fits : iterable of FitResult
+        The fits, of the same data.
+    names : sequence of str, optional
+        Their labels (default: the models' names).
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per fit.
+    """
     fits = list(fits)
     if not fits:
         raise ModelError("give at least one fit to compare")

@@ -122,8 +122,30 @@ class Validation:
 
 
 def validate(fit, level: float = 0.05, lags: int | None = None, m: int | None = None) -> Validation:
-    """Run the residual tests of chapter 5 on every output of ``fit``; see
-    [`Validation`][greyid.validation.validate.Validation]."""
+    """The residual tests of chapter 5 on every output of a fit.
+
+    Parameters
+    ----------
+    fit : FitResult
+        The fit (with its data).
+    level : float
+        The tests' significance level, between 0 and 1.
+    lags : int, optional
+        Lags of the autocorrelation tests (default: from the series' length).
+    m : int, optional
+        The smoothing of the spectral estimates (default: from the series' length).
+
+    Returns
+    -------
+    Validation
+        ``tests`` (test, output, statistic, df, p_value, reject), ``rejected``,
+        ``summary()`` and the plots.
+
+    Raises
+    ------
+    ModelError
+        A level outside (0, 1), or a fit that carries no data.
+    """
     if not 0 < level < 1:
         raise ModelError(f"level must lie between 0 and 1, got {level}")
     if fit.attach_stored_data() is None:
