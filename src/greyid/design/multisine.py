@@ -63,7 +63,22 @@ class MultisineDesign:
     values: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
 
     def signal(self, times, offset: float = 0.0, phases="schroeder") -> np.ndarray:
-        """The input's time series at ``times`` (a sinusoid at 0 is a constant of its power)."""
+        """The designed input's time series.
+
+        Parameters
+        ----------
+        times : array_like
+            The sample times.
+        offset : float
+            The signal's mean.
+        phases : {"schroeder", "random"} or sequence of float
+            The sinusoids' phases.
+
+        Returns
+        -------
+        numpy.ndarray
+            The signal (a sinusoid at frequency 0 is a constant of its power).
+        """
         from ..simulate.signals import multisine
 
         times = np.asarray(times, dtype=np.float64)
@@ -78,6 +93,13 @@ class MultisineDesign:
         return out
 
     def table(self) -> pd.DataFrame:
+        """The design as a table.
+
+        Returns
+        -------
+        pandas.DataFrame
+            ``frequency`` and ``weight`` (its share of the power), one row per sinusoid.
+        """
         return pd.DataFrame({"frequency": self.frequencies, "weight": self.weights})
 
 

@@ -52,7 +52,18 @@ class Simulation:
         return self.states.shape[0]
 
     def frame(self, path: int = 0) -> pd.DataFrame:
-        """One path as a DataFrame with time, inputs, states and outputs (ready to filter)."""
+        """One path as a DataFrame with time, inputs, states and outputs (ready to filter).
+
+        Parameters
+        ----------
+        path : int
+            Which path.
+
+        Returns
+        -------
+        pandas.DataFrame
+            The path.
+        """
         cols = {self.time_name: self.times}
         cols.update({n: self.inputs[:, j] for j, n in enumerate(self.input_names)})
         cols.update({n: self.states[path, :, j] for j, n in enumerate(self.state_names)})
@@ -60,7 +71,13 @@ class Simulation:
         return pd.DataFrame(cols)
 
     def to_frame(self) -> pd.DataFrame:
-        """All paths stacked, with a ``path`` column."""
+        """All paths stacked, with a ``path`` column.
+
+        Returns
+        -------
+        pandas.DataFrame
+            The paths.
+        """
         return pd.concat([self.frame(p).assign(path=p) for p in range(self.n_paths)], ignore_index=True)
 
 

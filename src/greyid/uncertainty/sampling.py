@@ -55,14 +55,31 @@ class Posterior:
         return int(self.draws.index.get_level_values("chain").nunique())
 
     def summary(self, level: float = 0.95) -> pd.DataFrame:
-        """Mean, standard deviation, equal-tailed interval, R-hat and ESS per parameter."""
+        """The posterior per parameter: mean, standard deviation, equal-tailed interval, R-hat and ESS.
+
+        Parameters
+        ----------
+        level : float
+            The interval's probability.
+
+        Returns
+        -------
+        pandas.DataFrame
+            One row per free parameter.
+        """
         tail = (1 - level) / 2
         return pd.DataFrame({"mean": self.draws.mean(), "sd": self.draws.std(ddof=1),
                              f"{tail:.3g}": self.draws.quantile(tail), f"{1 - tail:.3g}": self.draws.quantile(1 - tail),
                              "r_hat": self.r_hat, "ess": self.ess})
 
     def to_inference_data(self):
-        """The draws as ArviZ ``InferenceData`` (posterior group, chains × draws)."""
+        """The draws as ArviZ ``InferenceData`` (the posterior group, chains × draws).
+
+        Returns
+        -------
+        arviz.InferenceData
+            The draws.
+        """
         if self._idata is None:
             self._idata = _inference_data(self.draws)
         return self._idata

@@ -30,7 +30,18 @@ class TestResult:
     p_value: float
 
     def reject(self, level: float = 0.05) -> bool:
-        """Whether the null hypothesis is rejected at ``level``."""
+        """Whether the null hypothesis is rejected.
+
+        Parameters
+        ----------
+        level : float
+            The significance level.
+
+        Returns
+        -------
+        bool
+            ``p_value < level``.
+        """
         return bool(self.p_value < level)
 
     def __repr__(self) -> str:

@@ -50,6 +50,13 @@ class Validation:
         return self.tests[self.tests["reject"]]
 
     def summary(self) -> str:
+        """How many tests reject at the level, and the table of every test.
+
+        Returns
+        -------
+        str
+            The summary.
+        """
         lines = [f"validation of '{self.fit.model.name}' at level {self.level}: "
                  f"{int(self.tests['reject'].sum())} of {len(self.tests)} tests reject"]
         with pd.option_context("display.width", 120, "display.max_rows", 200):
@@ -77,7 +84,18 @@ class Validation:
         return figure_units(self.fit.model, self.fit.settings.get("time", "t"), self.fit.settings)
 
     def plot(self, output: str | None = None):
-        """The residual dashboard of one output (the first by default)."""
+        """The residual dashboard of one output.
+
+        Parameters
+        ----------
+        output : str, optional
+            The output (default: the first).
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+            The figure (never shown; save it or display it in a notebook).
+        """
         label = self._label(output)
         time_name = self.fit.settings.get("time", "t")
         return residual_dashboard(self.residuals[label], self.inputs[label], self.times[label], self.lags,
@@ -85,7 +103,18 @@ class Validation:
                                   time_label=labelled(time_name, self._units()))
 
     def plot_coherency(self, output: str | None = None):
-        """Coherency of one output's residuals with each input, and the multiple coherency."""
+        """The coherency of one output's residuals with each input, and the multiple coherency.
+
+        Parameters
+        ----------
+        output : str, optional
+            The output (default: the first).
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+            The figure (never shown; save it or display it in a notebook).
+        """
         label = self._label(output)
         if self.inputs[label].shape[1] == 0:
             raise ModelError("the model has no inputs; there is no coherency to draw")
@@ -95,7 +124,20 @@ class Validation:
                                 self._units().get(self.fit.settings.get("time", "t")))
 
     def plot_simulation(self, n_paths: int = 200, seed: int = 0):
-        """Measured against the deterministic simulation and a Monte Carlo band of the SDE."""
+        """The measurements against the deterministic simulation and a Monte Carlo band of the SDE.
+
+        Parameters
+        ----------
+        n_paths : int
+            Simulated paths of the band.
+        seed : int
+            Their random seed.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+            The figure (never shown; save it or display it in a notebook).
+        """
         from .simulation import simulation_check
 
         check = simulation_check(self.fit, n_paths=n_paths, seed=seed, level=self.level)
@@ -104,7 +146,20 @@ class Validation:
                            units=self._units())
 
     def plot_bootstrap(self, n_samples: int = 100, seed: int = 0):
-        """Deterministic simulations at parameters drawn from N(θ̂, Σ̂)."""
+        """Deterministic simulations at parameters drawn from N(θ̂, Σ̂).
+
+        Parameters
+        ----------
+        n_samples : int
+            Parameter draws.
+        seed : int
+            Their random seed.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+            The figure (never shown; save it or display it in a notebook).
+        """
         from .simulation import parameter_bootstrap
 
         boot = parameter_bootstrap(self.fit, n_samples=n_samples, seed=seed, level=self.level)
@@ -113,7 +168,18 @@ class Validation:
                            units=self._units())
 
     def plot_prediction(self, steps: int = 1):
-        """Measured against ``steps``-ahead predictions with ±2 standard deviations."""
+        """The measurements against ``steps``-ahead predictions with ±2 standard deviations.
+
+        Parameters
+        ----------
+        steps : int
+            The horizon in samples.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+            The figure (never shown; save it or display it in a notebook).
+        """
         data = self.fit._data(None)
         data = data[0] if isinstance(data, list) else data
         pred = self.fit.predict(data, steps=steps)
