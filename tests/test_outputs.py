@@ -68,6 +68,14 @@ def test_a_killed_write_leaves_the_old_generation_and_a_users_files_stay(tmp_pat
     assert _generation(folder) == {"fit.json": "3", "summary.txt": "3", "parameters.csv": "1", "notes.txt": "mine"}
 
 
+def test_a_file_where_the_folder_should_be_is_left_alone(tmp_path):
+    afile = tmp_path / "out"
+    afile.write_text("mine")
+    with pytest.raises(NotADirectoryError, match="is a file"):
+        write_generation(afile, {"fit.json": "1"})
+    assert afile.read_text() == "mine" and sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
 def test_a_reader_sees_one_whole_generation_at_every_moment(tmp_path, monkeypatch):
     """While a generation is written (each file slowed), the folder read over and over shows the old
     files or the new ones, never some of each nor a file missing."""

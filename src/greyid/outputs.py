@@ -154,6 +154,8 @@ def write_generation(folder, files: dict) -> None:
     folder = Path(folder)
     if folder.is_symlink():  # a link to the user's output folder: the folder itself is replaced, not the link
         folder = folder.resolve()
+    if folder.exists() and not folder.is_dir():
+        raise NotADirectoryError(f"'{folder}' is a file, not a folder for the generation's files")
     folder.parent.mkdir(parents=True, exist_ok=True)
     _remove_leftovers(folder)
     if folder.is_dir():
