@@ -278,3 +278,21 @@ def test_a_cluster_that_loses_every_worker_returns_failed_rows(fleet_model, hous
     assert len(result.failed) == len(houses)
     assert all("no worker" in text for text in result.failed)
     assert list(result.table.index) == list(houses)
+
+
+def test_a_fleets_starts_are_those_of_a_separate_fit_reductions_included():
+    """A library model that declares where it reduces to a smaller one: with starts > 1 each member starts
+    there too, as model.fit does, so a member's fit is the fit a separate call gives."""
+    from greyid import library
+
+    model = library.load_model("TiTh")
+    rng = np.random.default_rng(4)
+    t = np.arange(150) * 0.25
+    inputs = pd.DataFrame({"t": t, "Ta": 5 + 2 * np.sin(t / 4), "Ps": 0.0, "Ph": 2.0 * (np.sin(t) > 0)})
+    data = model.simulate(model.initial_values(), inputs, seed=1).frame(0)[["t", "Ta", "Ps", "Ph", "yTi"]]
+    data["yTi"] += 0.01 * rng.normal(size=len(data))
+    fleet = greyid.fit_many(model, {"a": data}, starts=3, optimizer="newton")
+    alone = model.fit(data, starts=3, optimizer="newton")
+    labels = [s["start"] for s in fleet.fits["a"].starts]
+    assert labels == [s["start"] for s in alone.starts]
+    assert "reduced (Ch, Rih, Th0, pTh where they vanish)" in labels

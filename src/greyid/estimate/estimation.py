@@ -309,6 +309,21 @@ def failed_start(z0, error: ModelError) -> Optimum:
                    f"failed: {error}")
 
 
+def reduced_starts(model, parameters: FreeParameters, starts: int) -> list[tuple[str, np.ndarray]]:
+    """``[(label, z), ...]``: where ``model`` reduces to a smaller one it extends, from its initial values
+    (see [`reductions()`][greyid.estimate.starts.reductions]); none for a single start."""
+    if starts <= 1:
+        return []
+    names, free = parameters.names, parameters.free
+    out = []
+    for text, values in reductions(model, names, free, parameters.lower, parameters.upper):
+        theta = parameters.theta0[list(free)].copy()
+        for j, i in enumerate(free):
+            theta[j] = values.get(names[i], theta[j])
+        out.append((text, parameters.transform.to_z(theta)))
+    return out
+
+
 def start_points(parameters: FreeParameters, starts: int, seed: int, scoring_auto: bool, nested=None,
                  reduced=()):
     """``(points, labels, newton_only)``: the starts of a fit, in z.
@@ -418,15 +433,8 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
         warm = nested_start(model, init_from, names, free, parameters.lower, parameters.upper)
         free_theta0 = theta0[list(free)]
         nested = transform.to_z(np.array([warm.get(names[i], free_theta0[j]) for j, i in enumerate(free)]))
-    reduced = []
-    if starts > 1:
-        for text, values in reductions(model, names, free, parameters.lower, parameters.upper):
-            theta = theta0[list(free)].copy()
-            for j, i in enumerate(free):
-                theta[j] = values.get(names[i], theta[j])
-            reduced.append((text, transform.to_z(theta)))
     points, labels, newton_only = start_points(parameters, starts, seed, use_scoring and optimizer == "auto", nested,
-                                               reduced)
+                                               reduced_starts(model, parameters, starts))
     label = "log-likelihood" if criterion == "ml" and robust is None and horizon == 1 else "criterion"
 
     def not_finite(problem, z_start, i):

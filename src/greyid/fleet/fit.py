@@ -217,7 +217,7 @@ def fit_members(model, names: list, sources: list, inits: list, progress, given:
         for group in _length_groups(members, batched):
             for start in range(0, len(group), CHUNK):
                 chunk = group[start:start + CHUNK]
-                optima = _optimise_chunk(structure, problem, args, members, chunk, s, shown)
+                optima = _optimise_chunk(model, problem, args, members, chunk, s, shown)
                 for i, (best, all_optima, labels) in zip(chunk, optima):
                     results[i] = _result(model, structure, problem, args, members[i], best, all_optima, labels,
                                          s, robust, cov_type, prior, filter_settings)
@@ -247,8 +247,9 @@ def _length_groups(members, indices):
     return [groups[k] for k in sorted(groups)]
 
 
-def _optimise_chunk(structure, problem, args, members, chunk, s, shown):
+def _optimise_chunk(model, problem, args, members, chunk, s, shown):
     """All searches of a chunk of members (with their starts) driven together."""
+    structure = model.structure
     inputs = [members[i]["prepared"][0][1] for i in chunk]
     length = max(len(np.asarray(x.t)) for x in inputs)
     unique = max(len(np.asarray(x.unique_dt)) for x in inputs)
@@ -257,8 +258,10 @@ def _optimise_chunk(structure, problem, args, members, chunk, s, shown):
     for position, i in enumerate(chunk):
         m = members[i]
         scoring = s["optimizer"] not in ("newton", "quasi-newton")  # searches driven together: Newton steps
-        points, labels, newton_only = estimation.start_points(m["parameters"], s["starts"], s["seed"],
-                                                              scoring and s["optimizer"] == "auto")
+        # The starts a separate model.fit takes, so that each member's fit is the one it gives.
+        points, labels, newton_only = estimation.start_points(
+            m["parameters"], s["starts"], s["seed"], scoring and s["optimizer"] == "auto",
+            reduced=estimation.reduced_starts(model, m["parameters"], s["starts"]))
         labels_of.append(labels)
         for z0, exact_only in zip(points, newton_only):
             searches.append(estimation.new_search(problem, z0, s["maxiter"], _quiet, scoring and not exact_only,
