@@ -114,12 +114,7 @@ def test_an_equation_infinite_at_the_first_time_is_named_with_its_row(term):
     assert "whatever the parameters' values" in message and "initial parameter values" not in message
 
 
-@pytest.fixture(scope="module")
-def undetermined_fit():
-    """A parameter that multiplies an input which is 0 in every row, in data far below the noise bounds:
-    the likelihood does not depend on it and it runs to a bound."""
-    rng = np.random.default_rng(1)
-    frame = pd.DataFrame({"t": np.arange(200) * 0.1, "u": 0.0, "y": 1e-6 * rng.normal(size=200)})
+def _flat_model():
     m = greyid.Model("flat")
     m.add_inputs("u")
     m.add_system("dx = (-a*x + b*u)*dt + s*dw1")
@@ -128,10 +123,32 @@ def undetermined_fit():
     for name, value, low, high in [("a", 1.0, 0.01, 10), ("b", 1.0, 0.0, 10), ("s", 0.3, 1e-3, 10),
                                    ("e", 0.1, 1e-3, 1), ("x0", 0.0, -5, 5)]:
         m.set_parameter(name, init=value, lower=low, upper=high)
+    return m
+
+
+@pytest.fixture(scope="module")
+def undetermined_fit():
+    """A parameter that multiplies an input which is 0 in every row, in data far below the noise bounds:
+    the likelihood does not depend on it and it runs to a bound."""
+    rng = np.random.default_rng(1)
+    frame = pd.DataFrame({"t": np.arange(200) * 0.1, "u": 0.0, "y": 1e-6 * rng.normal(size=200)})
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        fit = m.fit(frame)
+        fit = _flat_model().fit(frame)
     return fit, caught
+
+
+def test_a_parameter_run_so_far_to_its_bound_that_its_derivatives_vanish_is_judged_by_the_equations():
+    """Data simulated from the model with u = 0, scaled far below the noise bounds: b runs to its bound so far
+    that dθ/dz underflows and every derivative in z is 0; the equations (u constant 0) still tell."""
+    model = _flat_model()
+    times = pd.DataFrame({"t": np.arange(200) * 0.1, "u": 0.0})
+    simulated = model.simulate({"a": 1.0, "b": 1.0, "s": 0.3, "e": 0.1, "x0": 0.0}, times, seed=1).frame(0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fit = model.fit(simulated[["t", "u", "y"]].assign(y=simulated["y"] * 1e-6))
+    assert fit.params.loc["b", "at_bound"] and not fit.converged
+    assert "the data do not determine 'b'" in fit.message
 
 
 def test_a_parameter_the_likelihood_does_not_depend_on_is_no_converged_estimate(undetermined_fit):

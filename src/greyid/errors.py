@@ -4,6 +4,7 @@ import os
 import sys
 import warnings
 
+
 class ModelError(ValueError):
     """A model specification that cannot be used (names the equation or parameter)."""
 

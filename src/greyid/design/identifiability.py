@@ -439,29 +439,20 @@ def generic_plan(model, point, seed: int = 0, ranges: dict | None = None) -> tup
 
 
 def _check_plan_finite(model, point, plan: pd.DataFrame, text: str) -> None:
-    """Name the equation a plan's inputs make not finite at the initial state, before simulating it."""
-    import jax
-    import jax.numpy as jnp
-
+    """Name the equation a plan's inputs make not finite at the initial state, before simulating it
+    ([`check_equations_finite()`][greyid.filters.api.check_equations_finite] on the plan)."""
     from ..errors import ModelError
+    from ..filters.api import check_equations_finite, prepare_datasets
 
-    s = model.structure
-    theta = jnp.asarray(model.parameter_vector(point), dtype=jnp.float64)
-    x0 = s.initial_mean(theta)
-    u = jnp.asarray(plan[list(s.input_names)].to_numpy(dtype=float).reshape(len(plan), s.n_inputs))
-    t = jnp.asarray(plan["t"].to_numpy(dtype=float))
-    f = np.asarray(jax.vmap(lambda u, t: s.drift(x0, u, t, theta))(u, t))
-    h = np.asarray(jax.vmap(lambda u, t: s.observation(x0, u, t, theta))(u, t))
-    for what, values, names in (("drift of", f, [f"d{x}" for x in s.state_names]),
-                                ("observation", h, list(s.output_names))):
-        bad = np.argwhere(~np.isfinite(values))
-        if len(bad):
-            row, j = bad[0]
-            equation = list(s.equations["drift" if what == "drift of" else "observation"])[j]
-            inputs = ", ".join(f"{n} = {plan[n].iloc[row]:.4g}" for n in s.input_names)
-            raise ModelError(f"{text}: at its row {row} ({inputs}) the {what} '{names[j]}' ({equation}) is not "
-                             "finite at the initial state; give a plan with the inputs of a real experiment "
-                             "(plan=DataFrame of times and inputs, or --plan FILE.csv on the command line)")
+    structure = model.structure
+    theta = model.parameter_vector(point)
+    observed = plan.assign(**{o: 0.0 for o in model.output_names})  # the outputs' values are not used
+    for series, inputs in prepare_datasets(structure, theta, observed, "t", "zoh", None, check=False):
+        try:
+            check_equations_finite(structure, theta, series, inputs)
+        except ModelError as error:
+            raise ModelError(f"{text}: {error}; give a plan with the inputs of a real experiment "
+                             "(plan=DataFrame of times and inputs, or --plan FILE.csv on the command line)") from None
 
 
 def _by_information(model, names, points, plan, seed):

@@ -15,7 +15,7 @@ import pandas as pd
 from scipy import special
 
 from ..errors import warn as warn_user
-from ..model.parameters import log_parametrised
+from ..model.parameters import equation_expressions, log_parametrised
 from .covariance import FEW_STEPS, parameter_covariance
 from .results import FitResult, FitWarning, filter_settings
 
@@ -64,8 +64,7 @@ def why_undetermined(model, name: str, frames) -> str:
             constant[column] = float(values[0])
     if not constant:
         return ""
-    entries = [e for key in ("drift", "diffusion", "observation", "variance", "covariance")
-               for e in list(structure.equations.get(key, sp.Matrix()))]
+    entries = equation_expressions(structure)
     symbol = next((s for e in entries for s in e.free_symbols if s.name == name), None)
     if symbol is None:
         return ""
@@ -104,16 +103,18 @@ def build_result(model, frames, theta, problem, best, optima, settings, scores=N
     H = Hz[np.ix_(inner, inner)] * np.outer(Jinv, Jinv)
     # At a bound, a criterion that does not depend on a parameter at all has exactly zero slope and
     # curvature in it (JAX differentiates an absent term to 0.0): the bound did not hold it back, the
-    # data simply do not determine it.
-    # (Where dθ/dz has underflowed, z's derivatives are 0 whatever θ's are: no verdict there.)
-    independent = at_bound & (np.abs(d1) > 0) & (best.gradient == 0.0) & np.all(best.hessian == 0.0, axis=1)
+    # data simply do not determine it.  Where dθ/dz has underflowed, z's derivatives are 0 whatever
+    # θ's are, and only the equations can tell (the constant inputs that leave the parameter out).
+    flat_in_z = (best.gradient == 0.0) & np.all(best.hessian == 0.0, axis=1)
+    why = {i: why_undetermined(model, free_names[i], frames) for i in np.flatnonzero(at_bound & flat_in_z)}
+    independent = np.array([i in why and (abs(d1[i]) > 0 or bool(why[i])) for i in range(len(free))], dtype=bool)
     for i in np.flatnonzero(at_bound & ~independent):
         warn.append(f"parameter '{free_names[i]}' is at a bound ({theta_free[i]:.6g}); "
                     "its standard error is not given")
     for i in np.flatnonzero(independent):
         warn.append(f"the likelihood does not depend on '{free_names[i]}' (its slope and curvature are 0)"
-                    f"{why_undetermined(model, free_names[i], frames)}: the data do not determine it, and its "
-                    f"estimate ({theta_free[i]:.6g}, at a bound) means nothing")
+                    f"{why[i]}: the data do not determine it, and its estimate ({theta_free[i]:.6g}, at a "
+                    "bound) means nothing")
 
     k = int(inner.sum())
     cov_inner = np.full((k, k), np.nan)

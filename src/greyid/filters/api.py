@@ -203,28 +203,27 @@ def check_equations_finite(structure: Structure, theta: np.ndarray, series: Seri
     x0, (f, G, h) = structure_program(structure, ("equations finite",), lambda: values)(jnp.asarray(theta), data)
     rows = series.n_rows
     states, outputs = structure.state_names, structure.output_names
-    named = [("drift", f, lambda i: f"d{states[i[0]]}", "drift"),
-             ("diffusion", G, lambda i: f"d{states[i[0]]}", "diffusion"),
-             ("observation", h, lambda i: f"{outputs[i[0]]}", "observation")]
-    for what, array, equation_of, key in named:
+    # Each kind of equation with the name of the equation its rows belong to (G's rows are the states').
+    named = [("drift", f, [f"d{x}" for x in states]), ("diffusion", G, [f"d{x}" for x in states]),
+             ("observation", h, list(outputs))]
+    for what, array, equations in named:
         array = np.asarray(array)[:rows]
         bad = np.argwhere(~np.isfinite(array.reshape(rows, -1)))
         if not len(bad):
             continue
         row, flat = bad[0]
-        index = np.unravel_index(flat, array.shape[1:])
-        matrix = structure.equations.get(key)
+        equation = equations[np.unravel_index(flat, array.shape[1:])[0]]
+        matrix = structure.equations.get(what)
         expression = list(matrix)[flat] if matrix is not None and len(list(matrix)) == array[0].size else None
         text = str(expression) if expression is not None else "its expression"
         t = float(np.asarray(data.t)[row])
         where = {"t": t, **{n: float(np.asarray(data.u_cur)[row, j]) for j, n in enumerate(structure.input_names)}}
         shown = ", ".join(f"{n} = {v:.6g}" for n, v in where.items())
-        hopeless = _infinite_whatever_the_parameters(expression, where,
-                                                     dict(zip(states, np.asarray(x0))))
+        hopeless = _infinite_whatever_the_parameters(expression, where, dict(zip(states, np.asarray(x0))))
         cause = ("; it is infinite there whatever the parameters' values (an expression such as 1/t or log(t) "
                  "at t = 0): shift the time column, leave that row out or change the equation") if hopeless else (
             "; check the equation and the initial parameter values")
-        raise ModelError(f"the {what} of '{equation_of(index)}' ({text}) is not finite at row {row} of the data "
+        raise ModelError(f"the {what} of '{equation}' ({text}) is not finite at row {row} of the data "
                          f"({shown}; states at their initial values){cause}")
 
 
@@ -299,12 +298,11 @@ def _result(structure: Structure, method: str, series: Series, terms, outputs) -
 def _guarded(method: str, series: Series, guarded: np.ndarray) -> pd.Series:
     """The rows whose update was guarded, with a warning that names the first."""
     if guarded.any():
-
         first = int(np.flatnonzero(guarded)[0])
         warn(f"filter '{method}': at {int(guarded.sum())} row(s), first row {first} "
-                      f"({series.time_name} = {series.times[first]:g}), the measurement update's covariance "
-                      "P − K R Kᵀ was not positive semi-definite (the approximation's moments are "
-                      "inconsistent there); the Joseph form replaced it", FilterWarning)
+             f"({series.time_name} = {series.times[first]:g}), the measurement update's covariance "
+             "P − K R Kᵀ was not positive semi-definite (the approximation's moments are "
+             "inconsistent there); the Joseph form replaced it", FilterWarning)
     return pd.Series(guarded, index=series.index, name="guarded")
 
 

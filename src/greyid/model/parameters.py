@@ -65,7 +65,9 @@ class Parameter:
             raise ModelError(f"parameter '{self.name}' is fixed but has no value")
 
 
-def _equation_expressions(structure):
+def equation_expressions(structure) -> list:
+    """Every expression of the model's equations (drift, diffusion, observation, variances, covariances
+    and the delays' expressions), as SymPy expressions."""
     expressions = [e for key in ("drift", "diffusion", "observation", "variance", "covariance")
                    for e in structure.equations[key]]
     return expressions + [d.expression for d in structure.delays if hasattr(d.expression, "free_symbols")]
@@ -74,7 +76,7 @@ def _equation_expressions(structure):
 def in_dynamics(structure, names) -> list[str]:
     """The parameters of ``names`` that enter the equations, not only the initial state: those a
     stationary experiment (the information per sample, G, H and Σ) can see."""
-    used = {s.name for e in _equation_expressions(structure) for s in e.free_symbols}
+    used = {s.name for e in equation_expressions(structure) for s in e.free_symbols}
     return [n for n in names if n in used]
 
 
@@ -84,7 +86,7 @@ def log_parametrised(structure) -> set[str]:
     import sympy as sp
 
     out = set()
-    expressions = _equation_expressions(structure)
+    expressions = equation_expressions(structure)
     for name in structure.parameter_names:
         symbol = sp.Symbol(name, real=True)
         occurs = [e for e in expressions if any(s.name == name for s in e.free_symbols)]
