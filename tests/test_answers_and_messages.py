@@ -77,7 +77,7 @@ def _population_model():
 
 
 def test_covariates_keep_members_names_as_written_and_refuse_a_member_twice(tmp_path):
-    from greyid.population.fit import read_covariates
+    from greyid.data.files import read_covariates
     from greyid.population.spec import make_spec
 
     (tmp_path / "covariates.csv").write_text("house,area\n001,120\n002,80\n")

@@ -325,7 +325,7 @@ def test_timestamps_in_a_data_file(files, tmp_path):
 
 def test_time_zone_makes_elapsed_time_cross_daylight_saving():
     from greyid.data.prepare import time_values
-    from greyid.model.files import parse_timestamps
+    from greyid.data.timestamps import parse_timestamps
 
     local = pd.DataFrame({"t": ["2026-03-29 00:30", "2026-03-29 01:30", "2026-03-29 03:30"]})  # clocks jump at 2:00
     parsed = parse_timestamps(local, "t", time_zone="Europe/Copenhagen")
@@ -428,7 +428,7 @@ def test_malformed_files_are_named(battery, args, culprit):
 
 def test_comma_decimals_with_semicolons_read_as_numbers(battery, ou):
     """'1,5;2,25' (a European spreadsheet's CSV): decimal commas, not text."""
-    from greyid.model.files import read_csv_file
+    from greyid.data.files import read_csv_file
 
     path = battery / "comma.csv"
     path.write_text(_csv(data(), sep=";", decimal=","))
@@ -440,7 +440,7 @@ def test_comma_decimals_with_semicolons_read_as_numbers(battery, ou):
 def test_timestamps_with_two_utc_offsets_are_read_as_instants(tmp_path):
     """A daylight-saving change inside the data: +01:00 then +02:00.  The elapsed times are exact (10 min
     steps across the change), and no pandas warning is printed."""
-    from greyid.model.files import parse_timestamps
+    from greyid.data.timestamps import parse_timestamps
 
     utc = pd.date_range("2024-03-31T00:00:00Z", periods=12, freq="10min")
     frame = pd.DataFrame({"t": [ts.isoformat() for ts in utc.tz_convert("Europe/Copenhagen")]})

@@ -18,7 +18,7 @@ import pytest
 import greyid
 from greyid import compiler
 from greyid._collector import collector_paused, imports_frozen
-from greyid.filters import core
+from greyid.filters import gaussian
 
 
 def test_the_collector_is_paused_in_the_block_and_restored_after_the_last_one():
@@ -185,7 +185,7 @@ def test_tying_the_initial_carries_to_theta_changes_no_number(monkeypatch):
     times = pd.DataFrame({"t": np.arange(150) * 0.5})
     data = times.assign(y=ou_model().simulate(truth, times, method="exact", seed=5).outputs[0, :, 0])
     tied = ou_model().fit(data)
-    monkeypatch.setattr(core, "carried_from_start", lambda theta, *initial: tuple(initial))
+    monkeypatch.setattr(gaussian, "carried_from_start", lambda theta, *initial: tuple(initial))
     untied = ou_model().fit(data)
     assert tied.loglik == pytest.approx(untied.loglik, rel=1e-13)
     np.testing.assert_allclose(tied.params["estimate"], untied.params["estimate"], rtol=1e-10, atol=1e-12)

@@ -92,7 +92,7 @@ DOCUMENTED = ["greyid.model.model.Model", "greyid.estimate.results.FitResult", "
               "greyid.estimate.likelihood.Likelihood", "greyid.fleet.fit.fit_many", "greyid.fleet.result.FleetResult",
               "greyid.fleet.population.relate", "greyid.population.fit.fit_population",
               "greyid.population.result.PopulationResult", "greyid.population.result.likelihood_ratio",
-              "greyid.population.saved.load_population", "greyid.data.named.fetch", "greyid.data.annex58.ten_minutes",
+              "greyid.population.result.load_population", "greyid.data.named.fetch", "greyid.data.annex58.ten_minutes",
               "greyid.design.information.fisher_information", "greyid.design.information.local_identifiability",
               "greyid.design.criteria.cramer_rao_bound", "greyid.design.criteria.criterion",
               "greyid.design.criteria.average_criterion", "greyid.design.criteria.minimax_criterion",

@@ -1,4 +1,5 @@
-"""The package's layers: data flow one way, and a lower layer never imports a higher one.
+"""The package's layers: data flow one way, a lower layer never imports a higher one, and the modules of a
+package never import each other round a circle (imports inside functions counted).
 
 Model → filters → likelihood and estimator (estimate) → results' uses (uncertainty, validation,
 design, simulation, reports) → fleets → populations → command line.  The facades `Model` and
@@ -105,3 +106,77 @@ def test_the_check_sees_an_upward_import(tmp_path):
     target.write_text(target.read_text(encoding="utf-8") + "\n\ndef helper():\n    from ..report import html\n",
                       encoding="utf-8")
     assert upward_imports(copy) == ["greyid.filters.api (in a function) imports greyid.report"]
+
+
+def module_imports(source: Path = SOURCE) -> dict[str, set[str]]:
+    """Module → the greyid modules it imports, at module level or inside functions."""
+    graph: dict[str, set[str]] = {}
+    for path in sorted(source.rglob("*.py")):
+        module = _module(path, source)
+        edges = graph.setdefault(module, set())
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        for node, _, _ in _imports(tree):
+            imported = _target(module, path.name == "__init__.py", node)
+            if not imported.startswith("greyid"):
+                continue
+            for alias in node.names:  # ``from . import laplace`` imports the module greyid.population.laplace
+                candidate = f"{imported}.{alias.name}"
+                relative = Path(*candidate.split(".")[1:])
+                if (source / relative).with_suffix(".py").exists() or (source / relative / "__init__.py").exists():
+                    edges.add(candidate)
+                else:
+                    edges.add(imported)
+    return graph
+
+
+def circles_inside_packages(source: Path = SOURCE) -> list[list[str]]:
+    """Groups of modules of one package that import each other round a circle (Tarjan's components)."""
+    def package(module: str) -> str:
+        return module.rsplit(".", 1)[0] if module.count(".") >= 2 else "greyid"
+
+    graph = {m: {t for t in targets if t != m and package(t) == package(m)}
+             for m, targets in module_imports(source).items()}
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    circles: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in sorted(graph.get(v, ())):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            group = []
+            while True:
+                w = stack.pop()
+                group.append(w)
+                if w == v:
+                    break
+            if len(group) > 1:
+                circles.append(sorted(group))
+
+    for module in sorted(graph):
+        if module not in index:
+            visit(module)
+    return circles
+
+
+def test_no_package_has_modules_that_import_each_other_round_a_circle():
+    assert circles_inside_packages() == []
+
+
+def test_the_check_sees_a_circle_through_an_import_inside_a_function(tmp_path):
+    import shutil
+
+    copy = tmp_path / "greyid"
+    shutil.copytree(SOURCE, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    target = copy / "filters" / "steady.py"  # the driver and the Kalman filter import steady: back closes a circle
+    target.write_text(target.read_text(encoding="utf-8") + "\n\ndef helper():\n    from .driver import scan_rows\n",
+                      encoding="utf-8")
+    expected = ["greyid.filters.driver", "greyid.filters.kalman", "greyid.filters.steady"]
+    assert circles_inside_packages(copy) == [expected]

@@ -9,7 +9,7 @@ import pytest
 import greyid
 from greyid import DataError, ModelError, library
 from greyid.datasets import TRUE_PARAMETERS, building_model, load_building_data
-from greyid.model.files import read_data
+from greyid.data.files import read_data
 
 OU_TOML = """
 [model]

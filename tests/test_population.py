@@ -14,7 +14,8 @@ import greyid
 from test_crosscheck import shared
 from conftest import dense_moments, matrices_from_parameters, random_linear_model_spec, random_linear_parameters
 from greyid.population import PopulationWarning, fit_population
-from greyid.population.fit import Outer, _prepare_members, population_filter, population_programs
+from greyid.population.fit import Outer
+from greyid.population.members import population_filter, population_programs, prepare_members
 from greyid.population import laplace
 from greyid.population.spec import make_spec
 from greyid.filters.api import filter_options
@@ -174,7 +175,7 @@ def nonlinear_problem():
         data[f"h{i}"] = pd.DataFrame({"t": t, "u": u, "y": sim.outputs[0, :, 0]})
     covariates = pd.DataFrame({"area": area}, index=list(data))
     spec, raw = make_spec(m, {"a": "lognormal", "b": "normal"}, covariates, {"b": ["area"]}, "full", list(data))
-    members = _prepare_members(m, list(data), list(data.values()), spec, raw, "t", "zoh", None, None)
+    members = prepare_members(m, list(data), list(data.values()), spec, raw, "t", "zoh", None, None)
     programs = laplace.build(m.structure, spec, filter_options(m.structure, None))
     return m, data, covariates, spec, Outer(programs, members, spec)
 
@@ -357,7 +358,7 @@ def test_theophylline_laplace_equals_the_closed_form_reference():
     nlme = dict(lKe=-2.4547026, lKa=0.4657295, lCl=-3.2272222, s2=0.7092536 ** 2, omega_ka=0.643583,
                 omega_cl=0.166928)
     spec, raw = make_spec(model, {"lKa": "normal", "lCl": "normal"}, None, None, "diagonal", list(data))
-    members = _prepare_members(model, list(data), list(data.values()), spec, raw, "Time", "zoh", None, None)
+    members = prepare_members(model, list(data), list(data.values()), spec, raw, "Time", "zoh", None, None)
     options = population_filter(model, spec, members, None, "Time", "zoh", None, {})
     outer = Outer(population_programs(model.structure, spec, options), members, spec)
     assert spec.phi_names() == ["lCl", "lKa", "lKe", "s2", "omega_lKa", "omega_lCl"]
@@ -517,7 +518,7 @@ def test_a_lost_worker_loses_no_chunk(gain_problem):
     model, _, datasets = gain_problem
     names = list(datasets)
     spec, raw = make_spec(model, {"b11": "normal"}, None, None, "diagonal", names)
-    members = _prepare_members(model, names, list(datasets.values()), spec, raw, "t", "zoh", None, None)
+    members = prepare_members(model, names, list(datasets.values()), spec, raw, "t", "zoh", None, None)
     options = filter_options(model.structure, None)
     local = laplace.MemberPrograms(laplace.build(model.structure, spec, options), members.x, spec.base(),
                                    members.data, 1)

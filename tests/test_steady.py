@@ -21,7 +21,7 @@ from conftest import random_linear_model_spec, random_linear_parameters
 from greyid.estimate.criteria import step_criterion
 from greyid.filters import steady
 from greyid.filters.api import filter_options, prepare_datasets, sampling_intervals
-from greyid.filters.core import make_filter, make_summed_filter
+from greyid.filters.driver import make_filter, make_summed_filter
 from test_correlated_noise import TRUE as CORRELATED_TRUE, correlated_model
 
 N_ROWS = 1400

@@ -15,7 +15,6 @@ import pytest
 
 import greyid
 from greyid import design
-from greyid.model.files import read_model
 
 ROOT = Path(__file__).resolve().parents[1]
 MIRROR = Path(os.environ.get("GREYID_DATA_MIRROR", ROOT.parent / "shared" / "data"))  # as conftest.py sets it
@@ -41,12 +40,12 @@ def kwh_model():
     for si, kwh in kwh_lines.items():
         text = text.replace(si, kwh)
     assert text.count("init = ") == 7 and "1e7" not in text
-    return read_model(text)
+    return greyid.Model.from_toml(text)
 
 
 @pytest.fixture(scope="module")
 def models():
-    return read_model(ROOT / "examples" / "armadillo.toml"), kwh_model()
+    return greyid.Model.from_toml(ROOT / "examples" / "armadillo.toml"), kwh_model()
 
 
 @pytest.fixture(scope="module")

@@ -3,14 +3,14 @@ while it traces and compiles a program.
 
 Tracing allocates hundreds of thousands of objects that die young, and every
 automatic full collection among them walks the whole heap of JAX, SymPy and
-pandas: 0.2–0.25 s of an Armadillo first fit in a fresh process went to it
-(``benchmarks/fit.py``), 0.03 s with the collector paused.  What tracing leaves
+pandas: a noticeable part of an Armadillo first fit in a fresh process went to it
+(``benchmarks/fit.py``), a small part with the collector paused.  What tracing leaves
 behind is collected while XLA compiles, which frees the interpreter
-([`collect_young_garbage()`][greyid._collector.collect_young_garbage], 0.03 s of the same fit), or else after the
+([`collect_young_garbage()`][greyid._collector.collect_young_garbage]), or else after the
 block, as usual.
 
 Importing JAX, SymPy and pandas creates about 240 000 objects that live as
-long as the process; the automatic full collections among them took 0.1 s of
+long as the process; the automatic full collections among them took a part of
 the same fit, and every later one would walk them all again.  They are imported
 with the collector paused, and in greyid's own command-line processes then
 frozen ([`imports_frozen()`][greyid._collector.imports_frozen]); a user's process keeps its collector's state.

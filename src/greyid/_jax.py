@@ -62,7 +62,7 @@ def _enable_compilation_cache() -> None:
         jax.config.update("jax_compilation_cache_dir", path)
         if owned():
             # In greyid's own processes every program, however quick to compile: the report's
-            # forty small ones took 1.2 s to compile in each process (greyid demo, 11.9 → 10.7 s).
+            # forty small ones would compile again in each process (greyid demo).
             # A user's process keeps JAX's threshold, so its own quick programs are not kept.
             jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 

@@ -131,7 +131,7 @@ def load_data(model, data: Optional[Path], fit=None, time: Optional[str] = None)
     """
     import pandas as pd
 
-    from .model.files import data_origin, named_dataset, read_data
+    from .data.files import data_origin, named_dataset, read_data
 
     if data is None and fit is not None and fit.data_file:
         if named_dataset(fit.data_file) is None and not Path(fit.data_file).is_file():
@@ -318,7 +318,7 @@ def population_command(
         m, _ = load_model_or_fit(model)
         table = None
         if covariates is not None:
-            from .population.fit import read_covariates
+            from .data.files import read_covariates
 
             table = read_covariates(covariates)
         elif effects and not m.population.get("covariates"):
@@ -444,7 +444,7 @@ def _read_plan(m, path: Path):
         raise InputProblem(f"plan '{path}' is a folder; give a CSV file")
     if not path.is_file():
         raise InputProblem(f"plan file '{path}' not found")
-    from .model.files import read_csv_file
+    from .data.files import read_csv_file
 
     try:
         table = read_csv_file(path, m.options.get("separator"), m.options.get("decimal"))

@@ -10,8 +10,8 @@ which made a scoring step of a 10⁵-row series 3 times and its Hessian 5 times
 slower (``benchmarks/length.py``).  The memory-optimised instruction scheduler
 orders a program's kernels for fewer live buffers rather than for running
 independent ones side by side, which a filter's small kernels gain nothing from:
-the Armadillo filter's value and gradient took 0.58 instead of 0.80 ms, its
-Hessian 2.09 instead of 2.35 ms (``benchmarks/likelihood.py``).
+with it the Armadillo filter's value and gradient and its Hessian run faster
+(``benchmarks/likelihood.py``).
 
 A function given a ``key`` — a description of everything its program depends
 on besides its arguments' shapes — also keeps its traced program on disk
@@ -80,9 +80,9 @@ importer: threading.Thread | None = None  # the latest thread beside a compilati
 def import_while_compiling(*modules: str) -> None:
     """Import ``modules`` in a thread during the next XLA compilation (unless imported by then).
 
-    Compiling the Hessian program of a small model takes 1.3–1.5 s of C++ with
-    the interpreter free; the modules a fit needs afterwards (its results:
-    pandas tables, SciPy's distributions, 0.15–0.25 s) load meanwhile.
+    Compiling the Hessian program of a small model takes longer than the imports a fit
+    needs afterwards (its results: pandas tables, SciPy's distributions), with the
+    interpreter free: they load meanwhile.
     """
     _pending_imports.update(dict.fromkeys(modules))
 
@@ -101,8 +101,8 @@ def kept_however_quick():
     cache however quickly they compile.
 
     JAX keeps only programs that took over a second to compile (its default threshold, which
-    a user's process keeps for its own programs); a fit's value-and-gradient program takes
-    0.7–1.0 s, and compiling it again in every process made a warm first fit 0.5 s slower.
+    a user's process keeps for its own programs); a fit's value-and-gradient program compiles
+    in a little less, and compiling it again in every process made a warm first fit slower.
     The threshold is one of JAX's thread-local settings, set here for greyid's own compilations
     only; where a JAX version has no such setting, its global threshold applies.
     """
@@ -230,7 +230,7 @@ class Jitted:
             ready.compiled = True  # nothing left to do: no thread needed
             return ready
         with collector_paused():
-            kept = programs.kept_lowering(self, args) if self.key is not None and programs.enabled() else None
+            kept = programs.kept_lowering(self, args, jax_jit) if self.key is not None and programs.enabled() else None
             if kept is None:
                 lowered = self.top.lower(*args)
 

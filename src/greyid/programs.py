@@ -2,8 +2,8 @@
 
 Tracing greyid's estimation programs (a filter's scan differentiated twice,
 vectorised over directions) takes most of a first fit's time once XLA's own
-compilation comes from JAX's persistent cache (Armadillo: 0.8 s of tracing
-against 0.3 s of lowering and loading).  A program given a ``key`` is exported
+compilation comes from JAX's persistent cache (for the Armadillo model, tracing
+takes longer than lowering and loading together).  A program given a ``key`` is exported
 as StableHLO (``jax.export``) into ``$GREYID_CACHE_DIR/programs`` and a later
 process with the same key loads it instead of tracing.
 
@@ -189,11 +189,10 @@ class KeptProgram(NamedTuple):
         return run
 
 
-def kept_lowering(jitted, args) -> KeptProgram | None:
+def kept_lowering(jitted, args, jax_jit) -> KeptProgram | None:
     """The lowered call of ``jitted``'s program for ``args``: loaded from its kept export, or
-    exported now and kept; None when the program cannot be kept (the caller then traces it)."""
-    from .compiler import jax_jit
-
+    exported now and kept; None when the program cannot be kept (the caller then traces it).
+    ``jax_jit`` is the compiler's ``jax.jit`` with its options, which the loaded call is lowered by."""
     leaves, tree = jax.tree_util.tree_flatten(args)
     try:
         path = path_for(jitted.key, args)
@@ -229,7 +228,7 @@ def lapack_needed(needed: bool):
     """Lower a kept program's call with JAX's LAPACK set-up only if ``needed``.
 
     Lowering any exported program, JAX first sets up its LAPACK kernels in case
-    the program calls them, which imports ``scipy.linalg`` (0.09 s of a first
+    the program calls them, which imports ``scipy.linalg`` (a part of a first
     fit in a fresh process).  A program without custom calls (the filters' small
     matrices are unrolled) calls no LAPACK kernel: the set-up is skipped for it,
     and runs as before for every other program, and for every other JAX user.

@@ -13,6 +13,8 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from .rda import read_rda
+
 #: The test box's position (``readSeries``: series whose name starts with X).
 LATITUDE, LONGITUDE = 37.097083, -2.364994
 #: Hours left out at the start of the series (``readSeries``'s ``rmvHours``).
@@ -119,8 +121,6 @@ def ten_minutes(minutes: pd.DataFrame) -> pd.DataFrame:
 
 def read_x5(path) -> pd.DataFrame:
     """The course's ``X5.rda``: the data frame X, its POSIXct ``t`` (seconds since 1970, UTC) as timestamps."""
-    from .named import _read_rda
-
-    frame = _read_rda(path)
+    frame = read_rda(path)
     frame["t"] = pd.to_datetime(frame["t"].astype(float), unit="s")
     return frame

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import os
 import re
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -31,6 +30,7 @@ import numpy as np
 import pandas as pd
 
 from ..errors import DataError
+from .rda import read_rda
 
 MIRROR = "GREYID_DATA_MIRROR"
 
@@ -43,23 +43,6 @@ def _read_csv(sep: str = ",", parse: list[str] | None = None):
         return frame
 
     return read
-
-
-def _read_rda(path) -> pd.DataFrame:
-    """The one data frame of an R .rda file (the ``rdata`` package: no R needed)."""
-    try:
-        import rdata
-    except ImportError:
-        raise ImportError('reading R data files needs rdata: pip install "greyid[data]"') from None
-
-    with warnings.catch_warnings():  # POSIXct has no constructor in rdata: its seconds are what is wanted
-        warnings.filterwarnings("ignore", message="Missing constructor for R class", category=UserWarning)
-        frames = rdata.read_rda(str(path))
-    if len(frames) != 1:
-        raise DataError(f"'{path}' holds {len(frames)} R objects; one data frame was expected")
-    frame = next(iter(frames.values()))
-    frame.columns = [str(c) for c in frame.columns]
-    return frame.reset_index(drop=True)
 
 
 def _r_vector(text: str) -> list[str]:
@@ -122,12 +105,12 @@ SOURCES: dict[str, Source] = {
     "ornstein_1d": Source(
         f"{GITHUB}/phillipbvetter/ctsmTMB/60590a51d725c53edb58a9733bde24245aa67716/data/Ornstein.rda",
         "a0a5a8dc094d14c2b2f96dfdc08ace4a547c97dedfb3ecc948d60d1b8347690a",
-        "ornstein_uhlenbeck/ornstein_1d.csv", _read_rda, _read_csv(), "ctsmTMB (GPL-3)",
+        "ornstein_uhlenbeck/ornstein_1d.csv", read_rda, _read_csv(), "ctsmTMB (GPL-3)",
         "A simulated Ornstein–Uhlenbeck process: t (0 to 20 by 0.1), input u, observation y."),
     "ornstein_2d": Source(
         f"{GITHUB}/phillipbvetter/ctsmTMB/60590a51d725c53edb58a9733bde24245aa67716/data/Ornstein2D.rda",
         "e5f7fb262f64d432158be29c8437aa74081626a414a12ba0c8ec5611e89dde9a",
-        "ornstein_uhlenbeck/ornstein_2d.csv", _read_rda, _read_csv(), "ctsmTMB (GPL-3)",
+        "ornstein_uhlenbeck/ornstein_2d.csv", read_rda, _read_csv(), "ctsmTMB (GPL-3)",
         "A simulated two-state Ornstein–Uhlenbeck system: t, u, y1, y2."),
     "prbs1": Source(
         f"{EXERCISES}/Ex_2/inputPRBS1.csv",

@@ -12,7 +12,7 @@ the p sensitivities ∂x̂ form one linear system driven by the process and
 measurement noise; its mean and covariance propagate exactly, step by step, and
 E[∂_iεᵀS⁻¹∂_jε] = μ_iᵀS⁻¹μ_j + tr(S⁻¹ Cov(∂_jε, ∂_iε)).  Nothing is sampled.
 
-The filter is the exact Kalman filter of [`greyid.filters.core`][greyid.filters.core] (the one
+The filter is the exact Kalman filter of [`greyid.filters.kalman`][greyid.filters.kalman] (the one
 estimation uses); its per-step affine maps are taken from it by automatic
 differentiation, so the initial transient, irregular sampling, zero- and
 first-order holds and missing data are handled as the filter handles them.
@@ -26,7 +26,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..compiler import structure_program
-from ..filters.core import KALMAN, FilterInputs, FilterOptions, filter_steps
+from ..filters.driver import filter_steps
+from ..filters.protocol import KALMAN, FilterInputs, FilterOptions
+from ..filters.updates import GaussianState
 from ..filters.predictors import linearized_observation
 
 
@@ -72,8 +74,8 @@ def make_exact_information(structure, index: tuple[int, ...]):
             def filter_step(th, x_hat, P_cov, y, moved):
                 parts = build(th, data)
                 at = row._replace(u_prev=moved[0], u_cur=moved[1], pieces=moved[2])
-                x_pred, P_pred, _ = parts.predict(x_hat, P_cov, at)
-                upd, _ = parts.update(x_pred, P_pred, at._replace(y=y))
+                predicted, _ = parts.predict(GaussianState(x_hat, P_cov), at)
+                upd, _ = parts.update(predicted, at._replace(y=y))
                 return upd.mean, upd.covariance, upd.innovation, upd.innovation_covariance
 
             def with_tangents(x_hat, y):
@@ -101,7 +103,7 @@ def make_exact_information(structure, index: tuple[int, ...]):
             (A_x, A_y), (E_x, _), (B_x, B_y), (F_x, F_y) = jax.jacfwd(random_part, argnums=(0, 1))(zero_x, zero_y)
 
             # The true system over the interval, x' = Φx + c + w, and y = Cx' + d + v.
-            c, Lam, Phi = truth.predict(zero_x, jnp.zeros((n, n)), row)
+            (c, Lam), Phi = truth.predict(GaussianState(zero_x, jnp.zeros((n, n))), row)
             d, C = linearized_observation(h, zero_x, row.u_cur, row.t, theta)
             R = _observation_noise(structure, zero_x, row.u_cur, row.t, theta)
             y0 = C @ c + d

@@ -376,7 +376,7 @@ def input_ranges(model) -> dict:
     """``{input: (low, high)}`` from the data the model file names (``[data] file`` or ``dataset``), or
     ``{}`` where it names none or they cannot be read."""
     from ..errors import DataError, ModelError
-    from ..model.files import read_data
+    from ..data.files import read_data
     from ..model.options import rename_columns
 
     options = getattr(model, "options", {}) or {}

@@ -7,9 +7,8 @@ evaluates those of one kind — value, scoring or exact derivatives — together
 one program vectorised over the members (``jax.vmap``), and hands each member
 its answer.  The programs are those a single fit compiles, so a batch computes
 exactly what separate fits would.  Values and scoring steps gain most from
-vectorising (Armadillo model, 64 members: 0.055 against 0.5 ms per value, 0.67
-against 1.8 ms per scoring step); the exact Hessian does not (6.5–13 against
-5.5 ms per member, so members are evaluated one by one in parallel threads).  The starts of a fit share the data; the
+vectorising; the exact Hessian does not, so members are evaluated one by one in
+parallel threads (``benchmarks/fleet.py``).  The starts of a fit share the data; the
 members of a fleet each bring their own series, padded to a common length.
 """
 
@@ -28,8 +27,7 @@ from .objective import Programs, combine_hessian, combine_scoring, direction_blo
 from .optimize import EXACT, SCORING, VALUE, Optimum, Search, settle
 
 #: Largest number of members one program call evaluates: memory stays bounded, and
-#: beyond it a vectorised step costs more per member (Armadillo scoring: 0.54 ms at
-#: 64 members, 1.08 ms at 128, as the working set leaves the cache).
+#: beyond it a vectorised step costs more per member, as the working set leaves the cache.
 MAX_BATCH = 64
 
 

@@ -22,7 +22,7 @@ from ..data.prepare import as_frames
 from ..errors import DataError, ModelError
 from ..filters.accuracy import LOGLIK_TOLERANCE, MAX_SUBSTEPS, SubstepChoice, needs_substeps
 from ..filters.api import check_at_parameters, check_equations_finite, filter_options, prepare_datasets
-from ..filters.core import takes_steady_state
+from ..filters.kalman import takes_steady_state
 from ..model.delays import delay_parameters
 from ..progress import FitProgress
 from .criteria import GaussianPrior, check_robust
@@ -44,25 +44,23 @@ CRITERIA = ("ml", "map")
 #: steps ([`quasi_newton_start()`][greyid.estimate.optimize.quasi_newton_start]; a fit's starts run together take
 #: Newton steps).
 OPTIMIZERS = ("auto", "scoring", "newton", "quasi-newton")
-#: Below this the exact Hessian is cheap enough that scoring does not repay the
-#: compilation of its program: the test cell (1512 rows, 9 parameters, 1.2e5) fits in
-#: 0.19 s by Newton and 0.14 s by scoring, but the first fit costs 0.4 s more; PRBS1
-#: building models (1691 rows, 10–22 parameters, ≥ 1.7e5) fit 2–5 times faster by scoring.
+#: Below this (padded rows × free parameters²) the exact Hessian is cheap enough that scoring does
+#: not repay the compilation of its program (the test cell, 1.2e5, fits faster by scoring only once
+#: compiled); the PRBS1 building models (≥ 1.7e5) fit several times faster by scoring
+#: (``benchmarks/fit.py``, docs/performance.md).
 SCORING_WORK = 150_000
 #: Below this (padded rows × free parameters²) a Hessian's rows are one block in one thread: split,
 #: each block repeats the value and gradient, and the threads' hand-over and the machine's other
-#: load cost more than the rows save.  Default Armadillo fits (240 × 7², 1.2e4), medians of one
-#: process alternating: 2 CPUs 49.8 ms in one thread against 59.6 ms in two; 16 CPUs 56.6 ms against
-#: 69.0 (two), 54.8 (four) and 59.5 (seven).  The test cell (9 parameters) gains from the split from
-#: about 600 rows (two threads against one: 5.2e4, 149 against 159 ms; 300 rows, 2.6e4, 78 against
-#: 76 ms; 1512 rows, 236 against 271 ms).
+#: load cost more than the rows save: a default Armadillo fit (240 × 7², 1.2e4) is slower split
+#: whatever the number of CPUs, the test cell (9 parameters) gains from the split from about 600 rows
+#: (``benchmarks/fit.py``).
 SPLIT_WORK = 40_000
 
 
 #: Starts asking for the same kind of evaluation that are evaluated by one vectorised
 #: program; fewer run side by side in threads with the single fit's programs, whose
-#: compilation they share (PRBS1 selection, two starts per model: vectorising them
-#: took 76 s against 60 s, the vectorised programs' compilation not repaid).
+#: compilation they share (for a few starts, as in the PRBS1 model selection, the vectorised
+#: programs' compilation is not repaid).
 VECTORISE_STARTS = 8
 
 
@@ -205,11 +203,10 @@ def uses_quasi_start(optimizer: str, scoring: bool) -> bool:
 
     Asked for by ``optimizer="quasi-newton"``.  It pays where an exact Hessian costs several
     gradients: one block in one thread (padded rows × free parameters² below SPLIT_WORK), about
-    n/2 forward gradients (Armadillo: 2.5 against 0.8 ms; compiled fits 20.0 against 33.5 ms with
-    Newton's steps throughout, ``benchmarks/fit.py --against``).  Above it, split over the CPUs, an exact
+    n/2 forward gradients (``benchmarks/fit.py --against``).  Above it, split over the CPUs, an exact
     Hessian costs hardly two, and the L-BFGS steps of an ill-conditioned start cost more than
-    the Newton steps they save (test cell: 0.27 against 0.22 s).  It compiles a second program,
-    the value and gradient: a first fit with an empty cache takes 0.2–0.35 s longer.
+    the Newton steps they save (the test cell).  It compiles a second program, the value and
+    gradient, so a first fit with an empty cache takes longer.
     """
     return optimizer == "quasi-newton" and not scoring
 
@@ -239,7 +236,7 @@ def single_programs(structure, problem: Problem, arguments: tuple, stack: ExitSt
     programs = compiled(structure, problem)
     rows = sum(inputs.t.shape[0] for inputs in arguments[-1])
     # With the steady state a shorter series' Hessian costs about as much as its first rows: split
-    # over threads, each block would repeat them (Armadillo: 1.5 ms in two threads, 1.1 ms in one).
+    # over threads, each block would repeat them.
     # A small problem's Hessian is one block whatever the machine (SPLIT_WORK), so its answer
     # does not depend on how many CPUs there are either.
     steady = problem.options.steady_state and takes_steady_state(structure, problem.options)

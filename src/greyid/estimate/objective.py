@@ -21,7 +21,8 @@ import numpy as np
 from ..compiler import compile_in_background, jit, kept_key
 from ..filters import small
 from ..filters.api import compiled_filter
-from ..filters.core import KALMAN, FilterOptions, make_ahead, make_summed_filter
+from ..filters.driver import make_ahead, make_summed_filter
+from ..filters.protocol import KALMAN, FilterOptions
 from .criteria import GaussianPrior, log_criterion, scale_consistency, step_criterion
 from .transforms import Transform
 
@@ -29,9 +30,8 @@ from .transforms import Transform
 #: Largest number of free parameters whose Hessian is taken forward over forward.
 FORWARD_HESSIAN_MAX = 10
 #: Rows (over all data sets) above which the Hessian is taken forward over forward
-#: whatever the filter: reverse mode keeps every step's intermediates, 5 GB for a
-#: 10⁵-sample logistic EKF fit against 0.6 GB forward (and 59 s against 26 s),
-#: benchmarks/length.py.
+#: whatever the filter: reverse mode keeps every step's intermediates, several times the memory
+#: and the time of forward mode on a 10⁵-sample logistic EKF fit (``benchmarks/length.py``).
 LONG_SERIES = 20_000
 
 
@@ -108,7 +108,7 @@ def criterion_functions(structure, problem: Problem, forward_only: bool = False)
     (3.18, or the robust or k-step criterion) summed over the data sets, minus the log-prior (MAP).
 
     ``forward_only``: ``negative`` is differentiated in forward mode only, which lets a shorter
-    series with the steady state switch where its filter settles ([`scan_rows()`][greyid.filters.core.scan_rows]).
+    series with the steady state switch where its filter settles ([`scan_rows()`][greyid.filters.driver.scan_rows]).
     """
     kappa = scale_consistency(problem.robust)
     if problem.horizon == 1:
@@ -197,7 +197,7 @@ def build(structure, problem: Problem) -> Programs:
     if forward and for_hessian is negative:
         # The same Hessian pushing the value-and-gradient program's own jitted function along each
         # row: JAX traces that function once for both programs, so a fit that compiles both (a
-        # quasi-Newton start) does not trace it twice; alone, the nesting costs about 0.1 s of tracing.
+        # quasi-Newton start) does not trace it twice; alone, the nesting costs a little tracing.
         sharing = jit(hessian_rows(for_hessian, forward, value_and_grad.nested), key=kept("derivatives_sharing"))
     # Per-step scores (rows: steps, columns: ∂/∂z), forward mode: nothing stored per step.
     return Programs(derivatives, jit(negative, key=kept("value")),
@@ -216,8 +216,7 @@ def whitened_sensitivities(R, d_eps, d_R):
 
     ``d_eps`` (directions, N, m) and ``d_R`` (directions, N, m, m) are the sensitivities.
     L⁻¹ comes from the filters' unrolled small-matrix routines, one row at a time:
-    batched LAPACK calls over 10⁵ rows of 1 × 1 matrices took four times as long
-    (10.8 against 2.5 ms, a tenth of a 10⁵-row scoring step).
+    batched LAPACK calls over 10⁵ rows of 1 × 1 matrices take several times as long.
     """
     eye = np.eye(R.shape[-1])
     L_inv = jax.vmap(lambda R_k: small.solve_lower(small.cholesky(R_k), eye))(R)
@@ -372,7 +371,7 @@ class Derivatives:
 
     def _pin(self, z):
         # Compiled once, before any thread starts, and kept for the search: the program's own
-        # call would look it up again each time (its arguments' tree and types, 0.2–0.4 ms).
+        # call would look it up again each time (its arguments' tree and types).
         if self.pinned is None:
             self.pinned = self.program.executable(z, self.blocks[0], *self.arguments)
         return self.pinned

@@ -484,9 +484,8 @@ def quasi_newton_start(value_and_grad: Callable, z0: np.ndarray, max_evaluations
     """L-BFGS (SciPy's L-BFGS-B, no bounds) from z0 on ``value_and_grad(z) -> (f, g)``, the exact gradient.
 
     Far from the optimum a step needs a descent direction, not the exact curvature: an
-    evaluation here costs a forward gradient, a few times less than an exact Hessian
-    (Armadillo: 14 evaluations of about 0.8 ms from the start to within 1e-8 of the optimum's
-    value, where Newton took 12 exact Hessians of 2.5 ms).  The start only moves the point
+    evaluation here costs a forward gradient, a few times less than an exact Hessian, and
+    about as many of them are needed as Newton takes Hessians.  The start only moves the point
     from which [`Search`][greyid.estimate.optimize.Search] takes exact Newton steps, so the optimum, its Hessian and the
     convergence test are those of Newton's method.  It stops at ``max_evaluations``, where the
     gradient falls below QUASI_GRADIENT, and at the first non-finite value or gradient; it

@@ -455,7 +455,7 @@ class FitResult:
         for label, text in expressions.items():
             expr = parameter_expression(text, names, f"derived quantity '{label}'")
             # The value and exact gradient from SymPy, evaluated by NumPy: JAX would compile each
-            # operation on its first use (0.4 s for a model's few quantities).
+            # operation on its first use, which for a model's few quantities costs more than the evaluation.
             used = [i for i, sym in enumerate(symbols) if sym in expr.free_symbols]
             fn = sp.lambdify([symbols[i] for i in used], [expr] + [sp.diff(expr, symbols[i]) for i in used], "numpy")
             out = [float(v) for v in fn(*theta[used])]
@@ -551,7 +551,7 @@ class FitResult:
         if self.data is None and self.data_file:
             from ..data.prepare import as_frames
             from ..errors import DataError
-            from ..model.files import named_dataset, read_data
+            from ..data.files import named_dataset, read_data
             from ..model.options import rename_columns
 
             if named_dataset(self.data_file) is None and not Path(self.data_file).is_file():

@@ -30,7 +30,7 @@ def space_filling(transform: Transform, z0: np.ndarray, count: int, seed: int) -
     """``count`` points of a Latin hypercube in z around ``z0`` (see the module doc)."""
     if count <= 0:
         return []
-    from scipy.stats import qmc  # here: scipy.stats takes 0.6 s to import, and one start needs none
+    from scipy.stats import qmc  # here: scipy.stats is slow to import, and one start needs none
 
     unit = qmc.LatinHypercube(d=len(z0), seed=seed).random(count)  # in [0, 1)
     spread = 2.0 * unit - 1.0

@@ -1,6 +1,6 @@
 """Continuous–discrete filters (chapter 4, appendix A): Kalman, EKF, IEKF, UKF."""
 
-from .core import EKF, EKF2, IEKF, KALMAN, METHODS, UKF, FilterOptions
+from .protocol import EKF, EKF2, IEKF, KALMAN, METHODS, UKF, FilterOptions
 from .discretize import Discretization, discretize, stationary_covariance
 from .result import FilterResult, SmootherResult
 

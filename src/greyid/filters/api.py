@@ -21,7 +21,9 @@ from ..data.prepare import Series, as_frames, prepare_series
 from ..errors import DataError, FilterWarning, ModelError, warn
 from ..model.structure import Structure
 from .accuracy import choose_substeps, needs_substeps
-from .core import EKF, KALMAN, FilterInputs, FilterOptions, initial_state, make_ahead, make_filter
+from .driver import make_ahead, make_filter
+from .gaussian import initial_state
+from .protocol import EKF, KALMAN, FilterInputs, FilterOptions
 from .delays import check_delays, delay_slots, with_delayed_inputs
 from .result import FilterResult, SmootherResult
 from .smoother import rts_smooth
@@ -41,8 +43,7 @@ def interval_slots(n: int) -> int:
     """Padded count of a series' distinct sampling intervals (0, the first row's, among them).
 
     A regular series has two, kept as they are: every slot costs a step of the loop that
-    discretizes them (the Armadillo value and gradient 0.21 ms with two slots, 0.23–0.24 ms
-    with four, ``benchmarks/likelihood.py``); more are padded to 4 and then as rows are."""
+    discretizes them (``benchmarks/likelihood.py``); more are padded to 4 and then as rows are."""
     return 2 if n <= 2 else bucket(n, 4)
 
 

@@ -53,8 +53,7 @@ def _small_interval(A: jnp.ndarray, Q: jnp.ndarray, h: jnp.ndarray):
     summed to k = TAYLOR_ORDER: the truncation error is of order (1/2)^K/K!
     relative (for Λ 1/(K+2)!), below double precision for K = 16.  Only n × n
     products: a ninth of the work of the 3n × 3n and 2n × 2n block exponentials,
-    and about three fifths of their cost in a Hessian (Armadillo, seven parameters:
-    0.21–0.23 against 0.36 ms).
+    and about three fifths of their cost in a Hessian (``benchmarks/likelihood.py``).
     """
     n, order = A.shape[0], TAYLOR_ORDER
     X = A * h

@@ -41,7 +41,7 @@ from jax.custom_derivatives import SymbolicZero
 
 from . import small
 from .discretize import Discretization
-from .updates import StepTerms, Update, from_matrix, symmetrize, to_matrix
+from .updates import GaussianState, StepTerms, Update, from_matrix, symmetrize, to_matrix
 
 #: Rows of a series from which the filter takes the steady-state form where it can.
 MIN_ROWS = 20_000
@@ -73,6 +73,12 @@ SETTLED_TOLERANCE = 1e-10
 #: Doubling iterations of the Lyapunov sum in [`settled_state()`][greyid.filters.steady.settled_state]
 #: (2^SMITH_DOUBLINGS terms).
 SMITH_DOUBLINGS = 8
+
+
+def switches(n_rows: int, asked: bool) -> bool:
+    """Whether a series of ``n_rows`` (padded) rows takes the steady-state form where it can: long
+    ones always, shorter ones where the filter's options ask for it."""
+    return n_rows >= MIN_ROWS or (asked and n_rows >= SHORT_ROWS)
 
 
 class SteadyModel(NamedTuple):
@@ -364,12 +370,10 @@ def doubling_recursion(F, v, start):
     sum, and no LAPACK call.  The Hessian's rest ([`summed_rest()`][greyid.filters.steady.summed_rest]) takes its
     gradient in reverse mode, which transposes the triangular solves into LAPACK
     calls with dozens of right-hand sides; the BLAS library spreads those over
-    its threads, and a thread held by other work stalls the fit.  Armadillo fits
-    with ``steady_state=True``, medians of 30: 25.7 and 35.1 against 90.6 and
-    105.5 ms on 16 cores; 38 against 68 ms on this 2-CPU machine while it ran
-    the tests.  The value and gradient (forward mode, a few right-hand sides)
-    keep the solves: by doubling they took 0.33–0.42 against 0.23–0.26 ms on 16
-    cores (equal here).
+    its threads, and a thread held by other work stalls the fit: Armadillo fits
+    with ``steady_state=True`` run several times faster by doubling.  The value
+    and gradient (forward mode, a few right-hand sides) keep the solves, which
+    are no slower there (``benchmarks/likelihood.py``).
     """
     rows, n = v.shape
     x = v.at[0].add(small.mm(F, start))
@@ -458,7 +462,7 @@ def steady_rows(model: SteadyModel, steady: SteadyState, x_start, rows, padding,
     terms = StepTerms(whitened * counted[:, None], counted * logdet, counted * C.shape[0])
     update = Update(filtered, each(cov_filt), innovation, each(steady.innovation_cov), terms,
                     jnp.zeros(innovation.shape[:-1]))
-    return (predicted, each(cov_pred), each(disc.transition), update, y_pred), (filtered[-1], cov_filt)
+    return (predicted, each(cov_pred), each(disc.transition), update, y_pred), GaussianState(filtered[-1], cov_filt)
 
 
 class RestRows(NamedTuple):
@@ -478,8 +482,8 @@ def summed_rest(accumulate: Callable, model: SteadyModel, x_start, cov, rows):
 
     Its derivatives come from its own rule, which takes the gradient in reverse mode: a fit's Hessian
     (forward over forward) then differentiates the rest forward over reverse, carrying each row's
-    seven tangents instead of the 49 of second order (the Armadillo Hessian 0.83 against 0.96 ms on
-    232 rows, 1.6 against 3.5 ms on 928).  Padding rows (no interval, nothing observed) count nothing.
+    seven tangents instead of the 49 of second order, which pays more the longer the series.
+    Padding rows (no interval, nothing observed) count nothing.
     """
     static = (accumulate, model.form, model.affine_drift_at, model.affine_output_at)
     diff = (model.theta, model.disc, model.C, model.noise, model.foh, x_start, cov)

@@ -29,6 +29,13 @@ SQRT = "sqrt"
 FORMS = (PLAIN, SQRT)
 
 
+class GaussianState(NamedTuple):
+    """The state of a Gaussian filter: a mean and a covariance (in the carried form)."""
+
+    mean: jnp.ndarray
+    covariance: jnp.ndarray  # P or its factor, see to_matrix
+
+
 class Update(NamedTuple):
     """Result of one measurement update at t_k."""
 
@@ -40,6 +47,11 @@ class Update(NamedTuple):
     #: 1 where the update's plain covariance P − K R Kᵀ was not positive semi-definite and the
     #: guarded (Joseph) form replaced it (the moment-based updates of the UKF and second-order filters).
     guarded: jnp.ndarray | float = 0.0
+
+    @property
+    def state(self) -> GaussianState:
+        """The filtered state the filter carries on to the next row."""
+        return GaussianState(self.mean, self.covariance)
 
 
 class StepTerms(NamedTuple):

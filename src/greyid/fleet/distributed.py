@@ -3,7 +3,7 @@
 The client sends each chunk — the model as its dictionary form, the data sets
 (DataFrames, or CSV paths read on the worker) and the settings — to a worker,
 which builds the model once ([`_worker_model()`][greyid.fleet.distributed._worker_model] keeps it for later chunks,
-so a worker compiles once) and runs [`fit_members()`][greyid.fleet.fit.fit_members] on the chunk.
+so a worker compiles once) and runs [`fit_members()`][greyid.fleet.members.fit_members] on the chunk.
 Fits come back in their saved form and are rebuilt on the client around the
 caller's model.  Scheduling, retries and data locality are Dask's.
 """
@@ -16,21 +16,19 @@ from pathlib import Path
 
 import pandas as pd
 
+from ..model import Model
 from ..progress import CountProgress
+from .members import fit_members
 from .result import FleetResult
 
 
 @functools.lru_cache(maxsize=8)
 def _worker_model(spec_json: str):
-    from ..model import Model
-
     return Model.from_dict(json.loads(spec_json))
 
 
 def _fit_chunk(spec_json: str, names: list, sources: list, inits: list, given: dict):
     """On a worker: ``(rows, fits as dictionaries)`` of one chunk."""
-    from .fit import fit_members
-
     model = _worker_model(spec_json)
     rows, fits = fit_members(model, names, sources, inits, False, given)
     return rows, [None if fit is None else fit.to_dict() for fit in fits]

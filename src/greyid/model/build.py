@@ -18,7 +18,8 @@ import sympy as sp
 
 from ..errors import ModelError
 from .delays import find_delays
-from .equations import CONSTANTS, TIME, is_wiener_name
+from .equations import CONSTANTS, is_wiener_name
+from .symbols import TIME
 from .structure import (LTI, InitialCovariance, Structure, classify, lambdify_model, lambdify_parameters,
                         linear_drift_function, observation_is_constant)
 

@@ -16,6 +16,7 @@ from typing import Callable
 import sympy as sp
 
 from ..errors import ModelError
+from .symbols import TIME
 
 
 class delay(sp.Function):  # noqa: N801  (the name users write)
@@ -44,8 +45,6 @@ def find_delays(exprs, inputs: list[str], states: list[str]) -> list[tuple[sp.Ex
         for call in sp.preorder_traversal(expr):
             if isinstance(call, delay) and call not in calls:
                 calls.append(call)
-    from .equations import TIME  # equations knows delay() by name: imported here, not at the top
-
     found = []
     for call in calls:
         signal, tau = call.args

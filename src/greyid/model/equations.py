@@ -20,6 +20,7 @@ from sympy.parsing.sympy_parser import convert_xor, parse_expr, standard_transfo
 
 from ..errors import ModelError
 from .delays import delay
+from .symbols import DT
 from .physics import glazing_transmittance_expression
 
 #: Functions allowed in equations, by the name a user writes.
@@ -56,9 +57,6 @@ FUNCTIONS: dict[str, object] = {
     "delay": delay,
 }
 
-#: Names with a fixed meaning inside equations.
-TIME = sp.Symbol("t", real=True)
-DT = sp.Symbol("dt", real=True)
 _CONSTANTS = {"pi": sp.pi, "True": sp.true, "False": sp.false}
 #: Names that an equation reads as a constant, not as a parameter: what each means.
 CONSTANTS = {"pi": "π = 3.14159…", "True": "true", "False": "false"}

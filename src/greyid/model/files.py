@@ -42,23 +42,22 @@ A model file holds what the Python API holds, readable at a glance::
 
 [`read_model()`][greyid.model.files.read_model] and [`write_model()`][greyid.model.files.write_model] round-trip
 (``Model.from_toml`` /
-``model.to_toml``); [`read_data()`][greyid.model.files.read_data] reads the data a model file points to.
+``model.to_toml``); [`read_data()`][greyid.data.files.read_data] reads the data a model file points to.
 """
 
 from __future__ import annotations
 
-import io
 import json
 import math
-import re
 import tomllib
 from pathlib import Path
 from typing import Mapping
 
 import numpy as np
 
-from ..data.timestamps import parse_timestamps
-from ..errors import DataError, ModelError
+from ..data.files import read_data  # noqa: F401  (the data a model file names; read in data/)
+from ..errors import ModelError
+from ..outputs import write_atomic
 from ..schema import MODEL_SECTIONS, check_model_document, observation_entry, parameter_entry
 
 
@@ -110,10 +109,8 @@ def model_to_dict(model) -> dict:
     }
 
 
-def model_from_dict(spec: Mapping, cls=None):
-    """Rebuild a model written by [`model_to_dict()`][greyid.model.files.model_to_dict]."""
-    if cls is None:
-        from .model import Model as cls
+def model_from_dict(spec: Mapping, cls):
+    """Rebuild a model of class ``cls`` from its [`model_to_dict()`][greyid.model.files.model_to_dict] form."""
     m = cls(spec.get("name", "model"), spec.get("description", ""))
     m.add_system(*spec["system"])
     if spec.get("inputs"):
@@ -174,8 +171,9 @@ def spec_from_toml(document: Mapping) -> dict:
     }
 
 
-def read_model(source):
-    """A [`Model`][greyid.model.model.Model] from a TOML model file (a path) or TOML text.
+def read_model(source, cls):
+    """A model of class ``cls`` (a [`Model`][greyid.model.model.Model]) from a TOML model file (a path) or
+    TOML text.
 
     A relative ``[data] file`` is kept relative to the model file's folder.
     """
@@ -199,7 +197,7 @@ def read_model(source):
     except tomllib.TOMLDecodeError as err:
         raise ModelError(f"{where} is not valid TOML: {err}") from None
     try:
-        model = model_from_dict(spec_from_toml(document))
+        model = model_from_dict(spec_from_toml(document), cls)
     except ModelError as err:
         raise ModelError(f"{where}: {err}") from None
     model.source = path
@@ -284,132 +282,5 @@ def write_model(model, path=None) -> str:
     """Write ``model`` as a TOML model file to ``path`` (when given); returns the text."""
     text = model_to_toml(model)
     if path is not None:
-        from ..outputs import write_atomic
-
         write_atomic(path, text)
     return text
-
-
-# ---------------------------------------------------------------------- data
-#: How a saved fit names data that came from [`greyid.datasets.fetch()`][greyid.data.named.fetch] rather than a file.
-DATASET_PREFIX = "dataset:"
-
-
-def named_dataset(origin) -> str | None:
-    """NAME of an origin written ``dataset:NAME`` (a saved fit's ``data_file``, a command line's DATA);
-    None for a file's path."""
-    text = str(origin)
-    return text[len(DATASET_PREFIX):] if text.startswith(DATASET_PREFIX) else None
-
-
-def _dataset_name(model, path) -> str | None:
-    """The named data set the data come from: ``path`` written ``dataset:NAME``, else (no path) the model
-    file's ``[data] dataset``; None for a file."""
-    if path is not None:
-        return named_dataset(path)
-    options = model.options
-    if "dataset" in options and "file" in options:
-        raise DataError(f"the model file names both a data file ('{options['file']}') and a data set "
-                        f"('{options['dataset']}') in [data]; keep one")
-    return options.get("dataset")
-
-
-def data_path(model, path=None) -> Path:
-    """Where the data for ``model`` are: ``path``, else the model file's ``[data] file``
-    (relative to the model file)."""
-    if path is not None:
-        return Path(path)
-    options = model.options
-    if "file" not in options:
-        raise DataError("no data file given, and the model file names none ([data] file = \"...\" or "
-                        "[data] dataset = \"armadillo\" for a data set greyid fetches by name)")
-    path = Path(options["file"])
-    if not path.is_absolute() and model.source is not None:
-        path = Path(model.source).parent / path
-    return path
-
-
-def data_origin(model, path=None) -> str:
-    """Where the data come from, as a saved fit keeps it: the data file's absolute path, or
-    ``dataset:NAME`` for a data set of [`greyid.datasets.fetch()`][greyid.data.named.fetch]."""
-    name = _dataset_name(model, path)
-    return f"{DATASET_PREFIX}{name}" if name is not None else str(data_path(model, path).resolve())
-
-
-def read_data(model, path=None, time: str | None = None):
-    """Read the data for ``model``: the CSV file of [`data_path()`][greyid.model.files.data_path], or the named data set
-    (``[data] dataset``, or ``path`` written ``dataset:NAME``) by [`greyid.datasets.fetch()`][greyid.data.named.fetch].
-
-    The separator is ``[data] separator`` when given, else detected.  Column
-    renaming by ``[data.columns]`` happens when the data are used.
-    """
-    name = _dataset_name(model, path)
-    if name is not None:
-        from ..data.named import fetch
-
-        frame, where = fetch(name), f"data set '{name}'"
-    else:
-        path = data_path(model, path)
-        if path.is_dir():
-            raise DataError(f"data file '{path}' is a folder; give the CSV file inside it")
-        if not path.is_file():
-            raise DataError(f"data file '{path}' not found")
-        frame = read_csv_file(path, model.options.get("separator"), model.options.get("decimal"))
-        where = f"data file '{path}'"
-    missing = [(n, column) for n, column in (model.options.get("columns") or {}).items()
-               if column not in frame.columns]
-    if missing:
-        n, column = missing[0]
-        raise DataError(f"[data.columns] maps '{n}' to the column '{column}', which {where} does not "
-                        f"have; its columns are {list(frame.columns)}")
-    return parse_timestamps(frame, time or model.options.get("time", "t"), model.options.get("time_format"),
-                            model.options.get("time_zone"), str(path) if name is None else where)
-
-
-def read_csv_file(path, separator=None, decimal=None, text_columns: int = 0):
-    """A CSV file as a DataFrame, with a named error for every way it can fail to be one.
-
-    The separator is detected where not given (``,`` ``;`` tab ...).  A file that
-    is empty, not UTF-8 text, or has two columns of the same name is refused;
-    ``;``-separated numbers with decimal commas are read as such (``decimal``,
-    detected where not given).  The first ``text_columns`` columns are read as
-    text as written (names such as ``001``).
-    """
-    import csv
-    import warnings
-
-    import pandas as pd
-
-    path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except OSError as err:
-        raise DataError(f"data file '{path}' cannot be read ({err.strerror or err})") from None
-    if not raw.strip():
-        raise DataError(f"data file '{path}' is empty")
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError as err:
-        raise DataError(f"data file '{path}' is not UTF-8 text (byte 0x{raw[err.start]:02x} at position "
-                        f"{err.start}); save it as UTF-8") from None
-    header = text.splitlines()[0]
-    if separator is None:
-        try:
-            separator = csv.Sniffer().sniff(text[:65536], delimiters=",;\t| ").delimiter
-        except csv.Error:
-            separator = ","
-    names = [n.strip().strip('"') for n in next(csv.reader([header], delimiter=separator))]
-    duplicated = sorted({n for n in names if names.count(n) > 1})
-    if duplicated:
-        raise DataError(f"data file '{path}' has two columns named '{duplicated[0]}'; rename one")
-    if decimal is None:  # "1,5;2,25": decimal commas where the separator is not a comma
-        body = text.splitlines()[1:50]
-        decimal = "," if separator != "," and any(re.search(r"\d,\d", line) for line in body) else "."
-    try:
-        with warnings.catch_warnings():  # pandas' own warnings would be printed before greyid's message
-            warnings.simplefilter("ignore")
-            frame = pd.read_csv(io.StringIO(text), sep=separator, decimal=decimal,
-                                dtype={k: str for k in range(text_columns)} or None)
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, ValueError, csv.Error) as err:
-        raise DataError(f"data file '{path}' could not be read as CSV: {err}") from None
-    return frame

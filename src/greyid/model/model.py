@@ -28,6 +28,7 @@ from .equations import (
     parse_expression,
     parse_system_equation,
 )
+from .files import model_from_dict, model_to_dict, read_model, write_model
 from .options import DATA_KEYS, ESTIMATION_KEYS, FILTER_KEYS, check_options, rename_columns, resolve
 from .parameters import Parameter
 from .structure import LTI, LTV, NONLINEAR, Structure
@@ -810,8 +811,6 @@ class Model:
         dict
             What [`from_dict()`][greyid.model.model.Model.from_dict] reads (and a saved fit keeps).
         """
-        from .files import model_to_dict
-
         return model_to_dict(self)
 
     @classmethod
@@ -833,8 +832,6 @@ class Model:
         ModelError
             A dictionary that does not describe a model (names the key).
         """
-        from .files import model_from_dict
-
         return model_from_dict(spec, cls)
 
     @classmethod
@@ -862,9 +859,7 @@ class Model:
         >>> import greyid
         >>> m = greyid.Model.from_toml("examples/armadillo.toml")  # doctest: +SKIP
         """
-        from .files import read_model
-
-        return read_model(source)
+        return read_model(source, cls)
 
     def to_toml(self, path=None) -> str:
         """The model as a TOML model file.
@@ -879,8 +874,6 @@ class Model:
         str
             The file's text.
         """
-        from .files import write_model
-
         return write_model(self, path)
 
     # ------------------------------------------------------------------ public calls

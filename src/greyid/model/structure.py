@@ -18,7 +18,7 @@ import sympy as sp
 from sympy.utilities.lambdify import lambdify
 
 from ..errors import ModelError
-from .equations import TIME
+from .symbols import TIME
 
 Array = jnp.ndarray
 ModelFunction = Callable[[Array, Array, Array, Array], Array]

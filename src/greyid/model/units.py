@@ -31,7 +31,7 @@ import sympy as sp
 
 from ..errors import ModelError
 from .delays import delay
-from .equations import TIME
+from .symbols import TIME
 
 
 @lru_cache(maxsize=1)

@@ -6,9 +6,9 @@ likelihood ([`laplace`][greyid.population.laplace]) and returns a
 [`PopulationResult`][greyid.population.result.PopulationResult].
 """
 
-from .fit import PopulationWarning, fit_population
-from .result import LikelihoodRatio, PopulationResult, likelihood_ratio
-from .saved import load_population
+from .fit import fit_population
+from .members import PopulationWarning
+from .result import LikelihoodRatio, PopulationResult, likelihood_ratio, load_population
 
 __all__ = ["fit_population", "PopulationResult", "PopulationWarning", "likelihood_ratio", "LikelihoodRatio",
            "load_population"]

@@ -24,7 +24,9 @@ from concurrent.futures import CancelledError
 import numpy as np
 
 from ..errors import ModelError
+from ..model import Model
 from . import laplace
+from .members import population_programs
 
 #: Seconds between looks at the cluster while chunks are pending.
 POLL = 0.5
@@ -37,9 +39,6 @@ _PROGRAMS: dict = {}
 
 
 def _worker_programs(spec_json: str, spec, options):
-    from ..model import Model
-    from .fit import population_programs
-
     key = (spec_json, spec.key(), options)
     if key not in _PROGRAMS:
         model = Model.from_dict(json.loads(spec_json))

@@ -16,86 +16,23 @@ from __future__ import annotations
 
 import functools
 import warnings
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
-import jax
 import numpy as np
 import pandas as pd
 
-from ..data.prepare import as_frames
-from ..errors import DataError, ModelError, warn
-from ..estimate.batch import pad_series
-from ..estimate.estimation import check_observed
+from ..errors import DataError, ModelError
 from ..estimate.objective import worker_count
 from ..estimate.optimize import EXACT, GRADIENT, VALUE, NotFiniteError, Search, run_alone
-from ..filters.accuracy import needs_substeps
-from ..filters.api import accurate_options, check_at_parameters, filter_options, prepare_datasets
-from ..fleet.fit import named_datasets, read_source
-from ..model.options import FILTER_KEYS, rename_columns
+from ..data.files import named_datasets, read_covariates, read_source
+from ..model.options import rename_columns
 from . import laplace
+from .distributed import ClusterEvaluator, evaluate
+from .members import FILTER_OPTIONS, Members, PopulationWarning, population_filter, population_programs, prepare_members
+from .result import PopulationResult
 from .spec import PopulationSpec, make_spec
-
-
-class PopulationWarning(UserWarning):
-    """A member left out of a population fit, or a fit that did not converge."""
-
-
-#: The filter's settings a population fit takes besides ``method``, as model.fit does.
-FILTER_OPTIONS = tuple(k for k in FILTER_KEYS if k != "method")
-
-
-@dataclass
-class Members:
-    """The data sets that take part: names, frames, the stacked filter inputs and standardised covariates."""
-
-    names: list
-    frames: list  # per member: list of DataFrames (one per experiment; population members have one)
-    data: object  # FilterInputs stacked over members
-    x: np.ndarray  # (members, covariates) standardised
-    raw: np.ndarray  # (members, covariates) as given
-    n_obs: np.ndarray  # observed output values per member
-    left_out: dict  # name -> why
-
-
-def _prepare_members(model, names, sources, spec: PopulationSpec, raw_covariates, time, hold, time_unit,
-                     columns, minimum: int | None = None) -> Members:
-    """The data sets checked and stacked; at least ``minimum`` must remain (default: more than the random
-    effects, as a population fit needs)."""
-    structure = model.structure
-    kept, frames, inputs, rows, n_obs, left_out = [], [], [], [], [], {}
-    for k, (name, source) in enumerate(zip(names, sources)):
-        try:
-            frame = rename_columns(read_source(source), columns)
-            parts = as_frames(frame)
-            if len(parts) != 1:
-                raise DataError("a population member is one data set (one DataFrame), not several")
-            prepared = prepare_datasets(structure, spec.theta0, parts, time, hold, time_unit, check=False,
-                                        on_device=False)
-            check_at_parameters(structure, spec.theta0, *prepared[0])
-            check_observed(prepared, spec.n_random, f"data set '{name}'")
-        except (DataError, ModelError) as error:
-            left_out[name] = str(error)
-            continue
-        kept.append(name)
-        frames.append(parts)
-        inputs.append(prepared[0][1])
-        rows.append(raw_covariates[k])
-        n_obs.append(int(np.sum(~np.isnan(prepared[0][0].outputs))))
-    if minimum is not None and len(kept) < minimum:
-        raise DataError(f"the data set cannot be used: {next(iter(left_out.values()))}")
-    for name, why in left_out.items():
-        warn(f"data set '{name}' is left out of the population fit: {why}", PopulationWarning)
-    if minimum is None and len(kept) <= max(spec.n_random, 1):
-        raise DataError(f"{len(kept)} data set(s) can be fitted, too few for a population with {spec.n_random} "
-                        "random effect(s): a population fit needs more data sets than random effects")
-    length = max(len(np.asarray(s.t)) for s in inputs)
-    unique = max(len(np.asarray(s.unique_dt)) for s in inputs)
-    data = jax.device_put(pad_series(inputs, length, unique))
-    raw = np.array(rows, dtype=float).reshape(len(kept), len(spec.covariates))
-    x = (raw - spec.covariate_mean) / spec.covariate_sd if spec.covariates else raw
-    return Members(kept, frames, data, x, raw, np.array(n_obs), left_out)
 
 
 class Outer:
@@ -107,8 +44,6 @@ class Outer:
 
     def __init__(self, programs: laplace.LaplacePrograms | None, members: Members, spec: PopulationSpec,
                  workers: int | None = None, evaluator=None):
-        from .distributed import evaluate
-
         self.members = members
         self.u = np.zeros((len(members.names), spec.n_random))
         self.evaluations = 0
@@ -175,39 +110,6 @@ class Outer:
             self.programs.close()
 
 
-def population_filter(model, spec: PopulationSpec, members: Members, method, time, hold, time_unit, options):
-    """The filter's settings: as given, with as many sub-steps as accuracy needs at the start (chosen on the
-    first member, as model.fit chooses them, see greyid.filters.accuracy) where none are given."""
-    structure = model.structure
-    settings = {k: v for k, v in options.items() if v is not None}
-    if settings.get("substeps") is None and needs_substeps(structure):
-        first = prepare_datasets(structure, spec.theta0, members.frames[0], time, hold, time_unit, check=False)
-        settings.pop("substeps", None)
-        return accurate_options(structure, spec.theta0, first, method, **settings)[0]
-    return filter_options(structure, method, **settings)
-
-
-def population_programs(structure, spec: PopulationSpec, options) -> laplace.LaplacePrograms:
-    """The compiled programs of this population problem, built once per model structure."""
-    key = ("population", options, spec.key())
-    if key not in structure.cache:
-        structure.cache[key] = laplace.build(structure, spec, options)
-    return structure.cache[key]
-
-
-def read_covariates(path) -> pd.DataFrame:
-    """A covariates CSV file: a row per data set, its first column the data sets' names (read as text)."""
-    from ..model.files import read_csv_file
-
-    path = Path(path)
-    if not path.is_file():
-        raise DataError(f"covariates file '{path}' not found")
-    table = read_csv_file(path, text_columns=1)  # names such as "001" stay text, as the files' stems are
-    table = table.set_index(table.columns[0])
-    table.index = table.index.map(str)
-    return table
-
-
 #: Data sets fitted together (their parameters shared) for the population search's start.
 POOLED_MEMBERS = 8
 
@@ -259,8 +161,8 @@ def _search(outer: Outer, phi0: np.ndarray, maxiter: int, progress=False):
     """The maximum of Σ_i ℓ_i: quasi-Newton (BFGS) steps on exact gradients, from the members'
     outer-product information at the start, in greyid's trust region; then the exact Hessian, and
     Newton steps on it until the Newton decrement vanishes (usually none: the BFGS optimum is the
-    optimum to the criterion's precision).  The exact Hessian costs about forty gradients (100
-    houses: 20 s against 0.6 s), so the search takes it only at the end."""
+    optimum to the criterion's precision).  The exact Hessian costs dozens of gradients, so the
+    search takes it only at the end."""
     try:
         _, gradients, _ = outer.member_gradients(phi0)
         if not np.all(np.isfinite(gradients)):
@@ -370,8 +272,6 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
     ...                             covariates=covariates, effects={"Ci": ["floor_area"]})  # doctest: +SKIP
     >>> print(pop.summary())  # doctest: +SKIP
     """
-    from .result import PopulationResult
-
     names, sources = named_datasets(datasets)
     if len(set(map(str, names))) != len(names):
         raise DataError("the data sets' names must be unique")
@@ -412,12 +312,10 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
         raise ModelError(f"start is '{start}'; use 'pooled' (a fit to a few members' data together) or 'init' "
                          "(the model's initial values)")
     spec, raw = make_spec(model, random, covariates, effects, omega, names, init, omega_init)
-    members = _prepare_members(model, names, sources, spec, raw, time, hold, time_unit, columns)
+    members = prepare_members(model, names, sources, spec, raw, time, hold, time_unit, columns)
     structure = model.structure
     fo = population_filter(model, spec, members, method, time, hold, time_unit, options)
     if scheduler is not None:
-        from .distributed import ClusterEvaluator
-
         evaluator = ClusterEvaluator(scheduler, model, spec, fo, members, chunk_size,
                                      60.0 if worker_timeout is None else worker_timeout)
         outer = Outer(None, members, spec, evaluator=evaluator)

@@ -78,9 +78,8 @@ def build(structure, spec, options) -> LaplacePrograms:
     """The programs of one population problem: the model's filter (``options``) inside g_i.
 
     The outer derivatives are taken forward (a handful of population parameters):
-    reverse mode through the nested derivatives of the filter's scan compiled five
-    to seven times slower (8 members of 60 rows, one random effect: gradient 24 s
-    against 5 s, Hessian 138 s against 21 s) and ran no faster.
+    reverse mode through the nested derivatives of the filter's scan compiles several
+    times slower and runs no faster.
     """
     run = compiled_filter(structure, options, keep_outputs=False).__wrapped__
     q = spec.n_random
@@ -256,10 +255,9 @@ def laplace_values(modes: Modes) -> np.ndarray:
 
 
 #: Members per call of the outer gradient and Hessian programs.  Their chunks run side by side on
-#: the cores; small ones keep their many tangents in cache and compile faster (1000 houses: a gradient
-#: 3.5–4.0 s in chunks of 32 against 4.3–4.9 s in two of 500; 384 houses: the Hessian 24–27 s in chunks
-#: of 32 against 32–36 s in chunks of 128 one after the other, its compilation 40 s against 68 s).  The
-#: inner programs (modes, values), with few tangents, run fastest in one chunk per thread.
+#: the cores; small ones keep their many tangents in cache and compile faster
+#: (``benchmarks/population.py``).  The inner programs (modes, values), with few tangents, run
+#: fastest in one chunk per thread.
 DERIVATIVE_MEMBERS = 32
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -12,8 +13,17 @@ from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
 import jax
 import jax.numpy as jnp
 
+from ..data.files import read_source
 from ..errors import DataError
+from ..estimate.results import FitResult, filter_settings
+from ..estimate.transforms import Transform
+from ..filters.api import filter_options
+from ..model import Model
+from ..outputs import write_atomic
 from ..scaled import ScaledInformation, scaled_inverse
+from .laplace import MemberPrograms, Modes, conditional_modes, laplace_values
+from .members import Members, population_programs, prepare_members
+from .saved import FORMAT, population_to_dict
 from .spec import PopulationSpec
 
 #: Two-sided 95 % intervals.
@@ -39,7 +49,6 @@ def _reporting(spec: PopulationSpec):
         return jnp.concatenate(parts)
 
     def value(r):
-        from ..estimate.transforms import Transform
 
         n = len(spec.free)
         # An interval's end far out on the log scale (ω → 0, its standard error large) is +inf or 0
@@ -57,7 +66,7 @@ class PopulationResult:
     """A population fit: its parameters with their uncertainty, each member's random effects, its statistics.
 
     Made by [`fit_population()`][greyid.population.fit.fit_population] and
-    [`load_population()`][greyid.population.saved.load_population].
+    [`load_population()`][greyid.population.result.load_population].
 
     Attributes
     ----------
@@ -104,8 +113,6 @@ class PopulationResult:
     @classmethod
     def _at_optimum(cls, model, spec, members, optimum, modes, call):
         """The result at the outer search's optimum, with the members' modes (for fit_population)."""
-        from .laplace import laplace_values
-
         call = dict(call, loglik=-float(np.sum(laplace_values(modes))))
         return cls(model, spec, members, optimum.z, optimum.hessian, modes, call, optimum.converged,
                    optimum.message, optimum.iterations)
@@ -237,7 +244,6 @@ class PopulationResult:
         k = self.names.index(name)
         frames = self.frames[name]
         if frames is None and name in self.sources:
-            from ..fleet.fit import read_source
 
             frames = self.frames[name] = [read_source(self.sources[name])]
         if frames is None:
@@ -251,8 +257,6 @@ class PopulationResult:
     def _fit_at(self, name, theta, random_se: dict, frames, n_obs: int, what: str):
         """A FitResult at individual parameters θ: random parameters with their conditional SEs, the
         other free ones with their population SEs."""
-        from ..estimate.results import FitResult, filter_settings
-
         spec = self.spec
         settings = dict(self.call)
         settings.pop("loglik", None)
@@ -312,10 +316,6 @@ class PopulationResult:
             Covariates missing where the population has covariate effects, or data that
             do not fit the model.
         """
-        from .fit import _prepare_members, population_programs
-        from .laplace import MemberPrograms, conditional_modes
-        from ..filters.api import filter_options
-
         spec = self.spec
         if spec.covariates:
             if covariates is None:
@@ -329,7 +329,7 @@ class PopulationResult:
         else:
             raw = np.zeros((1, 0))
         settings = self.call
-        members = _prepare_members(self.model, [name], [new_data], spec, raw, settings["time"], settings["hold"],
+        members = prepare_members(self.model, [name], [new_data], spec, raw, settings["time"], settings["hold"],
                                    settings.get("time_unit"), None, minimum=1)
         options = filter_options(self.model.structure, settings["method"], form=settings["form"],
                                  substeps=settings["substeps"], iterations=settings["iterations"])
@@ -369,8 +369,7 @@ class PopulationResult:
         str
             The HTML document.
         """
-        from ..outputs import write_atomic
-        from ..report.population import population_report
+        from ..report.population import population_report  # matplotlib: imported where a report is asked for
 
         text = population_report(self, level=level, title=title, members=members)
         if path is not None:
@@ -383,11 +382,8 @@ class PopulationResult:
         Parameters
         ----------
         path : str or pathlib.Path
-            The file; [`load_population()`][greyid.population.saved.load_population] reads it.
+            The file; [`load_population()`][greyid.population.result.load_population] reads it.
         """
-        from ..outputs import write_atomic
-        from .saved import population_to_dict
-
         write_atomic(path, json.dumps(population_to_dict(self), indent=1))
 
     def summary(self) -> str:
@@ -487,3 +483,70 @@ def likelihood_ratio(restricted: PopulationResult, general: PopulationResult) ->
     note = (f"{k} variance(s) tested at 0, on the boundary of their range: p from the mixture "
             f"{' + '.join(f'{comb(k, j) / 2 ** k:g}·χ²_{df - k + j}' for j in range(k + 1))} (Self & Liang 1987)")
     return LikelihoodRatio(statistic, df, p, k, note)
+
+
+def load_population(path, data=None):
+    """Read a population fit written by [`PopulationResult.save()`][greyid.population.result.PopulationResult.save].
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The JSON file.
+    data : mapping of str to pandas.DataFrame, optional
+        The members' data sets that were not CSV files (``member()`` needs them).
+
+    Returns
+    -------
+    PopulationResult
+        The fit.
+
+    Raises
+    ------
+    DataError
+        A file that is missing, not JSON, not a saved population fit, or damaged.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"population fit file '{path}' not found")
+    try:
+        saved = json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise DataError(f"'{path}' is not a population fit file ({error})") from None
+    if not isinstance(saved, dict) or saved.get("format") != FORMAT:
+        raise DataError(f"'{path}' is not a population fit file (written by PopulationResult.save)")
+    try:
+        model = Model.from_dict(saved["model"])
+        s = saved["spec"]
+        spec = PopulationSpec(tuple(s["names"]), np.array(s["theta0"], dtype=float), tuple(s["free"]),
+                              tuple(bool(v) for v in s["log_scale"]),
+                              Transform(np.array(s["kind"], dtype=int), np.array(s["lower"], dtype=float),
+                                        np.array(s["upper"], dtype=float)),
+                              tuple(s["random"]), tuple(s["kinds"]), tuple(s["covariates"]),
+                              tuple(tuple(e) for e in s["effects"]), np.array(s["covariate_mean"], dtype=float),
+                              np.array(s["covariate_sd"], dtype=float), bool(s["full"]),
+                              np.array(s["omega0"], dtype=float))
+        m = saved["members"]
+        names = list(m["names"])
+        q = len(spec.random)
+        members = Members(names, [None] * len(names), None, np.array(m["x"], dtype=float).reshape(len(names), -1),
+                          np.array(m["raw"], dtype=float).reshape(len(names), -1),
+                          np.array(m["n_obs"], dtype=int), dict(m["left_out"]))
+        md = saved["modes"]
+        modes = Modes(np.array(md["u"], dtype=float).reshape(len(names), q), np.array(md["value"], dtype=float),
+                      np.array(md["hessian"], dtype=float).reshape(len(names), q, q),
+                      np.ones(len(names), dtype=bool), np.ones(len(names), dtype=bool))
+        result = PopulationResult(model, spec, members, np.array(saved["phi"], dtype=float),
+                                  np.array(saved["hessian"], dtype=float), modes, dict(saved["call"]),
+                                  saved["converged"], saved["message"], saved["iterations"])
+    except (KeyError, TypeError, ValueError) as error:
+        raise DataError(f"'{path}' is a damaged population fit file ({type(error).__name__}: {error})") from None
+    result.sources = {n: src for n, src in zip(names, m.get("sources", [None] * len(names))) if src}
+    if saved.get("covariates") is not None:
+        table = saved["covariates"]
+        result.covariates = pd.DataFrame(table["data"], index=[str(i) for i in table["index"]],
+                                         columns=table["columns"])
+    result.frames = {n: None for n in names}
+    for name in names:
+        if data is not None and name in data:
+            result.frames[name] = [data[name]]
+    return result

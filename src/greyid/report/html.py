@@ -20,7 +20,7 @@ import pandas as pd
 
 from ..errors import ModelError
 from ..estimate.results import p_value_text
-from ..model.files import named_dataset
+from ..data.files import named_dataset
 from ..model.units import figure_units, pretty
 from .equations import inline_formula, model_equations
 from .figures import data_figure, embedded_png

@@ -25,7 +25,7 @@ from ..data.prepare import Series, check_times, prepare_series
 from ..compiler import jit, structure_program
 from ..errors import DataError, ModelError
 from ..filters.api import HOLDS, filter_inputs
-from ..filters.core import initial_state
+from ..filters.gaussian import initial_state
 from ..filters.delays import check_delays, delays_at, values_at
 from ..filters.discretize import discretize, time_varying_step
 from ..model.structure import LTI

@@ -1,0 +1,313 @@
+"""One driver for every filter family: the scan over a series' rows.
+
+Row k first predicts from t_{k-1} to t_k (row 0 "predicts" over an interval of
+length 0, so the filter starts from its state at t₀ and updates it with the
+observation there), then updates with the observed elements of y_k.  The same
+scan gives the log-likelihood (3.18), the filtered and predicted states for
+results and the smoother, and — from the same steps — k-step predictions.  A
+family's steps come from its module ([`FAMILIES`][greyid.filters.driver.FAMILIES]); where a family hands
+over a steady-state model (a regular series of a time-invariant linear model),
+the driver switches to the steady-state form once the filter has settled
+([`steady`][greyid.filters.steady]).
+"""
+
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
+import jax
+import jax.numpy as jnp
+
+from ..compiler import jit
+from ..errors import ModelError
+from ..model.structure import Structure
+from . import extended, kalman, second_order, unscented
+from . import steady as steady_form
+from .protocol import EKF, EKF2, GAUSSIAN2, IEKF, KALMAN, TRUNCATED2, UKF, FilterInputs, FilterOptions, FilterSteps
+from .updates import GaussianState, StepTerms, to_matrix
+
+#: The module that prepares each method's steps: ``prepare(structure, options)(theta, data) -> FilterSteps``.
+FAMILIES = {
+    KALMAN: kalman.prepare,
+    EKF: extended.prepare,
+    IEKF: extended.prepare,
+    EKF2: second_order.prepare,
+    TRUNCATED2: second_order.prepare,
+    GAUSSIAN2: second_order.prepare,
+    UKF: unscented.prepare,
+}
+
+
+def filter_steps(structure: Structure, options: FilterOptions) -> Callable[..., FilterSteps]:
+    """``steps(theta, data) -> FilterSteps`` of the options' method (see [`protocol`][greyid.filters.protocol])."""
+    return FAMILIES[options.method](structure, options)
+
+
+class StepOutput(NamedTuple):
+    """What a Gaussian filter keeps of each row for results and the smoother."""
+
+    predicted_mean: jnp.ndarray
+    predicted_cov: jnp.ndarray
+    filtered_mean: jnp.ndarray
+    filtered_cov: jnp.ndarray
+    output_prediction: jnp.ndarray
+    innovation: jnp.ndarray
+    innovation_cov: jnp.ndarray
+    transition: jnp.ndarray
+    guarded: jnp.ndarray  # 1 where a moment update's covariance was guarded (see predictors.moment_update)
+
+
+def make_filter(structure: Structure, options: FilterOptions, keep_outputs: bool | str):
+    """A jitted ``run(theta, data) -> (StepTerms, StepOutput | None)``.
+
+    The per-step terms give the Gaussian log-likelihood (``terms.loglik.sum()``)
+    and the robust criteria alike.  ``keep_outputs="innovations"`` keeps only
+    the innovations and their covariances, ``(ε_k, R_k)``: what the scoring
+    matrix needs, without the states' per-step storage.
+    """
+    form = options.form
+    build = filter_steps(structure, options)
+
+    def collect(predicted: GaussianState, transition, upd, y_pred):
+        out = None
+        if keep_outputs == "innovations":
+            out = (upd.innovation, upd.innovation_covariance)
+        elif keep_outputs:
+            out = StepOutput(predicted.mean, to_matrix(predicted.covariance, form), upd.mean,
+                             to_matrix(upd.covariance, form), y_pred, upd.innovation, upd.innovation_covariance,
+                             transition,
+                             jnp.broadcast_to(jnp.asarray(upd.guarded, jnp.float64), upd.innovation.shape[:-1]))
+        return upd.terms, out
+
+    def run(theta, data: FilterInputs):
+        return scan_rows(build(theta, data), data.t.shape[0], collect)
+
+    return jit(run)
+
+
+def make_summed_filter(structure: Structure, options: FilterOptions, per_step: Callable,
+                       forward_only: bool = False):
+    """``run(theta, data) -> Σ_k per_step(StepTerms_k)``, summed in the scan's carry.
+
+    Nothing is stored per step, so the memory of the value and of its forward
+    derivatives does not grow with the length of the series.  ``forward_only``: the
+    sum is never differentiated in reverse mode (see [`scan_rows()`][greyid.filters.driver.scan_rows]).
+    """
+    build = filter_steps(structure, options)
+
+    def run(theta, data: FilterInputs):
+        return scan_rows(build(theta, data), data.t.shape[0], None, accumulate=per_step, forward_only=forward_only)
+
+    return run
+
+
+def scan_rows(parts: FilterSteps, n_rows: int, collect: Callable | None, accumulate: Callable | None = None,
+              forward_only: bool = False):
+    """Predict and update over all rows; ``collect(predicted, transition, update, y_pred)`` picks what
+    each step returns.
+
+    With ``accumulate`` the scan instead sums ``accumulate(StepTerms_k)`` in its
+    carry and returns the sum: nothing is kept per step.  Long regular series
+    of a linear model switch to the steady-state form where the filter reaches
+    it ([`steady`][greyid.filters.steady]), shorter ones too where the options ask for it; a sum
+    only ever differentiated in forward mode (``forward_only``) tests more than
+    once where to switch ([`loop_until_settled()`][greyid.filters.driver.loop_until_settled]).
+    """
+
+    def step(carry, row):
+        state, total = carry
+        predicted, transition = parts.predict(state, row)
+        upd, y_pred = parts.update(predicted, row)
+        if accumulate is not None:
+            return (upd.state, total + accumulate(upd.terms)), None
+        return (upd.state, total), collect(predicted, transition, upd, y_pred)
+
+    def step_by_step(state, rows, length):
+        (state, total), collected = jax.lax.scan(step, (state, jnp.zeros((), dtype=jnp.float64)), rows,
+                                                 length=length)
+        return state, total, collected
+
+    if parts.steady is None:
+        _, total, collected = step_by_step(parts.initial, parts.rows, n_rows)
+        return collected if accumulate is None else total
+    if (n_rows < steady_form.MIN_ROWS and accumulate is not None and forward_only
+            and n_rows % steady_form.TEST_EVERY == 0):  # (as the length buckets of 128 rows and more are)
+        return loop_until_settled(parts, n_rows, step, accumulate)
+    if n_rows < steady_form.MIN_ROWS:
+        return scan_settling(parts, n_rows, step_by_step, collect, accumulate)
+    return scan_chunks(parts, n_rows, step_by_step, collect, accumulate)
+
+
+def collected_steady(collect: Callable, outputs):
+    """``collect`` of each row of the steady-state form's ``(x_pred, cov_pred, Φ, update, y_pred)``."""
+    return jax.vmap(lambda x, cov, transition, upd, y_pred: collect(GaussianState(x, cov), transition, upd, y_pred)
+                    )(*outputs)
+
+
+def scan_settling(parts: FilterSteps, n_rows: int, step_by_step: Callable, collect, accumulate):
+    """[`scan_rows()`][greyid.filters.driver.scan_rows] for a shorter series: its first HEAD rows step by step,
+    then the rest at once in the steady state where the filter has settled there, otherwise step by step
+    too ([`steady`][greyid.filters.steady])."""
+    model, head = parts.steady, steady_form.HEAD
+    first = jax.tree_util.tree_map(lambda a: a[:head], parts.rows)
+    rest = jax.tree_util.tree_map(lambda a: a[head:], parts.rows)
+    state, total, collected = step_by_step(parts.initial, first, head)
+    steady, settled = steady_form.settled_state(model, state.covariance, n_rows - head)
+    padding = steady_form.padding_rows(rest)
+
+    # One decision: a second chance further on (a cond within the cond) cost as much as
+    # the rows it would save.
+    def in_steady_state(_):
+        outputs, _ = steady_form.steady_rows(model, steady, state.mean, rest, padding)
+        if accumulate is not None:
+            return jnp.sum(jax.vmap(accumulate)(outputs[3].terms)), None
+        return jnp.zeros(()), collected_steady(collect, outputs)
+
+    def ordinary(_):
+        _, rest_total, rest_collected = step_by_step(state, rest, n_rows - head)
+        return rest_total, rest_collected
+
+    rest_total, rest_collected = jax.lax.cond(settled & jnp.all(steady_form.usable_rows(model, rest)), in_steady_state,
+                                              ordinary, None)
+    if accumulate is not None:
+        return total + rest_total
+    return jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), collected, rest_collected)
+
+
+def loop_until_settled(parts: FilterSteps, n_rows: int, step: Callable, accumulate: Callable):
+    """The summed criterion of a shorter series, step by step until the filter has settled, then the
+    rest at once in the steady state ([`steady`][greyid.filters.steady]).
+
+    A loop whose length is decided as it runs (``lax.while_loop``, which forward-mode derivatives
+    pass through and reverse mode does not), over blocks of TEST_EVERY rows: after each it tests,
+    as [`scan_settling()`][greyid.filters.driver.scan_settling] does once, whether the filter has settled and all
+    later rows are regular and observed, and stops where they are.  So a filter that settles late (the
+    thesis' test cell, after 76 rows) switches then instead of stepping through every row, with one loop
+    body and one steady form in the program.  The rest — from the row where the loop stopped, a
+    window of n_rows − TEST_EVERY rows padded at the end — goes through
+    [`summed_rest()`][greyid.filters.steady.summed_rest], whose own derivative rule takes the rest's gradient
+    in reverse mode.
+    """
+    model, every = parts.steady, steady_form.TEST_EVERY
+    count, window = n_rows // every, n_rows - every
+    # usable_from[k]: rows k … n_rows − 1 can all take the steady state.
+    usable_from = jnp.flip(jnp.cumprod(jnp.flip(steady_form.usable_rows(model, parts.rows)).astype(jnp.int32))) > 0
+    blocks = jax.tree_util.tree_map(lambda a: a.reshape(count, every, *a.shape[1:]), parts.rows)
+
+    def going(carry):
+        block, _, _, settled = carry
+        return (block < count) & ~settled
+
+    def one_block(carry):
+        block, state, total, _ = carry
+        (state, total), _ = jax.lax.scan(step, (state, total), jax.tree_util.tree_map(lambda a: a[block], blocks))
+        k = (block + 1) * every  # rows done
+        settled = jax.lax.cond(k < n_rows, lambda cov: steady_form.newton_test(model, cov)[2] & usable_from[k],
+                               lambda cov: jnp.asarray(False), state.covariance)
+        return block + 1, state, total, settled
+
+    start = (jnp.asarray(0), parts.initial, jnp.zeros((), dtype=jnp.float64), jnp.asarray(False))
+    block, state, total, settled = jax.lax.while_loop(going, one_block, start)
+
+    def in_steady_state(_):
+        # The rest as a window of fixed length from the row the loop stopped at: the rows past the
+        # series' end are padding (no interval, nothing observed).
+        padded = jax.tree_util.tree_map(
+            lambda a: jnp.concatenate([a, jnp.zeros((window, *a.shape[1:]), a.dtype)]), parts.rows)
+        rest = jax.tree_util.tree_map(lambda a: jax.lax.dynamic_slice_in_dim(a, block * every, window), padded)
+        return steady_form.summed_rest(accumulate, model, state.mean, state.covariance, rest)
+
+    return total + jax.lax.cond(settled, in_steady_state, lambda _: jnp.zeros(()), None)
+
+
+def scan_chunks(parts: FilterSteps, n_rows: int, step_by_step: Callable, collect, accumulate):
+    """[`scan_rows()`][greyid.filters.driver.scan_rows] a chunk of rows at a time, each step by step or in the
+    steady state."""
+    model, size = parts.steady, steady_form.CHUNK
+    steady = steady_form.steady_state(model)
+
+    def chunk(carry, rows):
+        state, total, settled = carry
+        # The rows padding the series to its length bucket fit either form: a chunk
+        # holding the series' last rows stays in the steady state.
+        padding = steady_form.padding_rows(rows)
+        regular = settled & jnp.all(steady_form.usable_rows(model, rows))
+
+        def in_steady_state(_):
+            outputs, end = steady_form.steady_rows(model, steady, state.mean, rows, padding)
+            if accumulate is not None:
+                return (end, total + jnp.sum(jax.vmap(accumulate)(outputs[3].terms)), jnp.asarray(True)), None
+            return (end, total, jnp.asarray(True)), collected_steady(collect, outputs)
+
+        def ordinary(_):
+            end, chunk_total, collected = step_by_step(state, rows, rows.t.shape[0])
+            settled = steady_form.at_steady_state(end.covariance, model.form, steady)
+            return (end, total + chunk_total, settled), collected
+
+        return jax.lax.cond(regular, in_steady_state, ordinary, None)
+
+    count = n_rows // size
+    head = jax.tree_util.tree_map(lambda a: a[:count * size].reshape(count, size, *a.shape[1:]), parts.rows)
+    start = (parts.initial, jnp.zeros((), dtype=jnp.float64), jnp.asarray(False))
+    (state, total, settled), collected = jax.lax.scan(chunk, start, head)
+    collected = jax.tree_util.tree_map(lambda a: a.reshape(-1, *a.shape[2:]), collected)
+    if n_rows > count * size:  # the last rows, a shorter chunk
+        (_, total, _), last = chunk((state, total, settled),
+                                    jax.tree_util.tree_map(lambda a: a[count * size:], parts.rows))
+        collected = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), collected, last)
+    return total if accumulate is not None else collected
+
+
+class AheadOutput(NamedTuple):
+    """k-step predictions ŷ_{k|k-h}, their covariances and criterion terms."""
+
+    output_prediction: jnp.ndarray
+    output_cov: jnp.ndarray
+    state_prediction: jnp.ndarray
+    state_cov: jnp.ndarray
+    terms: StepTerms
+
+
+def make_ahead(structure: Structure, options: FilterOptions, horizon: int):
+    """A jitted ``run(theta, data) -> AheadOutput`` of ``horizon``-step predictions.
+
+    Row k is predicted from the filtered state at row k − horizon, or from the
+    state at t₀ for the first rows (section 7.2's k-step criterion).
+    """
+    if not isinstance(horizon, int) or horizon < 1:
+        raise ModelError(f"the prediction horizon must be a positive integer, got {horizon!r}")
+    form = options.form
+    build = filter_steps(structure, options)
+
+    def run(theta, data: FilterInputs):
+        parts = build(theta, data)
+        rows = jnp.arange(data.t.shape[0])
+        filtered = scan_rows(parts, data.t.shape[0], lambda predicted, transition, upd, y_pred: upd.state)
+
+        def row_at(k):
+            return jax.tree_util.tree_map(lambda a: a[k], parts.rows)
+
+        def ahead(k):
+            start = k - horizon
+            from_prior = start < 0
+            state = jax.tree_util.tree_map(
+                lambda first, each: jnp.where(from_prior, first, each[jnp.maximum(start, 0)]), parts.initial, filtered)
+            first = jnp.maximum(start + 1, 1)
+
+            def advance(j, state):
+                row = first + j
+                moved, _ = parts.predict(state, row_at(jnp.minimum(row, k)))
+                active = row <= k
+                return jax.tree_util.tree_map(lambda new, old: jnp.where(active, new, old), moved, state)
+
+            state = jax.lax.fori_loop(0, horizon, advance, state)
+            upd, y_pred = parts.update(state, row_at(k))
+            # The prediction's covariance is wanted for every output, observed or not.
+            full, _ = parts.update(state, row_at(k), jnp.ones_like(data.mask[k]))
+            return y_pred, full.innovation_covariance, state.mean, to_matrix(state.covariance, form), upd.terms
+
+        y, R, x, P, terms = jax.vmap(ahead)(rows)
+        return AheadOutput(y, R, x, P, terms)
+
+    return jit(run)
