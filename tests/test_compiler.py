@@ -164,8 +164,8 @@ def test_what_tracing_left_is_collected_beside_the_compilation_unless_the_user_s
 
 def test_the_estimation_package_loads_its_results_module_only_when_used():
     code = ("import sys, greyid.estimate as e; assert 'greyid.estimate.results' not in sys.modules; "
-            "from greyid.estimate import FitResult; "
-            "assert FitResult is sys.modules['greyid.estimate.results'].FitResult")
+            "from greyid.estimate import Estimates; "
+            "assert Estimates is sys.modules['greyid.estimate.results'].Estimates")
     subprocess.run([sys.executable, "-c", code], check=True)
 
 

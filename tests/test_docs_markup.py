@@ -24,7 +24,7 @@ def test_the_site_check_finds_a_raw_role_and_an_unresolved_reference(tmp_path):
     (tmp_path / "good.html").write_text("<p>See <a href='x'>fit()</a>.</p><pre>:func:`quoted` in code</pre>")
     assert check_site.problems(tmp_path) == []
     (tmp_path / "bad.html").write_text("<p>See :func:`~.information.fisher_information` and "
-                                       "[<code>fit()</code>][greyid.model.model.Model.fit].</p>")
+                                       "[<code>fit()</code>][greyid.api.Model.fit].</p>")
     found = check_site.problems(tmp_path)
     assert any("a Sphinx role" in line for line in found) and any("unresolved" in line for line in found)
     assert check_site.main([str(tmp_path)]) == 1

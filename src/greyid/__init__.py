@@ -17,7 +17,7 @@ __all__ = ["Model", "FitResult", "FitWarning", "load_fit", "fit_many", "FleetRes
 if "jax" in sys.modules:  # JAX is in use already: make it 64-bit now, as before any work
     from . import _jax  # noqa: F401
 
-_LAZY = {"Model": "model", "FitResult": "estimate", "FitWarning": "estimate", "load_fit": "estimate",
+_LAZY = {"Model": "api", "FitResult": "api", "FitWarning": "estimate", "load_fit": "api",
          "fit_many": "fleet", "FleetResult": "fleet", "fit_population": "population",
          "PopulationResult": "population"}
 

@@ -63,8 +63,9 @@ def _options(debug: bool = typer.Option(False, "--debug", help="show the traceba
 # ---------------------------------------------------------------------- loading
 def load_model_or_fit(source: str):
     """``(model, fit or None)`` from a model file, a saved fit or a library name."""
-    from . import library, load_fit
-    from .model import Model
+    from . import library
+    from .api import load_fit
+    from .api import Model
 
     path = Path(source)
     if path.suffix == ".json":
@@ -395,7 +396,7 @@ def simulate(model: str = typer.Argument(..., metavar="MODEL",
 
 
 def _fit_with_data(fit_file: Path, data: Optional[Path]):
-    from . import load_fit
+    from .api import load_fit
 
     if not fit_file.exists():
         raise InputProblem(f"fit file '{fit_file}' not found")

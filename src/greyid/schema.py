@@ -6,7 +6,7 @@ functions that check a document against it, raising a [`ModelError`][greyid.erro
 names the file, section, key or parameter.  The API and the command line call
 the same checks: ``Model.set_options`` and model files (settings),
 [`greyid.model.files.read_model()`][greyid.model.files.read_model] (model files),
-[`greyid.estimate.results.load_fit()`][greyid.estimate.results.load_fit] and ``fit_from_dict`` (saved fits).
+[`greyid.api.load_fit()`][greyid.api.load_fit] and ``fit_from_dict`` (saved fits).
 Data are checked against a model where they meet it, column by column and row
 by row ([`greyid.data.prepare.prepare_series()`][greyid.data.prepare.prepare_series]).
 """
@@ -23,7 +23,7 @@ from .errors import ModelError
 DATA_KEYS = ("time", "hold", "time_unit", "columns", "time_format", "time_zone")
 #: Filter settings (see [`greyid.filters.api.filter_options()`][greyid.filters.api.filter_options]).
 FILTER_KEYS = ("method", "form", "substeps", "iterations", "alpha", "beta", "kappa", "steady_state")
-#: Estimation settings of [`Model.fit()`][greyid.model.model.Model.fit].
+#: Estimation settings of [`Model.fit()`][greyid.api.Model.fit].
 ESTIMATION_KEYS = ("criterion", "robust", "horizon", "starts", "seed", "maxiter", "prior_correlation", "cov_type",
                    "optimizer")
 #: Where the data live, for the command line: a CSV file (relative to the model

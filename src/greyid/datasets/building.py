@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from ..model import Model
+from ..api import Model
 
 #: Parameter values the bundled data were simulated with.
 TRUE_PARAMETERS = {

@@ -7,7 +7,7 @@ The data themselves are not bundled (their licences are not ours to grant):
 
 from __future__ import annotations
 
-from ..model import Model
+from ..api import Model
 
 
 def armadillo_model(with_bounds: bool = True) -> Model:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from ..model import Model
+from ..api import Model
 from ..simulate.signals import prbs
 
 #: Section 7.2: H in W/K, C in Wh/K, incremental variances in K² per hour.

@@ -17,6 +17,7 @@ import numpy as np
 import pandas as pd
 
 from ..errors import DataError, ModelError
+from ..estimate.calls import simulate_at
 from ..estimate.information import loglik_derivatives
 from ..filters.api import prepare_datasets
 from ..scaled import RANK_TOLERANCE, ScaledInformation
@@ -127,8 +128,8 @@ def fisher_information(model, params, plan: pd.DataFrame, time: str = "t", hold:
         info.attrs["method"] = "exact"
         return info
     simulation = simulation or ("exact" if model.structure.is_linear else "milstein")
-    sims = model.simulate(point, plan, n_paths=n_paths, seed=seed, method=simulation, substeps=substeps,
-                          hold=hold, time=time)
+    sims = simulate_at(model, point, plan, n_paths=n_paths, seed=seed, method=simulation, substeps=substeps,
+                       hold=hold, time=time)
     k = len(names)
     samples = np.empty((n_paths, k, k))
     for i in range(n_paths):

@@ -8,11 +8,11 @@ it while XLA compiles ([`greyid.compiler.import_while_compiling()`][greyid.compi
 from .criteria import GaussianPrior, log_criterion, squared_norm
 from .estimation import fit
 
-__all__ = ["fit", "FitResult", "FitWarning", "load_fit", "GaussianPrior", "log_criterion", "squared_norm"]
+__all__ = ["fit", "Estimates", "FitWarning", "GaussianPrior", "log_criterion", "squared_norm"]
 
 
 def __getattr__(name):
-    if name in ("FitResult", "FitWarning", "load_fit"):
+    if name in ("Estimates", "FitWarning"):
         from . import results
 
         return getattr(results, name)

@@ -24,6 +24,7 @@ from ..filters.accuracy import LOGLIK_TOLERANCE, MAX_SUBSTEPS, SubstepChoice, ne
 from ..filters.api import check_at_parameters, check_equations_finite, filter_options, prepare_datasets
 from ..filters.kalman import takes_steady_state
 from ..model.delays import delay_parameters
+from ..model.options import DATA_KEYS, ESTIMATION_KEYS, FILTER_KEYS
 from ..progress import FitProgress
 from .criteria import GaussianPrior, check_robust
 from .covariance import check_cov_type, default_cov_type, score_covariance
@@ -399,10 +400,23 @@ def search_delays(structure, parameters: FreeParameters, prepared, best: Optimum
     return best
 
 
+def fit_model(model, data, prior=None, init=None, init_from=None, progress=False, **given):
+    """[`Model.fit()`][greyid.api.Model.fit]: the settings resolved as the model's methods resolve them
+    (given, else the model's), then [`fit()`][greyid.estimate.estimation.fit]; the fit's numbers."""
+    data, settings = model.call_settings(data, given, DATA_KEYS + FILTER_KEYS + ESTIMATION_KEYS)
+    settings.pop("prior_correlation", None)
+    if model.units:
+        model.check_units(time=settings.get("time"))
+    if prior is None and settings.get("criterion") == "map":
+        prior = model.prior()
+    return fit(model, data, prior=prior, init=init, init_from=init_from, progress=progress, **settings)
+
+
 def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=None, robust=None,
         horizon=1, starts=1, seed=0, init=None, time_unit=None, maxiter=500, progress=False, cov_type=None,
         init_from=None, optimizer="auto", **filter_settings):
-    """Estimate the free parameters of ``model`` from ``data``; see [`Model.fit()`][greyid.model.model.Model.fit]."""
+    """Estimate the free parameters of ``model`` from ``data`` with these settings; see
+    [`Model.fit()`][greyid.api.Model.fit]."""
     structure = model.structure
     robust, cov_type = check_settings(criterion, prior, robust, horizon, cov_type, optimizer, starts, seed)
     parameters = free_parameters(model, init)
@@ -500,7 +514,7 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
 
 def finish(model, frames, problem: Problem, best, optima, args, datasets, theta0, call: dict, labels,
            substep_choice=None):
-    """The [`FitResult`][greyid.estimate.results.FitResult] of an optimum: θ, the score covariance if asked, the
+    """The [`FitResult`][greyid.api.FitResult] of an optimum: θ, the score covariance if asked, the
     settings kept with it.
 
     ``call`` holds the fit's own settings (time, hold, criterion, robust, horizon,

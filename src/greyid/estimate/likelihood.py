@@ -36,15 +36,27 @@ from ..compiler import jit
 from ..data.prepare import as_frames
 from ..errors import ModelError
 from ..filters.api import prepare_datasets
+from ..model.options import DATA_KEYS, ESTIMATION_KEYS, FILTER_KEYS
 from . import objective
 from .estimation import check_observed, check_settings, free_parameters, make_problem
 from .transforms import Transform
 
 
+def likelihood_of(model, data, prior=None, **given) -> "Likelihood":
+    """[`Model.likelihood()`][greyid.api.Model.likelihood]: the settings resolved as the model's methods
+    resolve them (given, else the model's), then the [`Likelihood`][greyid.estimate.likelihood.Likelihood]."""
+    data, settings = model.call_settings(data, given, DATA_KEYS + FILTER_KEYS + ESTIMATION_KEYS)
+    for key in ("prior_correlation", "starts", "seed", "maxiter", "cov_type", "optimizer"):
+        settings.pop(key, None)
+    if prior is None and settings.get("criterion") == "map":
+        prior = model.prior()
+    return Likelihood(model, data, prior=prior, **settings)
+
+
 class Likelihood:
     """The negative log-likelihood (or the criterion a fit minimises) as a function of the free parameters.
 
-    Made by [`Model.likelihood()`][greyid.model.model.Model.likelihood], whose
+    Made by [`Model.likelihood()`][greyid.api.Model.likelihood], whose
     arguments it takes.  Parameters not free in the model (fixed ones) keep their
     values; the free ones are ``names``, in order.  Compiled once; single
     evaluations of a regular series of a linear model switch to the filter's

@@ -17,6 +17,8 @@ import pandas as pd
 from scipy import stats
 
 from ..progress import track
+from .calls import simulate_at
+from .estimation import fit_model
 
 
 @dataclass
@@ -64,22 +66,22 @@ def run_study(model, truth: Mapping[str, float], data: pd.DataFrame, n_series: i
 
     ``report`` names the parameters for the table; ``derived`` adds functions of
     them (delta-method variances).  ``simulate`` and ``fit`` are keyword
-    arguments for [`Model.simulate()`][greyid.model.model.Model.simulate] and
-    [`Model.fit()`][greyid.model.model.Model.fit]; ``simulation_model``
+    arguments for [`Model.simulate()`][greyid.api.Model.simulate] and
+    [`Model.fit()`][greyid.api.Model.fit]; ``simulation_model``
     (default: ``model``) simulates, e.g. one whose initial state is known exactly
     while the fitted model keeps its prior.  ``progress=True``
     shows a progress bar; a callable receives ``(done, total)``.
     """
     simulate = dict(simulate or {})
     fit_options = dict(fit or {})
-    sims = (simulation_model or model).simulate(dict(truth), data, n_paths=n_series, seed=seed, **simulate)
+    sims = simulate_at(simulation_model or model, dict(truth), data, n_paths=n_series, seed=seed, **simulate)
     derived = dict(derived or {})
     estimates, variances, converged, acf1 = [], [], [], []
     for i in track(range(n_series), n_series, "Monte Carlo fits", progress):
         frame = data.copy()
         for j, name in enumerate(model.output_names):
             frame[name] = sims.outputs[i, :, j]
-        result = model.fit(frame, **fit_options)
+        result = fit_model(model, frame, **fit_options)
         est = {n: result.values[n] for n in report}
         var = {n: result.params.loc[n, "std_error"] ** 2 for n in report}
         if derived:

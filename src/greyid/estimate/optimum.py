@@ -1,4 +1,4 @@
-"""From an optimum to a [`FitResult`][greyid.estimate.results.FitResult]: natural parameters, honest standard errors
+"""From an optimum to a [`FitResult`][greyid.api.FitResult]: natural parameters, honest standard errors
 and flags.
 
 The uncertainty comes from the exact Hessian of the negative log-posterior at the
@@ -17,7 +17,8 @@ from scipy import special
 from ..errors import warn as warn_user
 from ..model.parameters import equation_expressions, log_parametrised
 from .covariance import FEW_STEPS, parameter_covariance
-from .results import FitResult, FitWarning, filter_settings
+from .calls import loglik_at
+from .results import Estimates, FitWarning, filter_settings
 
 #: Eigenvalues of the scaled Hessian below this fraction of the largest are ill-determined.
 ILL_DETERMINED = 1e-8
@@ -79,7 +80,7 @@ def why_undetermined(model, name: str, frames) -> str:
     return f"; it enters the equations only with the constant input{'s' if len(with_inputs) > 1 else ''} {said}"
 
 
-def build_result(model, frames, theta, problem, best, optima, settings, scores=None) -> FitResult:
+def build_result(model, frames, theta, problem, best, optima, settings, scores=None) -> Estimates:
     """Map the optimum back to natural parameters and compute the uncertainty.
 
     ``scores`` is the [`ScoreCovariance`][greyid.estimate.covariance.ScoreCovariance] of the per-step scores in z,
@@ -172,7 +173,7 @@ def build_result(model, frames, theta, problem, best, optima, settings, scores=N
                     f"an estimate of {theta_free[j]:.4g}): the data do not determine it")
     n_obs = int(sum(np.count_nonzero(~np.isnan(df[name].to_numpy(dtype=float)))
                     for df in frames for name in model.output_names))
-    dof = max(n_obs - len(free), 1)  # as FitResult.df_resid
+    dof = max(n_obs - len(free), 1)  # as Estimates.df_resid
     with np.errstate(divide="ignore", invalid="ignore"):  # a zero standard error: no test
         tval = np.where(se > 0, theta_free / np.where(se > 0, se, 1.0), np.nan)
     pval = 2 * special.stdtr(dof, -np.abs(tval))  # two-sided Student-t p-value
@@ -218,11 +219,11 @@ def build_result(model, frames, theta, problem, best, optima, settings, scores=N
     if simple:
         loglik = criterion_value
     else:
-        loglik = model.loglik(dict(zip(names, theta)), frames if len(frames) > 1 else frames[0],
-                              **filter_settings(settings))
+        loglik = loglik_at(model, dict(zip(names, theta)), frames if len(frames) > 1 else frames[0],
+                           **filter_settings(settings))
     for text in warn:  # printed plainly once, and kept on the fit
         warn_user(f"{model.name}: {text}", FitWarning)
-    return FitResult(model=model, params=params, cov=pd.DataFrame(cov, index=free_names, columns=free_names),
+    return Estimates(model=model, params=params, cov=pd.DataFrame(cov, index=free_names, columns=free_names),
                      loglik=float(loglik), criterion_value=float(criterion_value), n_obs=n_obs,
                      converged=converged, message=message, iterations=best.iterations,
                      settings=settings, warnings=warn, ill_determined=ill, data=frames,

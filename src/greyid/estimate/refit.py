@@ -1,7 +1,7 @@
 """A fit's criterion again, with some parameters held at chosen values (profiles, posterior sampling).
 
 [`Refit`][greyid.estimate.refit.Refit] rebuilds the estimation problem of a
-[`FitResult`][greyid.estimate.results.FitResult]
+[`FitResult`][greyid.api.FitResult]
 — its data, filter, criterion and prior, the other parameters free within their
 bounds — once, so that many constrained re-estimations (the points of a profile
 likelihood) reuse the data preparation and the compiled programs of the fit.

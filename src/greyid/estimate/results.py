@@ -13,16 +13,22 @@ import json
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Mapping
+from typing import Mapping, Self
 
 import numpy as np
 import pandas as pd
 from scipy import special
 
-from ..errors import ModelError
-from ..schema import FIT_FORMAT, check_fit_document
+from ..data.files import named_dataset, read_data
+from ..data.prepare import as_frames
+from ..errors import DataError, ModelError
 from ..model.equations import parse_expression
-from ..model.units import pretty
+from ..model.options import rename_columns
+from ..model.parameters import tests_against_zero
+from ..model.units import derived_unit, pretty
+from ..outputs import complete_generation, write_atomic
+from ..schema import FIT_FORMAT, check_fit_document
+from .calls import filter_at, predict_at, simulate_at, smooth_at
 
 
 class FitWarning(UserWarning):
@@ -37,50 +43,12 @@ def p_value_text(p: float) -> str:
 
 
 @dataclass
-class FitResult:
-    """Estimates and their uncertainty for one model fitted to one or more data sets.
+class Estimates:
+    """The numbers of a fit: estimates and their uncertainty for one model fitted to one or more data sets.
 
-    Made by [`Model.fit()`][greyid.model.model.Model.fit] and
-    [`load_fit()`][greyid.estimate.results.load_fit]; its names follow statsmodels'
-    results (``params``, ``bse``, ``llf``, ``aic``, ``conf_int()``, ``summary()``).
-
-    Attributes
-    ----------
-    model : Model
-        The fitted model.
-    params : pandas.DataFrame
-        One row per parameter: ``estimate``, ``std_error``, ``t_value``,
-        ``p_value``, ``lower_bound``, ``upper_bound``, ``fixed``, ``at_bound``,
-        ``reliable``, ``gradient`` (and ``unit`` where the model has units).
-    cov : pandas.DataFrame
-        The covariance of the free parameters' estimates (``cov_type``).
-    loglik : float
-        The Gaussian log-likelihood at the estimates.
-    criterion_value : float
-        The value of the criterion maximised (the log-posterior for MAP, the
-        robust or k-step criterion), equal to ``loglik`` for plain ML.
-    n_obs : int
-        The number of observed output values.
-    converged : bool
-        True only at a minimum: the optimiser stopped, the Hessian is positive
-        definite in the parameters not at a bound, and every free parameter
-        affects the likelihood.
-    message : str
-        Why the optimiser stopped, or why the fit is not converged.
-    iterations : int
-        The optimiser's steps.
-    settings : dict
-        The settings the fit used (time, hold, method, criterion, ...).
-    warnings : list of str
-        What the summary's warnings say (a bound, a flat direction, ...).
-    data : list of pandas.DataFrame or None
-        The data fitted; None for a loaded fit until
-        [`attach_stored_data()`][greyid.estimate.results.FitResult.attach_stored_data]
-        or [`with_data()`][greyid.estimate.results.FitResult.with_data].
-    starts : list of dict
-        One per start: its label, criterion, convergence, iterations and message.
-    data_file : str or None
-        Where the data came from: a file's path or ``dataset:NAME``.
+    What the estimator gives; users get it as a [`FitResult`][greyid.api.FitResult] (whose attributes
+    these are), which adds what the layers above make of it: profiles, sampling, prediction
+    intervals, validation, reports.
     """
 
     model: object
@@ -137,8 +105,6 @@ class FitResult:
     def tests_against_zero(self) -> dict:
         """Per parameter, whether its t- and p-value (a test against 0) mean anything: not for a
         log-parameter nor a parameter of the initial state only (the summary and report leave them out)."""
-        from ..model.parameters import tests_against_zero
-
         return tests_against_zero(self.model)
 
     @property
@@ -172,28 +138,20 @@ class FitResult:
         return max(self.n_obs - self.n_params, 1)
 
     def conf_int(self, level: float = 0.95, method: str = "wald") -> pd.DataFrame:
-        """Confidence intervals of the parameters.
+        """Wald confidence intervals: estimate ± the Student-t quantile (N − k degrees of freedom) × the
+        standard error, NaN where there is none.
 
         Parameters
         ----------
         level : float
             The confidence level, between 0 and 1.
-        method : {"wald", "profile"}
-            ``"wald"``: estimate ± the Student-t quantile (N − k degrees of freedom) ×
-            the standard error (NaN where there is none: fixed parameters, estimates at
-            a bound).  ``"profile"``: the likelihood-ratio interval from the profile of
-            each free parameter, which follows a skewed likelihood; an end that runs
-            into a bound is that bound, with a warning.
+        method : {"wald"}
+            Profile-likelihood intervals are [`FitResult.conf_int()`][greyid.api.FitResult.conf_int]'s.
 
         Returns
         -------
         pandas.DataFrame
             Columns ``lower`` and ``upper``, one row per parameter.
-
-        Raises
-        ------
-        ModelError
-            An unknown method or a level outside (0, 1).
         """
         if method not in ("wald", "profile"):
             raise ModelError(f"confidence intervals by method {method!r} are not available; "
@@ -201,99 +159,11 @@ class FitResult:
         if not 0 < level < 1:
             raise ModelError(f"level must lie between 0 and 1, got {level!r}")
         if method == "profile":
-            from ..uncertainty.profile import profile_intervals
-
-            return profile_intervals(self, level)
+            raise ModelError("profile intervals are taken by greyid.FitResult.conf_int (or "
+                             "greyid.uncertainty.profile_intervals(fit, level)); these estimates have Wald intervals")
         q = float(special.stdtrit(self.df_resid, 0.5 + level / 2))
         est, se = self.params["estimate"], self.params["std_error"]
         return pd.DataFrame({"lower": est - q * se, "upper": est + q * se}, index=self.params.index)
-
-    def profile(self, name: str, values=None, n: int = 21, span: float = 3.0, expression: str | None = None
-                ) -> pd.DataFrame:
-        """The profile likelihood of a parameter or derived quantity.
-
-        Parameters
-        ----------
-        name : str
-            A parameter, or a derived quantity declared on the model.
-        values : array_like, optional
-            Where to hold it (default: ``n`` points over the estimate ± ``span``
-            standard errors, within the bounds).
-        n : int
-            The number of points.
-        span : float
-            The half-width of the default grid, in standard errors.
-        expression : str, optional
-            A derived quantity given as an expression in the parameters.
-
-        Returns
-        -------
-        pandas.DataFrame
-            The quantity, ``loglik`` (``criterion`` for MAP, robust or k-step fits),
-            the re-estimated parameters, ``converged`` and ``deviance``; ``attrs`` holds
-            the estimate, the maximum and the 95 % χ² threshold.  See
-            `greyid.uncertainty.profile()`.
-        """
-        from ..uncertainty.profile import profile
-
-        return profile(self, name, values=values, n=n, span=span, expression=expression)
-
-    def sample(self, draws: int = 1000, chains: int = 4, seed: int = 0, warmup: int = 500,
-               target_accept: float = 0.8):
-        """NUTS draws from the posterior of the fit's criterion (BlackJAX).
-
-        Parameters
-        ----------
-        draws : int
-            Draws kept per chain.
-        chains : int
-            Chains run in parallel, each started from a draw of the Laplace approximation.
-        seed : int
-            The random seed.
-        warmup : int
-            Adaptation steps before the kept draws.
-        target_accept : float
-            The step-size adaptation's target acceptance rate.
-
-        Returns
-        -------
-        Posterior
-            Draws, R-hat, effective sample sizes and divergences; ArviZ's
-            ``InferenceData`` through ``to_inference_data()``.  See
-            [`greyid.uncertainty.sample()`][greyid.uncertainty.sampling.sample].
-
-        Raises
-        ------
-        ModelError
-            BlackJAX or ArviZ is not installed (``pip install "greyid[sampling]"``).
-        """
-        from ..uncertainty.sampling import sample
-
-        return sample(self, draws=draws, chains=chains, seed=seed, warmup=warmup, target_accept=target_accept)
-
-    def plot_profile(self, name: str, ax=None, **options):
-        """Plot the profile of ``name``: deviance, χ² threshold and the Wald parabola.
-
-        Parameters
-        ----------
-        name : str
-            A parameter or derived quantity.
-        ax : matplotlib.axes.Axes, optional
-            Where to draw (default: a new figure).
-        **options
-            Passed to [`profile()`][greyid.estimate.results.FitResult.profile]
-            (``values``, ``n``, ``span``, ``expression``).
-
-        Returns
-        -------
-        matplotlib.figure.Figure
-            The figure.
-        """
-        from ..uncertainty.profile import plot_profile
-
-        table = self.profile(name, **options)
-        se = float(self.params.loc[name, "std_error"]) if name in self.params.index else None
-        return plot_profile(table, ax=ax, wald_se=se)
 
     @property
     def aic(self) -> float:
@@ -420,7 +290,8 @@ class FitResult:
         return text
 
     def __repr__(self) -> str:
-        return f"<FitResult {self.model.name}: loglik={self.loglik:.4f}, k={self.n_params}, converged={self.converged}>"
+        return (f"<{type(self).__name__} {self.model.name}: loglik={self.loglik:.4f}, k={self.n_params}, "
+                f"converged={self.converged}>")
 
     # -------------------------------------------------------------- derived quantities
     def derived(self, expressions: Mapping[str, str] | None = None) -> pd.DataFrame:
@@ -470,9 +341,7 @@ class FitResult:
         table = pd.DataFrame.from_dict(rows, orient="index", columns=["estimate", "std_error"])
         units = getattr(self.model, "units", {})
         if units:
-            from ..model.units import derived_unit
-
-            table["unit"] = [derived_unit(self.model, units, expressions[label], self.settings.get("time", "t"))
+                table["unit"] = [derived_unit(self.model, units, expressions[label], self.settings.get("time", "t"))
                              for label in table.index]
         return table
 
@@ -518,7 +387,7 @@ class FitResult:
                          if i < j and corr[i, j] != 0.0}}
 
     # -------------------------------------------------------------- filtering on the fitted model
-    def with_data(self, data, data_file: str | None = None) -> "FitResult":
+    def with_data(self, data, data_file: str | None = None) -> Self:
         """This fit with data attached (e.g. to a loaded fit), so residuals and validation work.
 
         Parameters
@@ -530,12 +399,9 @@ class FitResult:
 
         Returns
         -------
-        FitResult
-            A copy holding the data.
+        Estimates
+            A copy holding the data (of this fit's class).
         """
-        from ..data.prepare import as_frames
-        from ..model.options import rename_columns
-
         frames = as_frames(rename_columns(data, self.model.options.get("columns")))
         return replace(self, data=frames, data_file=data_file if data_file is not None else self.data_file,
                        _cache={})
@@ -549,11 +415,6 @@ class FitResult:
             The data, or None where the fit has none and names no file.
         """
         if self.data is None and self.data_file:
-            from ..data.prepare import as_frames
-            from ..errors import DataError
-            from ..data.files import named_dataset, read_data
-            from ..model.options import rename_columns
-
             if named_dataset(self.data_file) is None and not Path(self.data_file).is_file():
                 raise DataError(f"the data file this fit was made from, '{self.data_file}', is not there any "
                                 "more; attach the data with fit.with_data(frame)")
@@ -585,7 +446,7 @@ class FitResult:
         FilterResult or list of FilterResult
             One per data set.
         """
-        return self.model.filter(self.values, self._data(data), **self._filter_settings())
+        return filter_at(self.model, self.values, self._data(data), **self._filter_settings())
 
     def smooth(self, data=None):
         """Rauch–Tung–Striebel smoothed states at the estimates.
@@ -600,14 +461,10 @@ class FitResult:
         SmootherResult or list of SmootherResult
             One per data set.
         """
-        return self.model.smooth(self.values, self._data(data), **self._filter_settings())
+        return smooth_at(self.model, self.values, self._data(data), **self._filter_settings())
 
-    def predict(self, data=None, steps: int = 1, states: bool = False, interval: float | None = None,
-                parameter_uncertainty: bool = False, draws: int = 200, seed: int = 0, posterior=None):
-        """Output (and state) predictions ``steps`` samples ahead, with standard deviations.
-
-        As [`Model.predict()`][greyid.model.model.Model.predict] at the estimates;
-        append rows of future inputs with missing outputs to ``data`` to forecast past its end.
+    def predict(self, data=None, steps: int = 1, states: bool = False, interval: float | None = None):
+        """Output (and state) predictions ``steps`` samples ahead at the estimates, with standard deviations.
 
         Parameters
         ----------
@@ -618,42 +475,18 @@ class FitResult:
         states : bool
             Also the states' predictions.
         interval : float, optional
-            A level such as 0.95: adds ``<y>_lower`` and ``<y>_upper`` columns.
-        parameter_uncertainty : bool
-            Also carry the parameters' uncertainty: ``draws`` parameter vectors from the
-            Laplace approximation (or from ``posterior``), the predictive mixture's mean,
-            total ``<y>_sd`` and quantiles.
-        draws : int
-            The parameter draws of ``parameter_uncertainty``.
-        seed : int
-            Their random seed.
-        posterior : Posterior, optional
-            Draws from [`sample()`][greyid.estimate.results.FitResult.sample] to use instead.
+            A level such as 0.95: adds ``<y>_lower`` and ``<y>_upper`` columns (Gaussian).
 
         Returns
         -------
         pandas.DataFrame or list of pandas.DataFrame
             The time column, each output and ``<output>_sd`` (and the interval's columns).
-
-        Raises
-        ------
-        ModelError
-            ``states=True`` with ``parameter_uncertainty=True``, or a level outside (0, 1).
         """
-        if parameter_uncertainty:
-            from ..uncertainty.intervals import predict
-
-            if states:
-                raise ModelError("states=True is not available with parameter_uncertainty=True")
-            return predict(self, data, steps=steps, interval=0.95 if interval is None else interval,
-                           draws=draws, seed=seed, posterior=posterior)
-        out = self.model.predict(self.values, self._data(data), steps=steps, states=states,
-                                 **self._filter_settings())
+        out = predict_at(self.model, self.values, self._data(data), steps=steps, states=states,
+                         **self._filter_settings())
         if interval is None:
             return out
-        from ..uncertainty.intervals import _check_level
-
-        _check_level(interval)
+        check_level(interval)
         q = float(special.ndtri(0.5 + interval / 2))
         for frame in (out if isinstance(out, list) else [out]):
             for name in self.model.output_names:
@@ -661,46 +494,32 @@ class FitResult:
                 frame[f"{name}_upper"] = frame[name] + q * frame[f"{name}_sd"]
         return out
 
-    def simulate(self, data=None, n_paths: int | None = None, seed: int = 0, method: str = "euler",
-                 interval: float | None = None, parameter_uncertainty: bool = False, posterior=None, **options):
-        """Sample paths of the fitted model driven by the data's inputs.
+    def simulate(self, data=None, n_paths: int | None = None, seed: int = 0, method: str = "euler", **options):
+        """Sample paths of the fitted model at the estimates, driven by the data's inputs.
 
         Parameters
         ----------
         data : pandas.DataFrame, optional
             Times and inputs (default: the fit's data).
         n_paths : int, optional
-            The number of paths (default 1; 200 with ``interval`` or ``parameter_uncertainty``).
+            The number of paths (default 1).
         seed : int
             The random seed.
         method : {"euler", "milstein", "heun", "exact"}
             The integration scheme.
-        interval : float, optional
-            A level such as 0.95: the paths' mean and central interval per output instead of the paths.
-        parameter_uncertainty : bool
-            Each path with its own parameter draw (Laplace, or ``posterior``).
-        posterior : Posterior, optional
-            Draws from [`sample()`][greyid.estimate.results.FitResult.sample].
         **options
-            ``substeps``, ``calculus``, ``noise`` (see [`Model.simulate()`][greyid.model.model.Model.simulate]).
+            ``substeps``, ``calculus``, ``noise`` (see [`Model.simulate()`][greyid.api.Model.simulate]).
 
         Returns
         -------
-        Simulation or pandas.DataFrame
-            The paths, or (with ``interval`` or ``parameter_uncertainty``) their summary; see
-            [`greyid.uncertainty.intervals.simulate()`][greyid.uncertainty.intervals.simulate].
+        Simulation
+            The paths.
         """
-        if interval is not None or parameter_uncertainty:
-            from ..uncertainty.intervals import simulate
-
-            return simulate(self, data, n_paths=200 if n_paths is None else n_paths,
-                            interval=0.95 if interval is None else interval, seed=seed, posterior=posterior,
-                            parameter_uncertainty=parameter_uncertainty, method=method, **options)
         d = self._data(data)
         if isinstance(d, list):
             d = d[0]
-        return self.model.simulate(self.values, d, n_paths=1 if n_paths is None else n_paths, seed=seed,
-                                   method=method, hold=self.settings["hold"], time=self.settings["time"], **options)
+        return simulate_at(self.model, self.values, d, n_paths=1 if n_paths is None else n_paths, seed=seed,
+                           method=method, hold=self.settings["hold"], time=self.settings["time"], **options)
 
     @property
     def residuals(self):
@@ -711,64 +530,9 @@ class FitResult:
                                         else res.standardized_innovations)
         return self._cache["residuals"]
 
-    def validate(self, level: float = 0.05, lags: int | None = None, m: int | None = None):
-        """The residual tests of chapter 5 on every output.
-
-        Parameters
-        ----------
-        level : float
-            The significance level of the tests.
-        lags : int, optional
-            Lags of the autocorrelation tests (default: from the series' length).
-        m : int, optional
-            The smoothing of the spectral estimates (default: from the series' length).
-
-        Returns
-        -------
-        Validation
-            Its ``tests`` DataFrame has columns ``test, output, statistic, df, p_value,
-            reject``; ``plot()``, ``plot_coherency()``, ``plot_simulation()``,
-            ``plot_bootstrap()`` and ``plot_prediction()`` return matplotlib figures.
-        """
-        from ..validation.validate import validate
-
-        return validate(self, level=level, lags=lags, m=m)
-
-    def report(self, path=None, **options) -> str:
-        """The self-contained HTML report of this fit.
-
-        Parameters
-        ----------
-        path : str or pathlib.Path, optional
-            Where to write it (atomically); without it, nothing is written.
-        **options
-            ``level`` (the tests' significance level), ``steps`` (the prediction
-            horizon shown), ``n_paths`` (the Monte Carlo band), ``seed``, ``title``,
-            ``profile`` (False leaves the profile-likelihood intervals out of the
-            parameter table).
-
-        Returns
-        -------
-        str
-            The HTML document.
-
-        Raises
-        ------
-        ModelError
-            A fit that carries no data (a loaded fit whose data file is gone).
-        """
-        from ..report import html_report
-
-        text = html_report(self, **options)
-        if path is not None:
-            from ..outputs import write_atomic
-
-            write_atomic(path, text)
-        return text
-
     # -------------------------------------------------------------- saving
     def to_dict(self) -> dict:
-        """The fit as plain data (what [`save()`][greyid.estimate.results.FitResult.save] writes as JSON).
+        """The fit as plain data (what [`save()`][greyid.api.FitResult.save] writes as JSON).
 
         Returns
         -------
@@ -818,8 +582,6 @@ class FitResult:
         path : str or pathlib.Path
             The file.
         """
-        from ..outputs import write_atomic
-
         write_atomic(path, json.dumps(self.to_dict(), indent=2))
 
 
@@ -832,6 +594,12 @@ def parameter_expression(text: str, names, what: str):
     return expr
 
 
+def check_level(interval) -> None:
+    """An interval's level lies strictly between 0 and 1."""
+    if not 0 < interval < 1:
+        raise ModelError(f"interval must lie between 0 and 1 (e.g. 0.95), got {interval!r}")
+
+
 def filter_settings(settings: dict) -> dict:
     """The keyword arguments that rerun a fit's filter (time column, hold, method ...)."""
     out = {k: settings[k] for k in ("time", "hold", "method", "form", "substeps", "iterations")}
@@ -842,50 +610,30 @@ def filter_settings(settings: dict) -> dict:
     return out
 
 
-def load_fit(path) -> FitResult:
-    """Read a fit written by [`FitResult.save()`][greyid.estimate.results.FitResult.save] (or ``greyid fit --out``).
-
-    Parameters
-    ----------
-    path : str or pathlib.Path
-        The JSON file.
-
-    Returns
-    -------
-    FitResult
-        The fit; its ``model`` reproduces the log-likelihood, and its data are read
-        from ``data_file`` when first needed.
+def read_fit_file(path) -> dict:
+    """The document of a fit file written by ``FitResult.save()`` (or ``greyid fit --out``).
 
     Raises
     ------
     ModelError
-        A file that is missing, a folder, not JSON, or not a greyid fit (names the key).
+        A file that is missing, a folder, or not JSON.
     """
-    from ..outputs import complete_generation
-
     path = Path(path)
     if path.parent.is_dir():
         complete_generation(path.parent)  # a run killed while moving its files into place
     if path.is_dir() or not path.is_file():
         raise ModelError(f"fit file '{path}' {'is a folder' if path.is_dir() else 'not found'}")
     try:
-        spec = json.loads(path.read_text(encoding="utf-8"))
+        return json.loads(path.read_text(encoding="utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise ModelError(f"fit file '{path}' is not valid JSON ({err})") from None
-    return fit_from_dict(spec, f"fit file '{path}'")
 
 
-def fit_from_dict(spec: dict, where: str = "the fit", model=None) -> FitResult:
-    """A [`FitResult`][greyid.estimate.results.FitResult] from
-    [`FitResult.to_dict()`][greyid.estimate.results.FitResult.to_dict]'s form; errors name ``where`` it came from.
-
-    ``model``, if given, is used instead of a new one built from the stored
-    model (the same model: a fleet's fits share the caller's compiled one).
-    """
-    from ..model import Model
-
+def estimates_from_dict(spec: dict, model, where: str = "the fit", cls: type[Estimates] = Estimates) -> Estimates:
+    """``cls`` (the [`Estimates`][greyid.estimate.results.Estimates] or a subclass) from
+    [`to_dict()`][greyid.api.FitResult.to_dict]'s form, for ``model`` (built from the stored
+    model, or the caller's); errors name ``where`` it came from."""
     check_fit_document(spec, where)
-    model = Model.from_dict(spec["model"]) if model is None else model
     params = pd.DataFrame.from_dict(spec["params"], orient="index")
     # Files written before greyid 0.2 named the bounds "lower" and "upper".
     params = params.rename(columns={"lower": "lower_bound", "upper": "upper_bound"})
@@ -901,9 +649,9 @@ def fit_from_dict(spec: dict, where: str = "the fit", model=None) -> FitResult:
     settings = spec["settings"]
     if settings.get("robust"):
         settings["robust"] = tuple(settings["robust"])
-    return FitResult(model=model, params=params, cov=cov, loglik=spec["loglik"],
-                     criterion_value=spec["criterion_value"], n_obs=spec["n_obs"], converged=spec["converged"],
-                     message=spec["message"], iterations=spec["iterations"], settings=settings,
-                     warnings=spec.get("warnings", []), ill_determined=spec.get("ill_determined", []), data=None,
-                     starts=spec.get("starts", []), start_values=[s["criterion"] for s in spec.get("starts", [])],
-                     data_file=spec.get("data_file"))
+    return cls(model=model, params=params, cov=cov, loglik=spec["loglik"],
+               criterion_value=spec["criterion_value"], n_obs=spec["n_obs"], converged=spec["converged"],
+               message=spec["message"], iterations=spec["iterations"], settings=settings,
+               warnings=spec.get("warnings", []), ill_determined=spec.get("ill_determined", []), data=None,
+               starts=spec.get("starts", []), start_values=[s["criterion"] for s in spec.get("starts", [])],
+               data_file=spec.get("data_file"))

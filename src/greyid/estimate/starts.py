@@ -4,7 +4,7 @@
   the smaller model's estimates, and the new ones where the larger model
   reduces to the smaller (a sensor with a vanishing time constant, a resistance
   large enough to decouple a state).  Where that limit lies is the model's own
-  knowledge: [`Model.set_nested_start()`][greyid.model.model.Model.set_nested_start] (the library's RC models declare
+  knowledge: [`Model.set_nested_start()`][greyid.api.Model.set_nested_start] (the library's RC models declare
   theirs); without it the new parameters take their declared initial values.
 * ``starts=k``: k − 1 further points by a Latin hypercube (SciPy's ``qmc``,
   seeded) in the coordinates the optimiser works in: the middle 96 % of a
@@ -85,7 +85,7 @@ def nested_start(model, other, names, free, lower, upper) -> dict[str, float]:
 def reductions(model, names, free, lower, upper) -> list[tuple[str, dict[str, float]]]:
     """Starts where the model reduces to a smaller one it extends, from its own initial values.
 
-    The model's nested-start rule ([`set_nested_start()`][greyid.model.model.Model.set_nested_start])
+    The model's nested-start rule ([`set_nested_start()`][greyid.api.Model.set_nested_start])
     says where each part the model adds to a smaller one vanishes (a sensor state
     that follows the air, a heater with no delay).  Each such part, found by asking
     the rule with one parameter left out of the initial values, gives one start:

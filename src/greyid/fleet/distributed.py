@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from ..model import Model
+from ..api import Model, fit_from_dict
 from ..progress import CountProgress
 from .members import fit_members
 from .result import FleetResult
@@ -64,8 +64,6 @@ def fit_on_cluster(client, model, names: list, sources: list, inits: list, chunk
     import time
 
     worker_timeout = NO_WORKER_TIMEOUT if worker_timeout is None else float(worker_timeout)
-    from ..estimate.results import fit_from_dict
-
     spec_json = json.dumps(model.to_dict())
     chunk_size = max(1, int(chunk_size))
     chunks = [list(range(i, min(i + chunk_size, len(names)))) for i in range(0, len(names), chunk_size)]

@@ -51,7 +51,7 @@ def fit_many(model, datasets, time: str | None = None, hold: str | None = None, 
     error; the others go on), the data sets are grouped by padded length, and the
     searches of a group's members run together: each keeps its own trust region and
     convergence, and every request is evaluated by one program vectorised over the
-    members.  Each member's fit is the [`FitResult`][greyid.estimate.results.FitResult]
+    members.  Each member's fit is the [`FitResult`][greyid.api.FitResult]
     a separate ``model.fit`` gives.
 
     Parameters
@@ -77,7 +77,7 @@ def fit_many(model, datasets, time: str | None = None, hold: str | None = None, 
         Seconds a cluster may have no worker before its pending members are given
         up as failed rows (default 60).
     **options
-        The settings of [`Model.fit()`][greyid.model.model.Model.fit] (``method``,
+        The settings of [`Model.fit()`][greyid.api.Model.fit] (``method``,
         ``criterion``, ``starts``, ``maxiter``, ...), but ``steady_state``.
 
     Returns

@@ -16,6 +16,7 @@ from ..data.prepare import as_frames
 from ..errors import DataError, ModelError
 from ..filters.accuracy import needs_substeps
 from ..filters.api import prepare_datasets
+from ..api import FitResult
 from ..estimate import estimation, objective
 from ..estimate.batch import BatchedPrograms, drive, pad_series, prune_trailing
 from ..estimate.objective import compiled
@@ -39,7 +40,7 @@ FIT_DEFAULTS = dict(time="t", hold="zoh", method=None, criterion="ml", robust=No
 
 
 def fit_members(model, names: list, sources: list, inits: list, progress, given: dict):
-    """``(rows, fits)``: the table rows and [`FitResult`][greyid.estimate.results.FitResult] (or None) of each data
+    """``(rows, fits)``: the table rows and [`FitResult`][greyid.api.FitResult] (or None) of each data
     set."""
     structure = model.structure
     given = dict(given)
@@ -102,7 +103,7 @@ def fit_members(model, names: list, sources: list, inits: list, progress, given:
             fits.append(None)
         else:
             rows.append(dict(error=None))
-            fits.append(result)
+            fits.append(FitResult.of(result))
     return rows, fits
 
 
@@ -174,7 +175,7 @@ def _quiet(iteration, stage, f, g):
 
 def _result(model, structure, problem, args, member, best, optima, labels, s, robust, cov_type, prior,
             filter_settings):
-    """A member's [`FitResult`][greyid.estimate.results.FitResult], as ``model.fit`` would build it (its warnings kept
+    """A member's [`FitResult`][greyid.api.FitResult], as ``model.fit`` would build it (its warnings kept
     on it, not shown)."""
     if isinstance(best, str):
         return best

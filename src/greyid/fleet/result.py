@@ -20,7 +20,7 @@ class FleetResult:
     rows : list of dict
         Per data set, ``{"error": message}`` where it has no fit.
     fits : list
-        Per data set, its [`FitResult`][greyid.estimate.results.FitResult] or None.
+        Per data set, its [`FitResult`][greyid.api.FitResult] or None.
 
     Attributes
     ----------
@@ -30,7 +30,7 @@ class FleetResult:
         ``n_obs``, ``converged``, ``iterations``, ``message`` and ``error`` (why a
         data set has no fit, else None).
     fits : dict
-        Name → [`FitResult`][greyid.estimate.results.FitResult], None where the data set failed.
+        Name → [`FitResult`][greyid.api.FitResult], None where the data set failed.
     """
 
     def __init__(self, model, names: list, rows: list[dict], fits: list):

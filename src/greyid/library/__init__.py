@@ -21,7 +21,7 @@ from importlib import resources
 from typing import Iterable
 
 from ..errors import ModelError
-from ..model import Model
+from ..api import Model
 from .walls import ladder_polynomials, lumped_wall, wall_frequency_response, wall_model
 
 #: Extra states of the RC family, in the order they appear in a model's name.

@@ -26,7 +26,7 @@ import numpy as np
 import pandas as pd
 
 from ..errors import ModelError
-from ..model import Model
+from ..api import Model
 
 
 def ladder_polynomials(r, c, s):

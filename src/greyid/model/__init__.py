@@ -4,8 +4,8 @@ from .._collector import imports_frozen
 
 # JAX, SymPy, pandas and these modules load here, once, with the collector paused (see greyid._collector).
 with imports_frozen():
-    from .model import Model
+    from .model import ModelSpec
     from .parameters import Parameter
     from .structure import LTI, LTV, NONLINEAR, Structure
 
-__all__ = ["Model", "Parameter", "Structure", "LTI", "LTV", "NONLINEAR"]
+__all__ = ["ModelSpec", "Parameter", "Structure", "LTI", "LTV", "NONLINEAR"]

@@ -1,4 +1,4 @@
-"""From a [`Model`][greyid.model.model.Model]'s equations to its compiled
+"""From a [`Model`][greyid.api.Model]'s equations to its compiled
 [`Structure`][greyid.model.structure.Structure].
 
 The equations are checked against each other (names declared once, noise only

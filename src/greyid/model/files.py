@@ -172,7 +172,7 @@ def spec_from_toml(document: Mapping) -> dict:
 
 
 def read_model(source, cls):
-    """A model of class ``cls`` (a [`Model`][greyid.model.model.Model]) from a TOML model file (a path) or
+    """A model of class ``cls`` (a [`Model`][greyid.api.Model]) from a TOML model file (a path) or
     TOML text.
 
     A relative ``[data] file`` is kept relative to the model file's folder.

@@ -1,4 +1,4 @@
-"""The [`Model`][greyid.model.model.Model]: a stochastic state-space model written as equations.
+"""The [`ModelSpec`][greyid.model.model.ModelSpec]: a stochastic state-space model written as equations.
 
     m = Model("TiTw")
     m.add_system("dTi = (1/(Ci*Riw)*(Tw-Ti) + Aw/Ci*Gv + Qi/Ci)*dt + exp(p11)*dw1")
@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
 
-from typing import Callable, Mapping, Sequence
+from typing import Callable, Mapping, Self, Sequence
 
 import numpy as np
 import pandas as pd
@@ -29,40 +29,20 @@ from .equations import (
     parse_system_equation,
 )
 from .files import model_from_dict, model_to_dict, read_model, write_model
-from .options import DATA_KEYS, ESTIMATION_KEYS, FILTER_KEYS, check_options, rename_columns, resolve
+from .options import check_options, rename_columns, resolve
 from .parameters import Parameter
 from .structure import LTI, LTV, NONLINEAR, Structure
 
 _COVARIANCE_KINDS = ("process", "stationary")
 
 
-class Model:
-    """A continuous–discrete stochastic state-space model written as equations (4.1)–(4.2).
+class ModelSpec:
+    """The specification of a continuous–discrete stochastic state-space model (4.1)–(4.2).
 
-    ``dx = f(x, u, t, θ) dt + G(x, u, t, θ) dω`` with discrete observations
-    ``y_k = h(x_k, u_k, t_k, θ) + e_k``, ``e_k ~ N(0, S)``.  Build it with the
-    ``add_*`` and ``set_*`` methods (each returns the model, so calls chain), read
-    it from a model file ([`from_toml()`][greyid.model.model.Model.from_toml]) or
-    write it as Python functions ([`from_functions()`][greyid.model.model.Model.from_functions]).
-
-    Parameters
-    ----------
-    name : str
-        The model's name, shown in summaries and reports.
-    description : str
-        A sentence on what the model is (units, what the states stand for).
-
-    Examples
-    --------
-    >>> import greyid
-    >>> m = greyid.Model("TiTe")
-    >>> m = (m.add_inputs("Ta", "Ph")
-    ...       .add_system("dTi = (1/(Ci*Rie)*(Te - Ti) + Ph/Ci)*dt + exp(p1)*dw1",
-    ...                   "dTe = (1/(Ce*Rie)*(Ti - Te) + 1/(Ce*Rea)*(Ta - Te))*dt + exp(p2)*dw2")
-    ...       .add_observation("yTi = Ti", variance="exp(e1)")
-    ...       .set_initial_state({"Ti": "Ti0", "Te": "Te0"}))
-    >>> m.state_names
-    ('Ti', 'Te')
+    Equations, inputs, observations, parameters, the initial state, units, derived
+    quantities, options and their model-file form: what a [`Model`][greyid.api.Model] is
+    before any filter or estimator runs on it.  Users build a
+    [`greyid.Model`][greyid.api.Model], which adds those calls.
     """
 
     def __init__(self, name: str = "model", description: str = ""):
@@ -90,7 +70,7 @@ class Model:
     def _changed(self) -> None:
         self._structure = None
 
-    def add_system(self, *equations: str) -> "Model":
+    def add_system(self, *equations: str) -> Self:
         """Add state equations.
 
         Parameters
@@ -126,7 +106,7 @@ class Model:
         self._changed()
         return self
 
-    def add_inputs(self, *names: str) -> "Model":
+    def add_inputs(self, *names: str) -> Self:
         """Declare the inputs: known external signals u, one data column each.
 
         Parameters
@@ -157,7 +137,7 @@ class Model:
         self._changed()
         return self
 
-    def add_observation(self, equation: str, variance: str | float) -> "Model":
+    def add_observation(self, equation: str, variance: str | float) -> Self:
         """Add an observation ``y = h(x, u, t, θ)`` measured with Gaussian noise.
 
         Parameters
@@ -192,7 +172,7 @@ class Model:
         self._changed()
         return self
 
-    def add_algebraic(self, equation: str) -> "Model":
+    def add_algebraic(self, equation: str) -> Self:
         """Define a name by an expression, usable in every equation.
 
         Parameters
@@ -225,7 +205,7 @@ class Model:
         upper: float | None = None,
         fixed: bool = False,
         prior: tuple[float, float] | None = None,
-    ) -> "Model":
+    ) -> Self:
         """Declare a parameter's initial value and bounds, or fix it.
 
         Parameters
@@ -258,7 +238,7 @@ class Model:
         self._changed()
         return self
 
-    def fix_parameter(self, name: str, value: float) -> "Model":
+    def fix_parameter(self, name: str, value: float) -> Self:
         """Fix a parameter at a value (it is then not estimated).
 
         Parameters
@@ -275,11 +255,11 @@ class Model:
         """
         return self.set_parameter(name, init=value, fixed=True)
 
-    def set_options(self, **options) -> "Model":
+    def set_options(self, **options) -> Self:
         """Set the model's default settings for data, filter and estimation calls.
 
-        A setting given to [`fit()`][greyid.model.model.Model.fit],
-        [`loglik()`][greyid.model.model.Model.loglik] and the other calls overrides the
+        A setting given to [`fit()`][greyid.api.Model.fit],
+        [`loglik()`][greyid.api.Model.loglik] and the other calls overrides the
         default set here.  A model file's ``[data]``, ``[filter]`` and ``[estimation]``
         tables set the same names.
 
@@ -314,7 +294,7 @@ class Model:
         """The model's default settings (see `set_options()`)."""
         return dict(self._options)
 
-    def set_observation_covariance(self, matrix) -> "Model":
+    def set_observation_covariance(self, matrix) -> Self:
         """Declare correlated measurement noise: the full covariance of the outputs.
 
         Missing outputs are handled element by element (the observed subset is
@@ -349,7 +329,7 @@ class Model:
         self._changed()
         return self
 
-    def set_nested_start(self, rule) -> "Model":
+    def set_nested_start(self, rule) -> Self:
         """Declare where this model reduces to a smaller one it extends.
 
         Used by ``fit(..., init_from=smaller_fit)`` and by forward selection
@@ -378,7 +358,7 @@ class Model:
         self.nested_start = rule
         return self
 
-    def add_derived(self, name: str, expression: str) -> "Model":
+    def add_derived(self, name: str, expression: str) -> Self:
         """Name a physical quantity computed from the parameters.
 
         ``fit.derived()`` reports it with a delta-method standard error (6.35).
@@ -406,7 +386,7 @@ class Model:
         self._derived[name] = expression
         return self
 
-    def set_population(self, random=None, effects=None, omega=None, covariates=None, omega_init=None) -> "Model":
+    def set_population(self, random=None, effects=None, omega=None, covariates=None, omega_init=None) -> Self:
         """Set the defaults of [`fit_population()`][greyid.population.fit.fit_population] for this model.
 
         A model file's ``[population]`` table sets the same names.
@@ -447,11 +427,11 @@ class Model:
                                 if v is not None})
         return self
 
-    def set_units(self, units: Mapping[str, str]) -> "Model":
+    def set_units(self, units: Mapping[str, str]) -> Self:
         """Give the units of the model's names, the time column's included, as Pint reads them.
 
         Every equation is then checked for dimensional consistency before a fit
-        ([`check_units()`][greyid.model.model.Model.check_units]); names without a unit
+        ([`check_units()`][greyid.api.Model.check_units]); names without a unit
         count as dimensionless.
 
         Parameters
@@ -554,7 +534,7 @@ class Model:
         mean: Mapping[str, float | str],
         covariance: str | Sequence | np.ndarray = "process",
         scale: float = 1.0,
-    ) -> "Model":
+    ) -> Self:
         """Set the initial state, x(t0) ~ N(mean, covariance).
 
         Parameters
@@ -625,7 +605,7 @@ class Model:
         inputs: Sequence[str] = (),
         kind: str = NONLINEAR,
         name: str = "model",
-    ) -> "Model":
+    ) -> Self:
         """A model from JAX-traceable Python functions of ``(x, u, t, p)``.
 
         Parameters
@@ -752,7 +732,7 @@ class Model:
 
     # ------------------------------------------------------------------ parameters
     def parameter_vector(self, params: Mapping[str, float] | None = None) -> np.ndarray:
-        """The parameter vector θ in [`parameter_names`][greyid.model.model.Model.parameter_names] order.
+        """The parameter vector θ in [`parameter_names`][greyid.api.Model.parameter_names] order.
 
         Parameters
         ----------
@@ -809,13 +789,13 @@ class Model:
         Returns
         -------
         dict
-            What [`from_dict()`][greyid.model.model.Model.from_dict] reads (and a saved fit keeps).
+            What [`from_dict()`][greyid.api.Model.from_dict] reads (and a saved fit keeps).
         """
         return model_to_dict(self)
 
     @classmethod
-    def from_dict(cls, spec: Mapping) -> "Model":
-        """Rebuild a model written by [`to_dict()`][greyid.model.model.Model.to_dict].
+    def from_dict(cls, spec: Mapping) -> Self:
+        """Rebuild a model written by [`to_dict()`][greyid.api.Model.to_dict].
 
         Parameters
         ----------
@@ -835,7 +815,7 @@ class Model:
         return model_from_dict(spec, cls)
 
     @classmethod
-    def from_toml(cls, source) -> "Model":
+    def from_toml(cls, source) -> Self:
         """Read a model file.
 
         Parameters
@@ -877,336 +857,30 @@ class Model:
         return write_model(self, path)
 
     # ------------------------------------------------------------------ public calls
-    def _call_settings(self, data, given: dict, keys):
-        """The data renamed to model names and this call's settings (given, else the model's)."""
+    def call_settings(self, data, given: dict, keys):
+        """The data renamed to the model's names and a call's settings.
+
+        Parameters
+        ----------
+        data : pandas.DataFrame or list of pandas.DataFrame
+            The data as given (columns named as in the file; text times allowed).
+        given : dict
+            The call's settings; None where not given.
+        keys : sequence of str
+            The names of the settings the call takes.
+
+        Returns
+        -------
+        tuple
+            The data (columns renamed by ``[data.columns]``, times read) and the settings: those
+            given, else the model's (from its file or [`set_options()`][greyid.api.Model.set_options]).
+        """
         settings = resolve(self._options, given, keys)
         columns = settings.pop("columns", None)
         data = rename_columns(data, columns)
         # How text in the time column is read: used here, where the data meet the model, not by the filter.
         time_format, time_zone = settings.pop("time_format", None), settings.pop("time_zone", None)
         return _read_times(data, settings.get("time", "t"), time_format, time_zone), settings
-
-    def fit(self, data, time: str | None = None, hold: str | None = None, method: str | None = None,
-            criterion: str | None = None, prior=None, robust=None, horizon: int | None = None,
-            starts: int | None = None, seed: int | None = None, init=None, init_from=None, progress=False,
-            **options):
-        """Estimate the free parameters by maximum likelihood or MAP (chapter 3).
-
-        Parameters
-        ----------
-        data : pandas.DataFrame or list of pandas.DataFrame
-            The time column, one column per input and per output (NaN: not observed);
-            a list of frames is independent experiments whose log-likelihoods add.
-        time : str, optional
-            The name of the time column (default ``"t"``).
-        hold : {"zoh", "foh"}, optional
-            How inputs are held between samples: zero-order hold (the default) or
-            first-order hold (linear interpolation, eq. 4.37).
-        method : str, optional
-            The filter: ``"kalman"``, ``"ekf"``, ``"iekf"``, ``"ekf2"``, ``"ukf"``, ``"gaussian2"``
-            or ``"truncated2"`` (default: the exact Kalman filter for linear models, the EKF otherwise).
-        criterion : {"ml", "map"}, optional
-            Maximum likelihood (default) or maximum a posteriori with ``prior``.
-        prior : dict, optional
-            ``{"mean": {...}, "sd": {...}, "corr": {...}}`` by parameter name (3.46);
-            with ``criterion="map"`` and no ``prior``, the priors declared with
-            ``set_parameter(..., prior=(mean, sd))``.
-        robust : tuple, optional
-            ``("huber", c)`` or ``("tukey", c)``: a robust criterion (3.57–3.58).
-        horizon : int, optional
-            Greater than 1: k-step prediction errors (section 7.2).
-        starts : int, optional
-            Starting points: the initial values, then points of a space-filling design
-            inside the bounds (where the ``"auto"`` optimizer takes scoring steps, the
-            first of them repeats the initial values with Newton steps only).  They run
-            side by side; the best optimum is the fit.
-        seed : int, optional
-            Seed of the space-filling starts (non-negative).
-        init : mapping of str to float, optional
-            Starting values by name, in place of the declared initial values.
-        init_from : FitResult, optional
-            The fit of a smaller model this one extends: adds a start at its estimates,
-            with the new parameters where this model reduces to it
-            ([`set_nested_start()`][greyid.model.model.Model.set_nested_start]).
-        progress : bool or callable
-            True prints the optimiser's iterations; a callable receives one dict per iteration.
-        **options
-            Other settings by name (as [`set_options()`][greyid.model.model.Model.set_options]):
-            ``cov_type`` (``"hessian"``, the default for ML and MAP; ``"sandwich"``
-            H⁻¹JH⁻¹, the default for k-step and robust criteria; ``"opg"``),
-            ``optimizer`` (``"auto"``: Fisher scoring far from the optimum where a
-            Hessian is costly, then exact Newton steps; ``"scoring"``; ``"newton"``;
-            ``"quasi-newton"``: L-BFGS steps on the value and exact gradient, then
-            Newton steps, the same optimum, faster compiled fits of small models, one
-            program more to compile), ``steady_state`` (True: a regular series of 128
-            rows or more of a linear time-invariant model is filtered in the filter's
-            steady state once it has settled; later fits take about half the time, the
-            first one compiles 2–3 times as long), ``maxiter``, ``time_unit``,
-            ``time_format``, ``time_zone``, ``columns`` and the filter's ``form``,
-            ``substeps``, ``iterations``, ``alpha``, ``beta``, ``kappa``.
-
-        Returns
-        -------
-        FitResult
-            Estimates, standard errors, the log-likelihood, convergence and warnings.
-            ``converged`` is True only at a minimum where every free parameter is
-            determined by the data.
-
-        Raises
-        ------
-        DataError
-            Data that do not fit the model (names the column and row).
-        ModelError
-            Bad settings, or a criterion not finite at the start (names the equation
-            and row where it can tell).
-
-        See Also
-        --------
-        greyid.estimate.results.FitResult : what a fit holds and what it can do next.
-        greyid.model.model.Model.likelihood : the criterion as a function, for other optimisers and samplers.
-
-        Examples
-        --------
-        >>> import greyid
-        >>> from greyid.datasets import building_model, load_building_data
-        >>> fit = building_model().fit(load_building_data().iloc[:300])
-        >>> fit.converged
-        True
-        >>> print(fit.summary())  # doctest: +SKIP
-        """
-        from ..estimate.estimation import fit
-
-        given = dict(time=time, hold=hold, method=method, criterion=criterion, robust=robust, horizon=horizon,
-                     starts=starts, seed=seed, **options)
-        data, settings = self._call_settings(data, given, DATA_KEYS + FILTER_KEYS + ESTIMATION_KEYS)
-        settings.pop("prior_correlation", None)
-        if self._units:
-            self.check_units(time=settings.get("time"))
-        if prior is None and settings.get("criterion") == "map":
-            prior = self.prior()
-        return fit(self, data, prior=prior, init=init, init_from=init_from, progress=progress, **settings)
-
-    def likelihood(self, data, time: str | None = None, hold: str | None = None, method: str | None = None,
-                   criterion: str | None = None, prior=None, robust=None, horizon: int | None = None, **options):
-        """The negative log-likelihood as a function of the free parameters.
-
-        Or the criterion ``fit`` would minimise: MAP, robust, k-step.  Its single
-        evaluations of a regular series of a linear model switch to the filter's
-        steady state where it has settled.
-
-        Parameters
-        ----------
-        data : pandas.DataFrame or list of pandas.DataFrame
-            As for [`fit()`][greyid.model.model.Model.fit].
-        time : str, optional
-            The name of the time column.
-        hold : {"zoh", "foh"}, optional
-            How inputs are held between samples.
-        method : str, optional
-            The filter.
-        criterion : {"ml", "map"}, optional
-            With ``"map"``, the negative log-posterior.
-        prior : dict, optional
-            The prior of ``criterion="map"`` (else the declared priors).
-        robust : tuple, optional
-            ``("huber", c)`` or ``("tukey", c)``.
-        horizon : int, optional
-            k-step prediction errors.
-        **options
-            Other settings; ``steady_state=False`` steps through every row.
-
-        Returns
-        -------
-        Likelihood
-            ``.names``, ``.value(x)``, ``.value_and_grad(x)``, ``.hessian(x)`` (``x`` in
-            the parameters' own units, one vector or one row per vector;
-            ``unconstrained=True`` for the optimiser's z) and ``.function()``, the pure
-            JAX function for ``jax.grad``, ``vmap``, samplers and optimisers.
-
-        Examples
-        --------
-        >>> from greyid.datasets import building_model, load_building_data
-        >>> model = building_model()
-        >>> L = model.likelihood(load_building_data().iloc[:100])
-        >>> x = [model.initial_values()[n] for n in L.names]
-        >>> value, gradient = L.value_and_grad(x)
-        """
-        from ..estimate.likelihood import Likelihood
-
-        given = dict(time=time, hold=hold, method=method, criterion=criterion, robust=robust, horizon=horizon,
-                     **options)
-        data, settings = self._call_settings(data, given, DATA_KEYS + FILTER_KEYS + ESTIMATION_KEYS)
-        for key in ("prior_correlation", "starts", "seed", "maxiter", "cov_type", "optimizer"):
-            settings.pop(key, None)
-        if prior is None and settings.get("criterion") == "map":
-            prior = self.prior()
-        return Likelihood(self, data, prior=prior, **settings)
-
-    def predict(self, params, data, steps: int = 1, time: str | None = None, hold: str | None = None,
-                method: str | None = None, states: bool = False, **options):
-        """Output predictions ``steps`` samples ahead, with standard deviations.
-
-        Parameters
-        ----------
-        params : mapping of str to float
-            The parameters' values by name.
-        data : pandas.DataFrame
-            Times, inputs and (where known) outputs.  Rows with missing outputs are
-            predicted too: append future inputs to forecast past the data.
-        steps : int
-            The prediction horizon in samples.
-        time : str, optional
-            The name of the time column.
-        hold : {"zoh", "foh"}, optional
-            How inputs are held between samples.
-        method : str, optional
-            The filter.
-        states : bool
-            Also the states' predictions.
-        **options
-            Other data and filter settings.
-
-        Returns
-        -------
-        pandas.DataFrame
-            The time column, each output and ``<output>_sd`` and, with
-            ``states=True``, each state and ``<state>_sd``.
-        """
-        from ..filters.api import predict_data
-
-        data, settings = self._call_settings(data, dict(time=time, hold=hold, method=method, **options),
-                                             DATA_KEYS + FILTER_KEYS)
-        return predict_data(self, params, data, steps=steps, states=states, **settings)
-
-    def loglik(self, params, data, time: str | None = None, hold: str | None = None, method: str | None = None,
-               **options) -> float:
-        """The Gaussian log-likelihood (3.18) of the data at given parameters.
-
-        Parameters
-        ----------
-        params : mapping of str to float
-            The parameters' values by name.
-        data : pandas.DataFrame or list of pandas.DataFrame
-            A list holds independent experiments; their log-likelihoods add.
-        time : str, optional
-            The name of the time column.
-        hold : {"zoh", "foh"}, optional
-            How inputs are held between samples.
-        method : str, optional
-            The filter (default: the exact Kalman filter for linear models, the EKF otherwise).
-        **options
-            ``form``, ``substeps``, ``iterations`` (IEKF), ``time_unit`` and
-            ``robust=("huber", c)`` or ``("tukey", c)`` for the robust criterion
-            (3.57–3.58) instead of the Gaussian one.
-
-        Returns
-        -------
-        float
-            The log-likelihood.
-
-        Raises
-        ------
-        DataError
-            Data that do not fit the model.
-        ModelError
-            Parameter values that make a variance negative or the initial covariance invalid.
-        """
-        from ..estimate.criteria import loglik
-
-        data, settings = self._call_settings(data, dict(time=time, hold=hold, method=method, **options),
-                                             DATA_KEYS + FILTER_KEYS)
-        return loglik(self, params, data, **settings)
-
-    def filter(self, params, data, time: str | None = None, hold: str | None = None, method: str | None = None,
-               **options):
-        """Run the filter through the data.
-
-        Parameters
-        ----------
-        params : mapping of str to float
-            The parameters' values by name.
-        data : pandas.DataFrame
-            Times, inputs and outputs.
-        time : str, optional
-            The name of the time column.
-        hold : {"zoh", "foh"}, optional
-            How inputs are held between samples.
-        method : str, optional
-            The filter.
-        **options
-            Other data and filter settings.
-
-        Returns
-        -------
-        FilterResult
-            Predicted and filtered means and covariances, innovations and their
-            covariances, per row.
-        """
-        from ..filters.api import filter_data
-
-        data, settings = self._call_settings(data, dict(time=time, hold=hold, method=method, **options),
-                                             DATA_KEYS + FILTER_KEYS)
-        return filter_data(self, params, data, **settings)
-
-    def smooth(self, params, data, time: str | None = None, hold: str | None = None, method: str | None = None,
-               **options):
-        """Rauch–Tung–Striebel smoothed states (linear models and the EKF).
-
-        Parameters
-        ----------
-        params : mapping of str to float
-            The parameters' values by name.
-        data : pandas.DataFrame
-            Times, inputs and outputs.
-        time : str, optional
-            The name of the time column.
-        hold : {"zoh", "foh"}, optional
-            How inputs are held between samples.
-        method : str, optional
-            The filter.
-        **options
-            Other data and filter settings.
-
-        Returns
-        -------
-        SmootherResult
-            Smoothed means and covariances of the states at the sample times.
-        """
-        from ..filters.api import smooth_data
-
-        data, settings = self._call_settings(data, dict(time=time, hold=hold, method=method, **options),
-                                             DATA_KEYS + FILTER_KEYS)
-        return smooth_data(self, params, data, **settings)
-
-    def simulate(self, params, data_or_times, n_paths: int = 1, method: str = "euler", seed: int = 0, **options):
-        """Sample paths of the states and noisy observations (section 2.5).
-
-        Parameters
-        ----------
-        params : mapping of str to float
-            The parameters' values by name.
-        data_or_times : pandas.DataFrame or array_like
-            The times and the inputs (a frame), or the times alone for a model without inputs.
-        n_paths : int
-            The number of paths.
-        method : {"euler", "milstein", "heun", "exact"}
-            The integration scheme (``"exact"``: the exact discretisation of a linear model).
-        seed : int
-            The random seed.
-        **options
-            ``time``, ``hold``, ``time_unit``, ``columns``, ``substeps`` (integration
-            steps per sampling interval, default 10), ``calculus`` (``"ito"`` or
-            ``"stratonovich"``) and ``noise`` (False: the noise-free solution).
-
-        Returns
-        -------
-        Simulation
-            ``.frame(i)`` the i-th path, ``.to_frame()`` all of them.
-        """
-        from ..simulate.simulate import simulate
-
-        data_or_times, settings = self._call_settings(data_or_times, options, ("time", "hold", "time_unit", "columns"))
-        return simulate(self, params, data_or_times, n_paths=n_paths, method=method, seed=seed, **settings)
 
 
 def check_constant_covariance(covariance) -> None:

@@ -24,7 +24,7 @@ from concurrent.futures import CancelledError
 import numpy as np
 
 from ..errors import ModelError
-from ..model import Model
+from ..api import Model
 from . import laplace
 from .members import population_programs
 

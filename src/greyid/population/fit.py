@@ -204,7 +204,7 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
         ``PopulationWarning`` and listed in the result's ``left_out``.
     random : mapping of str to {"normal", "lognormal"}, optional
         The parameters with a random effect (default: the model's
-        [`set_population()`][greyid.model.model.Model.set_population] or model file's
+        [`set_population()`][greyid.api.Model.set_population] or model file's
         ``[population] random``).  Parameters without one are shared by all members.
     covariates : pandas.DataFrame or str, optional
         A row per data set (index: the data sets' names, read as text) or a CSV

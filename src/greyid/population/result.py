@@ -15,10 +15,10 @@ import jax.numpy as jnp
 
 from ..data.files import read_source
 from ..errors import DataError
-from ..estimate.results import FitResult, filter_settings
+from ..api import FitResult, Model
+from ..estimate.results import filter_settings
 from ..estimate.transforms import Transform
 from ..filters.api import filter_options
-from ..model import Model
 from ..outputs import write_atomic
 from ..scaled import ScaledInformation, scaled_inverse
 from .laplace import MemberPrograms, Modes, conditional_modes, laplace_values

@@ -22,6 +22,7 @@ from ..errors import ModelError
 from ..estimate.results import p_value_text
 from ..data.files import named_dataset
 from ..model.units import figure_units, pretty
+from ..validation.validate import validate
 from .equations import inline_formula, model_equations
 from .figures import data_figure, embedded_png
 
@@ -348,7 +349,7 @@ def html_report(fit, level: float = 0.05, steps: int = 4, n_paths: int = 100, se
     # they run in a thread of their own while the figures are drawn.
     with ThreadPoolExecutor(max_workers=1) as pool:
         intervals = pool.submit(_profile_intervals, fit) if profile else None
-        validation = fit.validate(level=level)
+        validation = validate(fit, level=level)
         title = title or f"greyid report: {fit.model.name}"
         later = [_section("correlation", "Correlation of the estimates", _correlation_table(fit.corr)),
                  _derived_section(fit), _identifiability_section(fit),

@@ -18,6 +18,7 @@ import pandas as pd
 from matplotlib.figure import Figure
 from scipy import stats
 
+from ..validation.validate import validate
 from .figures import embedded_png
 from .html import _correlation_table, _esc, _facts, _model_section, _number, _section, _table, page
 
@@ -233,7 +234,7 @@ def member_tests(result, level: float = 0.05) -> pd.DataFrame:
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                tests = result.member(name).validate(level=level).tests
+                tests = validate(result.member(name), level=level).tests
         except (KeyError, ValueError, ArithmeticError) as error:
             problems[name] = str(error)
             continue

@@ -19,7 +19,8 @@ import pandas as pd
 from scipy import special
 
 from ..errors import ModelError, warn
-from ..estimate.results import FitWarning
+from ..estimate.calls import simulate_at
+from ..estimate.results import FitWarning, check_level
 from ..estimate.transforms import Transform
 
 
@@ -94,11 +95,6 @@ def mixture_quantiles(means: np.ndarray, sds: np.ndarray, probabilities, iterati
     return np.array(out)
 
 
-def _check_level(interval):
-    if not 0 < interval < 1:
-        raise ModelError(f"interval must lie between 0 and 1 (e.g. 0.95), got {interval!r}")
-
-
 def predict(fit, data=None, steps: int = 1, interval: float = 0.95, draws: int = 200, seed: int = 0,
             posterior=None) -> pd.DataFrame:
     """Predictions ``steps`` samples ahead with intervals that include the parameters' uncertainty.
@@ -129,7 +125,7 @@ def predict(fit, data=None, steps: int = 1, interval: float = 0.95, draws: int =
     """
     from ..filters.api import predict_draws
 
-    _check_level(interval)
+    check_level(interval)
     frame = fit._data(data)
     if isinstance(frame, list):
         raise ModelError("prediction intervals take one data set; pass data= for the one to predict")
@@ -184,7 +180,7 @@ def simulate(fit, data=None, n_paths: int = 200, interval: float = 0.95, seed: i
         The time column; per output the mean over paths and ``<y>_lower``,
         ``<y>_upper`` (the central band of the paths).
     """
-    _check_level(interval)
+    check_level(interval)
     if not isinstance(n_paths, (int, np.integer)) or n_paths < 2:
         raise ModelError(f"n_paths must be an integer of at least 2, got {n_paths!r}")
     frame = fit._data(data)
@@ -195,11 +191,11 @@ def simulate(fit, data=None, n_paths: int = 200, interval: float = 0.95, seed: i
     settings = dict(hold=fit.settings["hold"], time=fit.settings["time"], method=method, **options)
     if parameter_uncertainty:
         thetas = parameter_draws(fit, n_paths, seed, posterior)
-        outputs = np.concatenate([model.simulate(dict(zip(names, theta)), frame, n_paths=1, seed=seed + 1 + k,
-                                                 **settings).outputs for k, theta in enumerate(thetas)])
+        outputs = np.concatenate([simulate_at(model, dict(zip(names, theta)), frame, n_paths=1, seed=seed + 1 + k,
+                                              **settings).outputs for k, theta in enumerate(thetas)])
         times = frame[fit.settings["time"]].to_numpy()
     else:
-        simulation = model.simulate(fit.values, frame, n_paths=n_paths, seed=seed, **settings)
+        simulation = simulate_at(model, fit.values, frame, n_paths=n_paths, seed=seed, **settings)
         outputs, times = simulation.outputs, frame[fit.settings["time"]].to_numpy()
     tail = (1 - interval) / 2
     columns = {fit.settings["time"]: times}

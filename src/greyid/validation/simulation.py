@@ -16,6 +16,7 @@ import numpy as np
 import pandas as pd
 
 from ..errors import ModelError
+from ..estimate.calls import simulate_at
 
 
 @dataclass(frozen=True)
@@ -50,8 +51,8 @@ def _frame_of(fit, data):
 def _simulate(fit, params, data, **options):
     s = fit.settings
     method = options.pop("method", None) or ("exact" if fit.model.structure.is_linear else "heun")
-    return fit.model.simulate(params, data, method=method, hold=s["hold"], time=s["time"],
-                              time_unit=s.get("time_unit"), **options)
+    return simulate_at(fit.model, params, data, method=method, hold=s["hold"], time=s["time"],
+                       time_unit=s.get("time_unit"), **options)
 
 
 def simulation_check(fit, data=None, n_paths: int = 200, seed: int = 0, level: float = 0.05,

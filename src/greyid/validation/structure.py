@@ -21,6 +21,7 @@ import pandas as pd
 from scipy import stats
 
 from ..errors import ModelError
+from ..estimate.calls import simulate_at
 from ..estimate.information import loglik_derivatives
 from ..estimate.results import filter_settings, parameter_expression
 from ..model.equations import parse_expression
@@ -265,9 +266,9 @@ def simulated_datasets(fit, n_sim: int = 1, seed: int = 0, method: str | None = 
     outputs = list(fit.model.output_names)
     out = []
     for i, frame in enumerate(fit.data if fit.data is not None else []):
-        sim = fit.model.simulate(fit.values, frame, n_paths=n_sim, seed=seed + 1000 * i, method=method,
-                                 substeps=substeps, hold=settings["hold"], time=settings["time"],
-                                 time_unit=settings.get("time_unit"))
+        sim = simulate_at(fit.model, fit.values, frame, n_paths=n_sim, seed=seed + 1000 * i, method=method,
+                          substeps=substeps, hold=settings["hold"], time=settings["time"],
+                          time_unit=settings.get("time_unit"))
         for p in range(n_sim):
             sim_frame = sim.frame(p)
             observed = frame[outputs].notna().to_numpy()
