@@ -245,19 +245,3 @@ def test_a_kept_program_that_calls_lapack_runs_in_a_fresh_process(tmp_path, ou_d
     for fit_loglik, loglik in runs:
         assert float(fit_loglik) == pytest.approx(traced, abs=1e-9)
         assert float(loglik) == pytest.approx(m.loglik(values, ou_data), abs=1e-12)
-
-
-def test_the_lapack_set_up_is_skipped_only_where_asked(monkeypatch):
-    from jax._src.export import _export
-
-    calls = []
-    monkeypatch.setattr(_export, "_ensure_backends_initialized", lambda platforms: calls.append(platforms))
-    programs._install_lapack_guard()
-    programs._install_lapack_guard()  # installed once, not wrapped twice
-    with programs.lapack_needed(False):
-        _export._ensure_backends_initialized(("cpu",))
-    assert calls == []
-    with programs.lapack_needed(True):
-        _export._ensure_backends_initialized(("cpu",))
-    _export._ensure_backends_initialized(("cpu",))  # outside the block: as JAX does it
-    assert calls == [("cpu",), ("cpu",)]

@@ -5,10 +5,8 @@ to 64-bit floats (the filters need them; this applies to every JAX user in the
 process) and turns on JAX's persistent compilation cache in
 ``$GREYID_CACHE_DIR`` (default ``~/.cache/greyid/jax``; ``off`` keeps it off,
 and with it the traced programs greyid keeps in its ``programs`` folder)
-unless a cache directory is configured already; greyid's own compilations are
-kept however quick ([`greyid.compiler.kept_however_quick()`][greyid.compiler.kept_however_quick]), and greyid's own
-command-line processes also keep every other program that compiles in under JAX's
-threshold (1 s).  ``import greyid`` alone
+unless a cache directory is configured already; greyid's own command-line
+processes also keep every program that compiles in under JAX's threshold (1 s).  ``import greyid`` alone
 imports neither JAX nor SymPy, so the command line's help and version answer at
 once; the first use of a model does.
 """

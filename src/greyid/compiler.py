@@ -19,19 +19,13 @@ on besides its arguments' shapes — also keeps its traced program on disk
 program is compiled with the same options, whichever process or cache state
 compiles it first, so that no answer depends on the cache.
 
-Python's garbage collector is paused while a program is traced and compiled
-([`greyid._collector`][greyid._collector]).  XLA's compilation frees the interpreter, so
-modules needed later (a fit's results) are imported meanwhile on the other
-core ([`import_while_compiling()`][greyid.compiler.import_while_compiling]).
+XLA's compilation frees the interpreter: a program can compile in a thread while the next one is
+traced ([`compile_in_background()`][greyid.compiler.compile_in_background]).
 """
 
 from __future__ import annotations
 
-import contextlib
 import functools
-import importlib
-import sys
-import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Callable
 
@@ -39,7 +33,6 @@ from . import _jax  # noqa: F401  (64-bit JAX before any JAX work)
 import jax
 
 from . import programs
-from ._collector import collect_young_garbage, collector_paused
 
 
 #: The XLA options greyid asks for on CPUs (see the module doc).  Some are experimental: each is
@@ -73,98 +66,22 @@ def jax_jit(fun, **kwargs):
     return jax.jit(fun, compiler_options=options, **kwargs) if options else jax.jit(fun, **kwargs)
 
 
-_pending_imports: dict[str, None] = {}  # in the order asked for
-importer: threading.Thread | None = None  # the latest thread beside a compilation
-
-
-def import_while_compiling(*modules: str) -> None:
-    """Import ``modules`` in a thread during the next XLA compilation (unless imported by then).
-
-    Compiling the Hessian program of a small model takes longer than the imports a fit
-    needs afterwards (its results: pandas tables, SciPy's distributions), with the
-    interpreter free: they load meanwhile.
-    """
-    _pending_imports.update(dict.fromkeys(modules))
-
-
-def _beside_compilation(modules):
-    for module in modules:
-        try:
-            importlib.import_module(module)
-        except Exception:  # noqa: BLE001  raised again where the module is used
-            pass
-    collect_young_garbage()
-
-
-def kept_however_quick():
-    """A context in which the programs this thread compiles go to the persistent compilation
-    cache however quickly they compile.
-
-    JAX keeps only programs that took over a second to compile (its default threshold, which
-    a user's process keeps for its own programs); a fit's value-and-gradient program compiles
-    in a little less, and compiling it again in every process made a warm first fit slower.
-    The threshold is one of JAX's thread-local settings, set here for greyid's own compilations
-    only; where a JAX version has no such setting, its global threshold applies.
-    """
-    try:
-        from jax._src import config as jax_config
-
-        setting = jax_config.persistent_cache_min_compile_time_secs
-        return setting(0.0)
-    except (ImportError, AttributeError, TypeError):
-        return contextlib.nullcontext()
-
-
-_compiling_aside = threading.local()
-
-
-@contextlib.contextmanager
-def compiling_aside():
-    """Compilations in this block (in this thread) leave the pending imports to the next one.
-
-    For a program compiled in a thread while the interpreter traces the next one: imports
-    hold the interpreter, so beside the tracing they would only slow it down.
-    """
-    _compiling_aside.active = True
-    try:
-        yield
-    finally:
-        _compiling_aside.active = False
-
-
 def compile_lowered(lowered, *options):
-    """``lowered.compile(*options)``, with pending imports and the collection of what
-    tracing left behind running beside it (see [`collect_young_garbage()`][greyid._collector.collect_young_garbage];
-    not inside
-    [`compiling_aside()`][greyid.compiler.compiling_aside]), and the program kept in the persistent cache however quick
-    ([`kept_however_quick()`][greyid.compiler.kept_however_quick])."""
-    global importer
-    if not getattr(_compiling_aside, "active", False):
-        pending = [m for m in _pending_imports if m not in sys.modules]
-        _pending_imports.clear()
-        importer = threading.Thread(target=_beside_compilation, args=(pending,), daemon=True)
-        importer.start()
-    with kept_however_quick():
-        return lowered.compile(*options)
+    """``lowered.compile(*options)``: XLA's compilation of a traced and lowered program."""
+    return lowered.compile(*options)
 
 
-def compile_in_background(compile_program: Callable, aside: bool = False) -> Future:
-    """The executable of ``compile_program`` (from [`Jitted.lowered()`][greyid.compiler.Jitted.lowered]) as a future:
-    compiled
-    in a thread while the caller goes on, or at once where it was compiled already (no thread).
-    ``aside``: the compilation leaves the pending imports to the next one
-    ([`compiling_aside()`][greyid.compiler.compiling_aside])."""
+def compile_in_background(compile_program: Callable) -> Future:
+    """The executable of ``compile_program`` (from [`Jitted.lowered()`][greyid.compiler.Jitted.lowered]) as a
+    future: compiled in a thread while the caller goes on (XLA frees the interpreter), or at once where it
+    was compiled already (no thread)."""
     if compile_program.compiled:
         done: Future = Future()
         done.set_result(compile_program())
         return done
 
-    def run():
-        with compiling_aside() if aside else contextlib.nullcontext():
-            return compile_program()
-
     pool = ThreadPoolExecutor(1)
-    future = pool.submit(run)
+    future = pool.submit(compile_program)
     pool.shutdown(wait=False)  # the thread ends with its one task
     return future
 
@@ -200,8 +117,7 @@ class Jitted:
             return self.nested(*args, **kwargs)
         if self.key is not None and not kwargs and programs.enabled():
             return self.executable(*args)(*args)
-        with collector_paused():  # a first call traces and compiles
-            return self.top(*args, **kwargs)
+        return self.top(*args, **kwargs)
 
     def executable(self, *args):
         """The program compiled ahead of time for these arguments' shapes and types, kept.
@@ -229,21 +145,19 @@ class Jitted:
 
             ready.compiled = True  # nothing left to do: no thread needed
             return ready
-        with collector_paused():
-            kept = programs.kept_lowering(self, args, jax_jit) if self.key is not None and programs.enabled() else None
-            if kept is None:
-                lowered = self.top.lower(*args)
+        kept = programs.kept_lowering(self, args, jax_jit) if self.key is not None and programs.enabled() else None
+        if kept is None:
+            lowered = self.top.lower(*args)
 
-                def build():
-                    return compile_lowered(lowered)
-            else:
-                def build():
-                    return kept.runner(compile_lowered(kept.lowered))
+            def build():
+                return compile_lowered(lowered)
+        else:
+            def build():
+                return kept.runner(compile_lowered(kept.lowered))
 
         def compiled():
             if signature not in self.executables:
-                with collector_paused():
-                    self.executables[signature] = build()
+                self.executables[signature] = build()
             return self.executables[signature]
 
         compiled.compiled = False

@@ -27,8 +27,6 @@ hash (damaged, or edited) is removed and the program exported again.
 
 from __future__ import annotations
 
-import contextlib
-import contextvars
 import functools
 import hashlib
 import importlib
@@ -213,52 +211,10 @@ def kept_lowering(jitted, args, jax_jit) -> KeptProgram | None:
             exported = jax.export.export(jax.jit(flat_program(jitted, tree, out_trees)))(*leaves)
             out_tree, blob = out_trees[-1], exported.serialize()
             write(path, pack(out_tree, blob))
-        with lapack_needed(b"custom_call" in blob):
-            lowered = jax_jit(exported.call).lower(*leaves)
+        lowered = jax_jit(exported.call).lower(*leaves)
     except Exception:  # noqa: BLE001  any failure: trace as without the cache
         return None
     return KeptProgram(lowered, out_tree, path)
-
-
-_lapack_needed: contextvars.ContextVar[bool] = contextvars.ContextVar("greyid_lapack_needed", default=True)
-
-
-@contextlib.contextmanager
-def lapack_needed(needed: bool):
-    """Lower a kept program's call with JAX's LAPACK set-up only if ``needed``.
-
-    Lowering any exported program, JAX first sets up its LAPACK kernels in case
-    the program calls them, which imports ``scipy.linalg`` (a part of a first
-    fit in a fresh process).  A program without custom calls (the filters' small
-    matrices are unrolled) calls no LAPACK kernel: the set-up is skipped for it,
-    and runs as before for every other program, and for every other JAX user.
-    """
-    _install_lapack_guard()
-    token = _lapack_needed.set(needed)
-    try:
-        yield
-    finally:
-        _lapack_needed.reset(token)
-
-
-def _install_lapack_guard() -> None:
-    """Wrap JAX's set-up of an exported program's backends (once) so that it asks
-    [`_lapack_needed`][greyid.programs._lapack_needed]; where JAX has no such function the set-up always runs."""
-    try:
-        from jax._src.export import _export
-    except ImportError:
-        return
-    ensure = getattr(_export, "_ensure_backends_initialized", None)
-    if ensure is None or getattr(ensure, "greyid_guard", False):
-        return
-
-    def ensure_if_needed(*args, **kwargs):  # whatever JAX's signature: passed on unchanged
-        if _lapack_needed.get():
-            return ensure(*args, **kwargs)
-        return None
-
-    ensure_if_needed.greyid_guard = True
-    _export._ensure_backends_initialized = ensure_if_needed
 
 
 def write(path: Path, blob: bytes) -> None:

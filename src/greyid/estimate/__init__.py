@@ -1,8 +1,6 @@
 """Estimation: maximum likelihood and MAP with exact derivatives (chapter 3).
 
-The results' module (pandas tables, SciPy's distributions) loads when first
-used, so that a fit's programs are traced before it is imported: a fit imports
-it while XLA compiles ([`greyid.compiler.import_while_compiling()`][greyid.compiler.import_while_compiling]).
+The results' module (pandas tables, SciPy's distributions) loads when first used.
 """
 
 from .criteria import GaussianPrior, log_criterion, squared_norm

@@ -17,7 +17,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..compiler import compile_in_background, import_while_compiling
+from ..compiler import compile_in_background
 from ..data.prepare import as_frames
 from ..errors import DataError, ModelError
 from ..filters.accuracy import LOGLIK_TOLERANCE, MAX_SUBSTEPS, SubstepChoice, needs_substeps
@@ -244,9 +244,7 @@ def single_programs(structure, problem: Problem, arguments: tuple, stack: ExitSt
     workers = 1 if steady or rows * len(problem.free) ** 2 < SPLIT_WORK else None
     out = {}
     if gradient:
-        # Aside: the imports a fit needs wait for the exact program's compilation.
-        pending = compile_in_background(programs.value_and_grad.lowered(np.zeros(len(problem.free)), *arguments),
-                                        aside=True)
+        pending = compile_in_background(programs.value_and_grad.lowered(np.zeros(len(problem.free)), *arguments))
         stack.callback(wait, [pending])
 
         def value_and_grad(z):
@@ -435,9 +433,6 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
 
     rows = sum(series.n_rows for series, _ in prepared)
     use_scoring = uses_scoring(optimizer, rows, len(free))
-    if uses_quasi_start(optimizer, use_scoring):
-        import_while_compiling("scipy.optimize")  # the quasi-Newton start's L-BFGS, needed first
-    import_while_compiling(f"{__package__}.optimum")  # the results' module, needed at the end
     args = problem.arguments(theta0)
     nested = None
     if init_from is not None:
