@@ -689,9 +689,7 @@ def fit_from_dict(spec: dict, where: str = "the fit", model=None) -> FitResult:
     FitResult
         The fit.
     """
-    if model is None:
-        model = Model.from_dict(spec["model"]) if isinstance(spec, dict) and "model" in spec else None
-    return estimates_from_dict(spec, model, where, cls=FitResult)
+    return estimates_from_dict(spec, Model, where, model, cls=FitResult)
 
 
 def load_fit(path) -> FitResult:

@@ -629,11 +629,16 @@ def read_fit_file(path) -> dict:
         raise ModelError(f"fit file '{path}' is not valid JSON ({err})") from None
 
 
-def estimates_from_dict(spec: dict, model, where: str = "the fit", cls: type[Estimates] = Estimates) -> Estimates:
+def estimates_from_dict(spec: dict, model_class, where: str = "the fit", model=None,
+                        cls: type[Estimates] = Estimates) -> Estimates:
     """``cls`` (the [`Estimates`][greyid.estimate.results.Estimates] or a subclass) from
-    [`to_dict()`][greyid.api.FitResult.to_dict]'s form, for ``model`` (built from the stored
-    model, or the caller's); errors name ``where`` it came from."""
+    [`to_dict()`][greyid.api.FitResult.to_dict]'s form; errors name ``where`` it came from.
+
+    The document is checked first; then ``model`` (the caller's) or a ``model_class`` built from the
+    stored model is attached.
+    """
     check_fit_document(spec, where)
+    model = model_class.from_dict(spec["model"]) if model is None else model
     params = pd.DataFrame.from_dict(spec["params"], orient="index")
     # Files written before greyid 0.2 named the bounds "lower" and "upper".
     params = params.rename(columns={"lower": "lower_bound", "upper": "upper_bound"})

@@ -89,15 +89,17 @@ def values_at(delays: Delays, at) -> jnp.ndarray:
                     out_axes=-1)(delays.columns, at)
 
 
-def with_delayed_inputs(structure, theta, data):
+def with_delayed_inputs(structure, theta, data, delays: Delays | None = None):
     """``data`` with the delayed inputs appended to ``u_prev`` and ``u_cur`` (at t_{k-1} − τ, t_k − τ).
 
     The model functions take these extended input vectors; a data set's own
-    inputs come first, in the model's order.
+    inputs come first, in the model's order.  ``delays``: [`delays_at()`][greyid.filters.delays.delays_at]
+    of these data, where the caller has it already.
     """
     if not structure.delays:
         return data
-    delays = delays_at(structure, theta, data.t, data.u_cur, data.foh)
+    if delays is None:
+        delays = delays_at(structure, theta, data.t, data.u_cur, data.foh)
     return data._replace(u_prev=jnp.concatenate([data.u_prev, values_at(delays, data.t_prev)], axis=1),
                          u_cur=jnp.concatenate([data.u_cur, values_at(delays, data.t)], axis=1))
 

@@ -24,11 +24,12 @@ from ..errors import ModelError
 from ..model.structure import Structure
 from . import extended, kalman, second_order, unscented
 from . import steady as steady_form
-from .protocol import EKF, EKF2, GAUSSIAN2, IEKF, KALMAN, TRUNCATED2, UKF, FilterInputs, FilterOptions, FilterSteps
+from .protocol import (EKF, EKF2, GAUSSIAN2, IEKF, KALMAN, TRUNCATED2, UKF, Family, FilterInputs, FilterOptions,
+                       FilterSteps)
 from .updates import GaussianState, StepTerms, to_matrix
 
 #: The module that prepares each method's steps: ``prepare(structure, options)(theta, data) -> FilterSteps``.
-FAMILIES = {
+FAMILIES: dict[str, Family] = {
     KALMAN: kalman.prepare,
     EKF: extended.prepare,
     IEKF: extended.prepare,

@@ -116,17 +116,16 @@ def time_invariant(structure: Structure, options: FilterOptions):
             def affine(u, t):
                 return affine_at(u, t, theta)
 
-        linear_matrices = piece_gains = cache = first_noise = None
-        if delays is not None:  # A and G Gᵀ; irregular sampling discretizes each piece as it comes
-            g = G(zeros, data.u_cur[0], data.t[0], theta)
-            linear_matrices = (A, g @ g.T)
+        g = G(zeros, data.u_cur[0], data.t[0], theta)
+        linear_matrices = (A, g @ g.T)  # A and G Gᵀ
+        piece_gains = cache = first_noise = None
+        if delays is not None:  # irregular sampling discretizes each piece as it comes
             if regular:  # the same D + 1 pieces in every interval: discretized once
                 step = jnp.max(data.unique_dt)
                 lengths = jnp.diff(jnp.concatenate([jnp.zeros(1), series.offsets, step[None]]))
                 piece_gains = discretize_each(*linear_matrices, lengths)
         if delays is None or regular:  # one discretization per distinct sampling interval
-            g = G(zeros, data.u_cur[0], data.t[0], theta)
-            cache = discretize_each(A, g @ g.T, data.unique_dt)
+            cache = discretize_each(*linear_matrices, data.unique_dt)
             first_noise = cache.noise_covariance[data.dt_index[1]]  # the first interval's Λ
         initial = start(structure, theta, data, form, first_noise)
         steady = None

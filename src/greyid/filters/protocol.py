@@ -135,7 +135,7 @@ class SeriesRows(NamedTuple):
 def series_rows(structure: Structure, theta, data: FilterInputs) -> SeriesRows:
     """The rows of ``data`` at θ: inputs extended by their delayed values, intervals cut where they switch."""
     delays = delays_at(structure, theta, data.t, data.u_cur, data.foh) if structure.delays else None
-    data = with_delayed_inputs(structure, theta, data)
+    data = with_delayed_inputs(structure, theta, data, delays)
     pieces = offsets = None
     if delays is not None:
         regular = data.delay_slots.shape[0] == 0
