@@ -205,7 +205,7 @@ def scaling(lengths: list[int]) -> None:
     import jax.numpy as jnp
     import numpy as np
 
-    from greyid.compiler import jit
+    from greyid.runtime.jit import jit
     from greyid.estimate.objective import forward_value_and_grad
     from greyid.data import prepare_series
     from greyid.datasets import thesis

@@ -21,7 +21,7 @@ os.environ["GREYID_CACHE_DIR"] = "off"
 import jax
 import jax.numpy as jnp
 import numpy as np
-from greyid.compiler import jit
+from greyid.runtime.jit import jit
 from greyid.filters.api import compiled_filter, filter_inputs, filter_options
 from greyid.data import prepare_series
 from greyid.datasets import thesis

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 
 # Tests replace greyid's functions and constants at run time, which the keys of programs kept
-# on disk do not see (greyid.programs): keep none, except where test_programs.py switches it on.
+# on disk do not see (greyid.runtime.store): keep none, except where test_store.py switches it on.
 os.environ["GREYID_PROGRAMS"] = "off"
 # Data sets named in model files and examples (greyid.datasets.fetch) are read from the project's
 # shared/data beside the checkout, where it is, instead of downloaded.
@@ -189,3 +189,20 @@ def demo_run(tmp_path_factory):
     with contextlib.redirect_stdout(printed):
         code = main(["demo", "--out", str(folder), "--quiet"])
     return code, printed.getvalue(), folder
+
+
+@pytest.fixture
+def compilations(monkeypatch):
+    """The programs greyid compiles during the test, each as lowered: every one goes through
+    ``greyid.runtime.jit.compile_lowered``, which passes greyid's XLA options."""
+    from greyid.runtime import jit
+
+    seen = []
+    real = jit.compile_lowered
+
+    def recording(lowered):
+        seen.append(lowered)
+        return real(lowered)
+
+    monkeypatch.setattr(jit, "compile_lowered", recording)
+    return seen

@@ -9,7 +9,8 @@ import pytest
 import greyid
 from greyid.datasets.building import TRUE_PARAMETERS, building_model, load_building_data
 from greyid.estimate.batch import drive, pad_series, prune_trailing
-from greyid.estimate.optimize import EXACT, Search, run_alone
+from greyid.estimate.optimize import EXACT, run_alone
+from greyid.estimate.trust_region import Search
 from greyid.filters.api import filter_inputs
 from greyid.data.prepare import prepare_series
 from greyid.fleet import relate

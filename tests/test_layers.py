@@ -16,8 +16,8 @@ SOURCE = Path(__file__).resolve().parents[1] / "src" / "greyid"
 
 #: Each package's layer; a module may import from its own layer and those below.
 LAYERS = {
-    "errors": 0, "schema": 0, "outputs": 0, "progress": 0, "_jax": 0, "_collector": 0, "_process": 0,
-    "compiler": 1, "programs": 1, "scaled": 1, "data": 1,
+    "errors": 0, "schema": 0, "outputs": 0, "progress": 0, "runtime": 0,
+    "scaled": 1, "data": 1,
     "model": 2,
     "filters": 3,
     "estimate": 4, "simulate": 4,

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize
 
-from greyid.estimate.optimize import newton_trust_region, quasi_newton_start, trust_region_step
+from greyid.estimate.lbfgs import quasi_newton_start
+from greyid.estimate.trust_region import newton_trust_region, trust_region_step
 
 
 def derivatives(f):
@@ -107,7 +108,8 @@ def test_coordinate_without_curvature_at_the_start_still_moves():
 def test_quasi_newton_from_a_nearby_hessian_reaches_the_exact_minimum_on_gradients_alone():
     """Warm start near the optimum with the Hessian of another point (as a profile's refits have):
     BFGS steps ask only for values and gradients and reach Newton's minimum (1e-9)."""
-    from greyid.estimate.optimize import EXACT, GRADIENT, Search, run_alone
+    from greyid.estimate.optimize import EXACT, GRADIENT, run_alone
+    from greyid.estimate.trust_region import Search
 
     def f(z):  # smooth, non-quadratic, minimum near (1, -0.5, 2)
         return (jnp.sum(jnp.exp(0.3 * (z - jnp.array([1.0, -0.5, 2.0]))) - 0.3 * z)
@@ -133,7 +135,8 @@ def test_quasi_newton_from_a_nearby_hessian_reaches_the_exact_minimum_on_gradien
 def test_value_expansions_save_scoring_steps_and_reach_the_same_minimum():
     """Scoring from far away (long-series fits): steps held back by the region grow by value alone
     and the search reaches the minimum of a plain scoring search with fewer scoring evaluations."""
-    from greyid.estimate.optimize import EXACT, SCORING, VALUE, Search, run_alone
+    from greyid.estimate.optimize import EXACT, SCORING, VALUE, run_alone
+    from greyid.estimate.trust_region import Search
 
     t = np.linspace(0.0, 20.0, 400)
     y = 3.0 * np.exp(-0.5 * t) + 0.01 * np.random.default_rng(5).normal(size=t.size)
@@ -193,3 +196,39 @@ def test_quasi_newton_start_descends_within_its_budget_and_stops_at_a_non_finite
     assert stopped.value <= float(rosenbrock(z0))
     nowhere = quasi_newton_start(walled, np.array([0.0, 1.0]), 200)
     assert nowhere.evaluations == 1 and nowhere.value == np.inf and np.array_equal(nowhere.z, [0.0, 1.0])
+
+
+def test_a_search_is_explicit_state_that_can_be_copied_and_continued():
+    """init/step: the state says what it asks for next and where it stands; a copy taken halfway
+    continues to the same optimum as the original (nothing lives outside the state), and a search
+    stopped halfway reports where it stood."""
+    import copy
+
+    from greyid.estimate.optimize import EXACT, settle
+    from greyid.estimate.trust_region import Search
+
+    def f(z):
+        return (1 - z[0]) ** 2 + 100 * (z[1] - z[0] ** 2) ** 2
+
+    exact = derivatives(f)
+    search = Search(np.array([-1.2, 1.0]), maxiter=200)
+    state = search.init()
+    assert state.request[0] == EXACT and np.array_equal(state.request[1], [-1.2, 1.0])
+    for _ in range(10):
+        state = search.step(state, settle(exact(state.request[1])))
+    assert state.optimum is None and state.iterations > 0 and np.isfinite(state.f)
+    stopped = search.stopped(state, "stopped by hand")
+    assert not stopped.converged and stopped.message == "stopped by hand"
+    np.testing.assert_array_equal(stopped.z, state.z)
+    halfway = copy.deepcopy(state)
+
+    def finish(state):
+        while state.optimum is None:
+            state = search.step(state, settle(exact(state.request[1])))
+        return state.optimum
+
+    first, second = finish(state), finish(halfway)
+    assert first.converged and second.converged
+    np.testing.assert_array_equal(first.z, second.z)
+    assert first.iterations == second.iterations and first.evaluations == second.evaluations
+    np.testing.assert_allclose(first.z, [1.0, 1.0], atol=1e-5)  # a decrement of 1e-12 leaves z to ~1e-6

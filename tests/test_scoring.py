@@ -5,7 +5,7 @@ import pandas as pd
 import pytest
 
 import greyid
-from greyid.estimate import optimize
+from greyid.estimate import trust_region as optimize
 from greyid.estimate.objective import Derivatives, Problem, combine_scoring, compiled
 from greyid.estimate.transforms import Transform
 from greyid.filters.api import filter_options, prepare_datasets

@@ -3,7 +3,7 @@
 ``import greyid`` is light: JAX, SymPy and the rest load when a model is first
 used (``greyid.Model``, ``greyid.load_fit``, ...).  Then greyid switches JAX to
 64-bit floats, which the filters need, and turns on JAX's persistent
-compilation cache (see [`greyid._jax`][greyid._jax]; ``GREYID_CACHE_DIR=off`` keeps it off).
+compilation cache (see [`greyid.runtime`][greyid.runtime]; ``GREYID_CACHE_DIR=off`` keeps it off).
 """
 
 import sys
@@ -15,7 +15,7 @@ __all__ = ["Model", "FitResult", "FitWarning", "load_fit", "fit_many", "FleetRes
            "PopulationResult", "ModelError", "DataError", "UndeterminedWarning", "__version__"]
 
 if "jax" in sys.modules:  # JAX is in use already: make it 64-bit now, as before any work
-    from . import _jax  # noqa: F401
+    from . import runtime  # noqa: F401
 
 _LAZY = {"Model": "api", "FitResult": "api", "FitWarning": "estimate", "load_fit": "api",
          "fit_many": "fleet", "FleetResult": "fleet", "fit_population": "population",

@@ -20,12 +20,12 @@ first-order holds and missing data are handled as the filter handles them.
 
 from __future__ import annotations
 
-from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
+from .. import runtime  # noqa: F401  (64-bit JAX and greyid's cache folder before any JAX work)
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..compiler import structure_program
+from ..runtime.jit import structure_program
 from ..filters.driver import filter_steps
 from ..filters.protocol import KALMAN, FilterInputs, FilterOptions
 from ..filters.updates import GaussianState

@@ -19,13 +19,13 @@ differentiation through the discretisation and the Riccati iteration).
 
 from __future__ import annotations
 
-from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
+from .. import runtime  # noqa: F401  (64-bit JAX and greyid's cache folder before any JAX work)
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
-from ..compiler import jit
+from ..runtime.jit import jit
 from ..errors import ModelError
 from ..filters.discretize import discretize
 

@@ -1,6 +1,6 @@
 """Many searches at once: the starts of one fit, the data sets of a fleet.
 
-Each member is an [`Search`][greyid.estimate.optimize.Search] with its own trust region, stage
+Each member is a [`Search`][greyid.estimate.trust_region.Search] with its own trust region, stage
 and convergence; a member that has converged asks for nothing more.  In each
 round the driver ([`drive()`][greyid.estimate.batch.drive]) gathers the members' pending requests,
 evaluates those of one kind — value, scoring or exact derivatives — together in
@@ -17,14 +17,15 @@ from __future__ import annotations
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Sequence
 
-from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
+from .. import runtime  # noqa: F401  (64-bit JAX and greyid's cache folder before any JAX work)
 import jax
 import numpy as np
 
-from ..compiler import jit
+from ..runtime.jit import jit
 from ..errors import ModelError
 from .objective import Programs, combine_hessian, combine_scoring, direction_blocks, worker_count
-from .optimize import EXACT, SCORING, VALUE, Optimum, Search, settle
+from .optimize import EXACT, SCORING, VALUE, Optimum, settle
+from .trust_region import Search, SearchState
 
 #: Largest number of members one program call evaluates: memory stays bounded, and
 #: beyond it a vectorised step costs more per member, as the working set leaves the cache.
@@ -150,8 +151,8 @@ class BatchedPrograms:
         return results
 
     def compile_exact_ahead(self, z) -> None:
-        """Compile the exact program (by a first evaluation at z) in a background thread; see
-        [`compile_ahead()`][greyid.estimate.objective.Derivatives.compile_ahead]."""
+        """Compile the exact program (by a first evaluation at z) in a worker thread, while the starts
+        take their first scoring steps; the first exact request waits for it."""
         self.pending = self.pool.submit(lambda: [self._block(EXACT, 0, z, rows) for rows in self.blocks])
 
     def __call__(self, groups: list[tuple[str, list[int], np.ndarray]]) -> list[list]:
@@ -218,12 +219,12 @@ PRUNE_GAP = 50.0
 SETTLED_GAIN = 1.0
 
 
-def prune_trailing(searches: Sequence[Search], running: set[int]) -> dict[int, str]:
+def prune_trailing(states: Sequence[SearchState], running: set[int]) -> dict[int, str]:
     """Starts to stop (see PRUNE_AFTER), with the reason."""
-    best = min(s.f for s in searches)
+    best = min(s.f for s in states)
     out = {}
     for i in running:
-        s = searches[i]
+        s = states[i]
         behind = s.f - best
         if s.iterations < PRUNE_AFTER or behind <= PRUNE_GAP or len(s.history) < 4:
             continue
@@ -240,22 +241,25 @@ def drive(searches: Sequence[Search], evaluate: Callable, prune: Callable | None
     [`BatchedPrograms`][greyid.estimate.batch.BatchedPrograms].
 
     A member whose search fails (a criterion not finite at its start) gets its
-    [`ModelError`][greyid.errors.ModelError] in place of an optimum; the others go on.  ``prune(searches,
-    running) -> {member: reason}`` may stop members early; ``finished(member,
-    result)`` is called as each member ends.
+    [`ModelError`][greyid.errors.ModelError] in place of an optimum; the others go on.  ``prune(states,
+    running) -> {member: reason}`` may stop members early (``states``: where each search stands, a
+    [`SearchState`][greyid.estimate.trust_region.SearchState]); ``finished(member, result)`` is called
+    as each member ends.
     """
     results: list = [None] * len(searches)
-    generators = [s.requests() for s in searches]
+    states: list = [None] * len(searches)
     pending: dict[int, tuple[str, np.ndarray]] = {}
 
     def advance(i, answer):
         try:
-            pending[i] = next(generators[i]) if answer is None else generators[i].send(answer)
-            return
-        except StopIteration as stop:
-            results[i] = stop.value
+            states[i] = searches[i].init() if answer is None else searches[i].step(states[i], answer)
         except ModelError as error:
             results[i] = error
+        else:
+            if states[i].optimum is None:
+                pending[i] = states[i].request
+                return
+            results[i] = states[i].optimum
         pending.pop(i, None)
         if finished is not None:
             finished(i, results[i])
@@ -272,10 +276,9 @@ def drive(searches: Sequence[Search], evaluate: Callable, prune: Callable | None
             for i, out in zip(members, outputs):
                 advance(i, settle(out))
         if prune is not None and pending:
-            for i, reason in prune(searches, set(pending)).items():
-                generators[i].close()
+            for i, reason in prune(states, set(pending)).items():
                 pending.pop(i)
-                results[i] = searches[i].stopped(reason)
+                results[i] = searches[i].stopped(states[i], reason)
                 if finished is not None:
                     finished(i, results[i])
     return results

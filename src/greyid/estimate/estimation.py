@@ -17,7 +17,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..compiler import compile_in_background
 from ..data.prepare import as_frames
 from ..errors import DataError, ModelError
 from ..filters.accuracy import LOGLIK_TOLERANCE, MAX_SUBSTEPS, SubstepChoice, needs_substeps
@@ -31,8 +30,9 @@ from .covariance import check_cov_type, default_cov_type, score_covariance
 from . import objective
 from .objective import Derivatives, Problem, combine_scoring, compiled, step_scores
 from .batch import BatchedPrograms, drive, prune_trailing
-from .optimize import (EXACT, GRADIENT, HANDOVER_DECREASE, MAX_STEP, QUASI_EVALUATIONS_PER_PARAMETER, SCORING, VALUE,
-                       NotFiniteError, Optimum, Search, quasi_newton_start, run_alone)
+from .lbfgs import QUASI_EVALUATIONS_PER_PARAMETER, quasi_newton_start
+from .optimize import EXACT, GRADIENT, SCORING, VALUE, NotFiniteError, Optimum, run_alone
+from .trust_region import HANDOVER_DECREASE, MAX_STEP, Search
 from .starts import nested_start, reductions, space_filling
 from .transforms import NONE, Transform
 
@@ -42,7 +42,7 @@ CRITERIA = ("ml", "map")
 #: "newton": exact Newton steps throughout; "auto": scoring where a Hessian costs
 #: much more than a gradient, rows × (free parameters)² ≥ SCORING_WORK; "quasi-newton":
 #: L-BFGS steps on value and exact gradient from each start run alone, then exact Newton
-#: steps ([`quasi_newton_start()`][greyid.estimate.optimize.quasi_newton_start]; a fit's starts run together take
+#: steps ([`quasi_newton_start()`][greyid.estimate.lbfgs.quasi_newton_start]; a fit's starts run together take
 #: Newton steps).
 OPTIMIZERS = ("auto", "scoring", "newton", "quasi-newton")
 #: Below this (padded rows × free parameters²) the exact Hessian is cheap enough that scoring does
@@ -200,7 +200,7 @@ def uses_scoring(optimizer: str, rows: int, n_free: int) -> bool:
 
 def uses_quasi_start(optimizer: str, scoring: bool) -> bool:
     """Whether a search alone begins with a quasi-Newton start
-    ([`quasi_newton_start()`][greyid.estimate.optimize.quasi_newton_start]).
+    ([`quasi_newton_start()`][greyid.estimate.lbfgs.quasi_newton_start]).
 
     Asked for by ``optimizer="quasi-newton"``.  It pays where an exact Hessian costs several
     gradients: one block in one thread (padded rows × free parameters² below SPLIT_WORK), about
@@ -213,7 +213,7 @@ def uses_quasi_start(optimizer: str, scoring: bool) -> bool:
 
 
 def new_search(problem: Problem, z0, maxiter: int, report, scoring: bool, handover: float | None = None) -> Search:
-    """A [`Search`][greyid.estimate.optimize.Search] from ``z0`` with this problem's settings (scoring if asked and
+    """A [`Search`][greyid.estimate.trust_region.Search] from ``z0`` with this problem's settings (scoring if asked and
     possible)."""
     scoring = scoring and problem.horizon == 1 and problem.robust is None
     # On long series an exact Hessian costs dozens of scoring steps, and the
@@ -244,7 +244,7 @@ def single_programs(structure, problem: Problem, arguments: tuple, stack: ExitSt
     workers = 1 if steady or rows * len(problem.free) ** 2 < SPLIT_WORK else None
     out = {}
     if gradient:
-        pending = compile_in_background(programs.value_and_grad.lowered(np.zeros(len(problem.free)), *arguments))
+        pending = programs.value_and_grad.compile_in_background(np.zeros(len(problem.free)), *arguments)
         stack.callback(wait, [pending])
 
         def value_and_grad(z):
@@ -279,20 +279,20 @@ class SearchesAlone:
 
     def run(self, problem: Problem, search: Search, quasi: bool = False) -> Optimum:
         """``search`` to its end; with ``quasi``, from where a quasi-Newton start gets to (see
-        [`quasi_newton_start()`][greyid.estimate.optimize.quasi_newton_start])."""
+        [`quasi_newton_start()`][greyid.estimate.lbfgs.quasi_newton_start])."""
         key = (problem.key(), quasi)
         if key not in self.programs:
             # Compiled ahead only where compilation, not evaluation, dominates: on long
             # series the background evaluation would cost more than it saves.
             ahead = (search.scoring or quasi) and not problem.long_series
             self.programs[key] = single_programs(self.structure, problem, self.arguments, self.stack,
-                                                 search.z if ahead else None, gradient=quasi)
+                                                 search.z0 if ahead else None, gradient=quasi)
         programs = self.programs[key]
         if not quasi:
             return run_alone(search, programs)
-        start = quasi_newton_start(programs[GRADIENT], search.z, QUASI_EVALUATIONS_PER_PARAMETER * len(search.z),
+        start = quasi_newton_start(programs[GRADIENT], search.z0, QUASI_EVALUATIONS_PER_PARAMETER * len(search.z0),
                                    search.report)
-        search.z, report, done = start.z, search.report, start.iterations
+        search.z0, report, done = start.z, search.report, start.iterations
         search.report = lambda iteration, stage, f, g: report(done + iteration, stage, f, g)
         optimum = run_alone(search, programs)
         return replace(optimum, iterations=optimum.iterations + done,

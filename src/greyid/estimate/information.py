@@ -18,12 +18,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
+from .. import runtime  # noqa: F401  (64-bit JAX and greyid's cache folder before any JAX work)
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..compiler import structure_program
+from ..runtime.jit import structure_program
 from ..errors import ModelError
 from ..filters.api import compiled_filter, filter_options, prepare_datasets
 from .criteria import log_criterion

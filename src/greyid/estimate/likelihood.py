@@ -27,12 +27,12 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
+from .. import runtime  # noqa: F401  (64-bit JAX and greyid's cache folder before any JAX work)
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..compiler import jit
+from ..runtime.jit import jit
 from ..data.prepare import as_frames
 from ..errors import ModelError
 from ..filters.api import prepare_datasets
@@ -155,7 +155,7 @@ class Likelihood:
                              f"per parameter vector), got shape {x.shape}")
         # NumPy in and out directly (the compiled program's own fast path): a jnp.asarray and
         # a tree_map around each call cost a third of the Armadillo model's value and gradient.
-        out = self._program(kind, unconstrained, x.ndim == 2).top(x)
+        out = self._program(kind, unconstrained, x.ndim == 2)(x)
         return tuple(np.asarray(a) for a in out) if isinstance(out, tuple) else np.asarray(out)
 
     def value(self, x, unconstrained: bool = False):

@@ -13,12 +13,12 @@ from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from typing import Callable, NamedTuple
 
-from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
+from .. import runtime  # noqa: F401  (64-bit JAX and greyid's cache folder before any JAX work)
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..compiler import compile_in_background, jit, kept_key
+from ..runtime.jit import jit, kept_key
 from ..filters import small
 from ..filters.api import compiled_filter
 from ..filters.driver import make_ahead, make_summed_filter
@@ -198,7 +198,7 @@ def build(structure, problem: Problem) -> Programs:
         # The same Hessian pushing the value-and-gradient program's own jitted function along each
         # row: JAX traces that function once for both programs, so a fit that compiles both (a
         # quasi-Newton start) does not trace it twice; alone, the nesting costs a little tracing.
-        sharing = jit(hessian_rows(for_hessian, forward, value_and_grad.nested), key=kept("derivatives_sharing"))
+        sharing = jit(hessian_rows(for_hessian, forward, value_and_grad.jitted), key=kept("derivatives_sharing"))
     # Per-step scores (rows: steps, columns: ∂/∂z), forward mode: nothing stored per step.
     return Programs(derivatives, jit(negative, key=kept("value")),
                     jit(jax.jacfwd(contributions), key=kept("step_scores")), value_and_grad, scoring, sharing)
@@ -366,8 +366,8 @@ class Derivatives:
         """
         # Traced here (reusing what an earlier program traced: the value and gradient of a
         # quasi-Newton start), compiled in the thread.
-        self.pending = compile_in_background(
-            self.program.lowered(np.asarray(z, dtype=np.float64), self.blocks[0], *self.arguments))
+        self.pending = self.program.compile_in_background(np.asarray(z, dtype=np.float64), self.blocks[0],
+                                                          *self.arguments)
 
     def _pin(self, z):
         # Compiled once, before any thread starts, and kept for the search: the program's own

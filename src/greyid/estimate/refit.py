@@ -132,7 +132,7 @@ class Refit:
             search = new_search(self.problem, z, self.maxiter if hessian is None else QUASI_NEWTON_STEPS,
                                 lambda *a: None, self.scoring and self.problem.long_series and hessian is None)
             search.step_limit = search.step_limit[keep] if np.ndim(search.step_limit) else search.step_limit
-            search.initial_hessian = hessian
+            search.hessian = hessian
             return run_alone(search, programs)
 
         # Warm starts lie near their optimum, where the Hessian changes little: quasi-Newton

@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import math
 
-from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
+from .. import runtime  # noqa: F401  (64-bit JAX and greyid's cache folder before any JAX work)
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
-from ..compiler import structure_program
+from ..runtime.jit import structure_program
 from ..data.prepare import Series, as_frames, prepare_series
 from ..errors import DataError, FilterWarning, ModelError, warn
 from ..model.structure import Structure

@@ -15,11 +15,11 @@ from __future__ import annotations
 
 from typing import Callable, NamedTuple
 
-from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
+from .. import runtime  # noqa: F401  (64-bit JAX and greyid's cache folder before any JAX work)
 import jax
 import jax.numpy as jnp
 
-from ..compiler import jit
+from ..runtime.jit import jit
 from ..errors import ModelError
 from ..model.structure import Structure
 from . import extended, kalman, second_order, unscented

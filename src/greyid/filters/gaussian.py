@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import Callable
 
-from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
+from .. import runtime  # noqa: F401  (64-bit JAX and greyid's cache folder before any JAX work)
 import jax
 import jax.numpy as jnp
 

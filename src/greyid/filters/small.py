@@ -8,7 +8,7 @@ above all in reverse-mode differentiation.  Larger matrices use jax.numpy.linalg
 
 from __future__ import annotations
 
-from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
+from .. import runtime  # noqa: F401  (64-bit JAX and greyid's cache folder before any JAX work)
 import jax.numpy as jnp
 from jax.scipy.linalg import solve_triangular as _solve_triangular
 

@@ -17,12 +17,12 @@ models.
 
 from __future__ import annotations
 
-from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
+from .. import runtime  # noqa: F401  (64-bit JAX and greyid's cache folder before any JAX work)
 import jax
 import jax.numpy as jnp
 from jax.scipy.linalg import cho_factor, cho_solve
 
-from ..compiler import jit
+from ..runtime.jit import jit
 
 
 @jit

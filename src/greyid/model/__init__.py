@@ -1,9 +1,8 @@
 """Model specification: equations as text (or Python functions) to JAX functions."""
 
-from .._collector import imports_frozen
+from ..runtime.config import collector_paused
 
-# JAX, SymPy, pandas and these modules load here, once, with the collector paused (see greyid._collector).
-with imports_frozen():
+with collector_paused():  # SymPy, pandas and the model's modules
     from .model import ModelSpec
     from .parameters import Parameter
     from .structure import LTI, LTV, NONLINEAR, Structure

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
+from .. import runtime  # noqa: F401  (64-bit JAX and greyid's cache folder before any JAX work)
 
 import sympy as sp
 

@@ -13,7 +13,7 @@ G(x,u,t,θ)dω and y_k = h(x_k,u_k,t_k,θ) + e_k with e_k ~ N(0, S).
 
 from __future__ import annotations
 
-from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
+from .. import runtime  # noqa: F401  (64-bit JAX and greyid's cache folder before any JAX work)
 
 from typing import Callable, Mapping, Self, Sequence
 

@@ -6,7 +6,7 @@ the population parameters φ ([`spec`][greyid.population.spec]): every outer ste
 member's inner problem (the conditional modes of its random effects, all
 members at once by vectorised programs, warm-started from the previous modes)
 and evaluates Σ_i ℓ_i(φ) with exact derivatives ([`laplace`][greyid.population.laplace]).  The outer
-search is greyid's trust-region search (`greyid.estimate.optimize`):
+search is greyid's trust-region search (`greyid.estimate.trust_region`):
 BFGS steps on the exact gradient from the members' outer-product information
 Σ_i ∇ℓ_i∇ℓ_iᵀ, then Newton steps on the exact Hessian at the end (see
 [`_search()`][greyid.population.fit._search]); the standard errors come from that exact Hessian.
@@ -19,13 +19,14 @@ import warnings
 from dataclasses import replace
 from pathlib import Path
 
-from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
+from .. import runtime  # noqa: F401  (64-bit JAX and greyid's cache folder before any JAX work)
 import numpy as np
 import pandas as pd
 
 from ..errors import DataError, ModelError
 from ..estimate.objective import worker_count
-from ..estimate.optimize import EXACT, GRADIENT, VALUE, NotFiniteError, Search, run_alone
+from ..estimate.optimize import EXACT, GRADIENT, VALUE, NotFiniteError, run_alone
+from ..estimate.trust_region import Search
 from ..data.files import named_datasets, read_covariates, read_source
 from ..model.options import rename_columns
 from . import laplace

@@ -32,12 +32,12 @@ from __future__ import annotations
 
 from typing import NamedTuple, Callable
 
-from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
+from .. import runtime  # noqa: F401  (64-bit JAX and greyid's cache folder before any JAX work)
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..compiler import jit, kept_key
+from ..runtime.jit import jit, kept_key
 from ..estimate.criteria import log_criterion
 from ..filters.api import compiled_filter
 

@@ -14,7 +14,7 @@ Euler and Milstein get the drift f + ½ c instead.
 
 from __future__ import annotations
 
-from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
+from .. import runtime  # noqa: F401  (64-bit JAX and greyid's cache folder before any JAX work)
 import jax
 import jax.numpy as jnp
 

@@ -15,14 +15,14 @@ import os
 
 from dataclasses import dataclass
 
-from .. import _jax  # noqa: F401  (64-bit JAX before any JAX work)
+from .. import runtime  # noqa: F401  (64-bit JAX and greyid's cache folder before any JAX work)
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
 from ..data.prepare import Series, check_times, prepare_series
-from ..compiler import jit, structure_program
+from ..runtime.jit import jit, structure_program
 from ..errors import DataError, ModelError
 from ..filters.api import HOLDS, filter_inputs
 from ..filters.gaussian import initial_state

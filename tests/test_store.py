@@ -1,9 +1,7 @@
-"""Programs kept on disk (greyid.programs): a later fit loads them and gets the same answer;
+"""Programs kept on disk (greyid.runtime.store): a later fit loads them and gets the same answer;
 anything that changes the program changes its key; nothing else is ever loaded."""
 
 from __future__ import annotations
-
-import json
 
 import numpy as np
 import pandas as pd
@@ -12,7 +10,8 @@ import pytest
 import jax
 
 import greyid
-from greyid import compiler, programs
+from greyid.runtime import jit as compiler
+from greyid.runtime import store as programs
 
 SPEC = "dx = theta*(mu - x)*dt + exp(ls)*dw1"
 
@@ -62,7 +61,7 @@ def test_a_later_fit_loads_the_kept_program_and_gets_the_same_answer(cache, ou_d
     loaded = model.fit(ou_data)
     assert kept_files(cache) == files
     program = model.structure.cache[next(k for k in model.structure.cache if k[0] == "objective")].derivatives
-    assert program.executables and all(callable(e) and e.__name__ == "run" for e in program.executables.values())
+    assert program.executables
     assert loaded.loglik == pytest.approx(first.loglik, abs=1e-9)
     np.testing.assert_allclose(loaded.params["estimate"], first.params["estimate"], rtol=1e-9)
     np.testing.assert_allclose(loaded.params["std_error"], first.params["std_error"], rtol=1e-7)
@@ -115,32 +114,33 @@ def test_an_unreadable_kept_program_is_traced_again_and_repaired(cache, ou_data)
     again = ou_model().fit(ou_data)
     assert again.loglik == pytest.approx(first.loglik, abs=1e-9)
     for path in kept_files(cache):  # rewritten: readable again
-        programs.unpack(path.read_bytes())
+        programs.unseal(path.read_bytes())
 
 
 def test_kept_programs_are_not_pickles_and_a_changed_byte_is_caught(cache, ou_data, monkeypatch):
-    """A kept file is a JSON header line (with the program's SHA-256) and JAX's serialized program:
-    nothing executable.  One byte changed in the program (a float constant, say) is caught by the hash:
-    the file is removed and exported again, and the answer is the traced one."""
+    """A kept file is JAX's serialized program followed by its SHA-256: nothing executable.  One byte
+    changed in the program (a float constant, say) is caught by the hash: the file is removed and
+    exported again, and the answer is the traced one."""
+    import hashlib
+
     model = ou_model()
     first = model.fit(ou_data)
     files = kept_files(cache)
     assert files
     for path in files:
         data = path.read_bytes()
-        header = json.loads(data.partition(b"\n")[0])
-        assert header["format"] == programs.FORMAT and len(header["sha256"]) == 64
+        assert hashlib.sha256(data[:-32]).digest() == data[-32:]
         assert not data.startswith(b"\x80")  # a pickle's first byte
+        exported = jax.export.deserialize(bytearray(programs.unseal(data)))
+        assert exported.in_tree.num_leaves >= 1  # the arguments' tree travels with the program
     values = first.values
     reference = ou_model().loglik(values, ou_data)
     for path in files:
         data = bytearray(path.read_bytes())
-        start = data.index(b"\n") + 1
-        position = start + (len(data) - start) // 2
-        data[position] ^= 0x01
+        data[len(data) // 2] ^= 0x01
         path.write_bytes(bytes(data))
         with pytest.raises(ValueError, match="hash"):
-            programs.unpack(bytes(data))
+            programs.unseal(bytes(data))
     exported = []
     real_export = programs.jax.export.export
 
@@ -154,7 +154,7 @@ def test_kept_programs_are_not_pickles_and_a_changed_byte_is_caught(cache, ou_da
     assert again.loglik == pytest.approx(first.loglik, abs=1e-9)
     assert ou_model().loglik(values, ou_data) == pytest.approx(reference, abs=1e-12)
     for path in kept_files(cache):
-        programs.unpack(path.read_bytes())
+        programs.unseal(path.read_bytes())
 
 
 def test_the_cache_command_shows_and_clears_the_folder(cache, ou_data, tmp_path):
@@ -168,38 +168,39 @@ def test_the_cache_command_shows_and_clears_the_folder(cache, ou_data, tmp_path)
     assert programs.usage()["programs"] == (0, 0) and kept_files(cache) == []
 
 
-def test_tree_structures_round_trip_and_foreign_named_tuples_are_refused():
-    from collections import namedtuple
-
+def test_greyids_named_tuples_travel_by_name_and_every_program_of_a_fit_is_kept(cache, ou_data, monkeypatch):
+    """The filters' and the estimator's named tuples in a program's arguments and results serialize with
+    JAX's own tree serialization (registered by module and name); none of a fit's keyed programs falls
+    back to tracing."""
     from greyid.filters.updates import StepTerms
 
-    tree = jax.tree_util.tree_structure((StepTerms(1, 2, 3), {"a": [1, None, (2, 3)]}, 4))
-    assert programs.decode_tree(json.loads(json.dumps(programs.encode_tree(tree)))) == tree
-    Foreign = namedtuple("Foreign", "a b")
-    with pytest.raises(programs.Unkeepable):
-        programs.encode_tree(jax.tree_util.tree_structure(Foreign(1, 2)))
-    with pytest.raises(ValueError):
-        programs.decode_tree({"named": ["os", "path"], "items": []})
+    programs.register_named_tuples()
+    assert StepTerms in programs._registered
+    fallbacks = []
+    real = programs.lowered
+
+    def watching(jitted, key, args):
+        out = real(jitted, key, args)
+        if out is None:
+            fallbacks.append(key)
+        return out
+
+    monkeypatch.setattr(programs, "lowered", watching)
+    ou_model().fit(ou_data)
+    ou_model().fit(ou_data, method="ekf")
+    assert fallbacks == []
 
 
-def test_a_fit_does_not_depend_on_the_cache_state(cache, ou_data, monkeypatch):
+def test_a_fit_does_not_depend_on_the_cache_state(cache, ou_data, compilations):
     """Every program compiles with the same options whichever process or cache state compiles it:
     a first fit (empty caches), a fit in the same process, and a new model's (a new process's) fit on
     the kept programs give the same estimates, and JAX's cache setting is never toggled."""
-    options = []
-    compile_lowered = compiler.compile_lowered
-
-    def recording(lowered, *extra):
-        options.append(extra)
-        return compile_lowered(lowered, *extra)
-
-    monkeypatch.setattr(compiler, "compile_lowered", recording)
     setting = jax.config.jax_persistent_cache_min_compile_time_secs
     model = ou_model()
     first = model.fit(ou_data)
     again = model.fit(ou_data)
     later = ou_model().fit(ou_data)
-    assert options and all(extra in ((), (compiler.compiler_options(),)) for extra in options)
+    assert compilations  # every compilation went through compile_lowered, with greyid's options
     assert jax.config.jax_persistent_cache_min_compile_time_secs == setting
     assert not hasattr(compiler, "QUICK") and not hasattr(compiler, "settle")
     for other in (again, later):
@@ -213,7 +214,7 @@ LAPACK_SCRIPT = """
 import sys
 import numpy as np, pandas as pd
 sys.path.insert(0, sys.argv[1])
-from test_programs import ou_model
+from test_store import ou_model
 data = pd.read_csv(sys.argv[2])
 m = ou_model()
 m.set_initial_state(mean={"x": "x0"}, covariance="stationary")  # solved by LU: LAPACK on CPUs
@@ -223,9 +224,8 @@ print(repr(m.fit(data).loglik), repr(m.loglik(values, data)))
 
 
 def test_a_kept_program_that_calls_lapack_runs_in_a_fresh_process(tmp_path, ou_data):
-    """Lowering a kept program skips JAX's LAPACK set-up only for programs without custom calls:
-    one that calls LAPACK (a stationary initial covariance, solved by LU) and is loaded by a
-    process that traced nothing still computes what tracing computes."""
+    """A kept program that calls LAPACK (a stationary initial covariance, solved by LU), loaded by a
+    process that traced nothing, computes what tracing computes."""
     import os
     import subprocess
     import sys

@@ -1,0 +1,167 @@
+"""One ``jit`` for every program of greyid, compiled with greyid's XLA options.
+
+[`jit()`][greyid.runtime.jit.jit] wraps ``jax.jit``.  Called inside another traced function
+(its arguments are tracers) the jitted function is used as it is: XLA takes compiler
+options only for the outermost program.  Called at top level, the program is
+compiled ahead of time for the arguments' shapes and types with the options of
+[`CPU_OPTIONS`][greyid.runtime.jit.CPU_OPTIONS] and kept per signature; with a ``key`` its
+traced program comes from (or goes to) [`greyid.runtime.store`][greyid.runtime.store].  Every
+program compiles with the same options whichever process or cache state compiles it
+first, so that no answer depends on the cache.
+
+The options, on CPUs: XLA's newer fusion emitters take about twice as long to
+compile a filter's scan as the classic ones and run it no faster
+(``benchmarks/fit.py``), and compile time is most of a first fit.  XNNPACK's fusions
+are off: they turn the products and sums over a state's two or three elements into
+library calls, which made a scoring step of a 10⁵-row series 3 times and its Hessian
+5 times slower (``benchmarks/length.py``).  The memory-optimised instruction
+scheduler orders a program's kernels for fewer live buffers rather than for running
+independent ones side by side, which a filter's small kernels gain nothing from
+(``benchmarks/likelihood.py``).  docs/performance.md has the figures.
+"""
+
+from __future__ import annotations
+
+import functools
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Callable
+
+import jax
+
+from . import store
+
+#: The XLA options greyid asks for on CPUs (see the module doc).  Some are experimental: each is
+#: passed only where this jaxlib's XLA accepts it ([`compiler_options()`][greyid.runtime.jit.compiler_options]).
+CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_cpu_experimental_ynn_fusion_type": "",
+               "xla_cpu_scheduler_type": "CPU_SCHEDULER_TYPE_MEMORY_OPTIMIZED"}
+
+
+@functools.cache
+def compiler_options() -> dict:
+    """The options of [`CPU_OPTIONS`][greyid.runtime.jit.CPU_OPTIONS] this JAX and XLA accept (none on other
+    backends): an upgrade that drops or renames one compiles with XLA's default for it instead of failing."""
+    if jax.default_backend() != "cpu":
+        return {}
+    return {name: value for name, value in CPU_OPTIONS.items() if accepted({name: value})}
+
+
+def accepted(options: dict) -> bool:
+    """Whether a trivial program compiles with the XLA ``options``."""
+    try:
+        jax.jit(lambda x: x + 1.0).lower(1.0).compile(options)
+    except Exception:  # noqa: BLE001  an unknown option, or a compile() without options
+        return False
+    return True
+
+
+def compile_lowered(lowered):
+    """XLA's compilation of a traced and lowered program, with greyid's options."""
+    options = compiler_options()
+    return lowered.compile(options) if options else lowered.compile()
+
+
+class Program:
+    """A jitted function whose top-level calls run an executable compiled with greyid's options.
+
+    Parameters
+    ----------
+    fun : callable
+        The function of arrays (and pytrees of arrays) to compile.
+    key : hashable, optional
+        Everything the traced program depends on besides its arguments' shapes and types
+        (see [`structure_program()`][greyid.runtime.jit.structure_program]); with it the traced
+        program is kept on disk ([`greyid.runtime.store`][greyid.runtime.store]).
+    static_argnums : tuple of int
+        Arguments whose values, not shapes, the program depends on (as ``jax.jit``).
+    """
+
+    def __init__(self, fun: Callable, key=None, static_argnums: tuple[int, ...] = ()):
+        functools.update_wrapper(self, fun)
+        self.jitted = jax.jit(fun, static_argnums=static_argnums)
+        self.static_argnums = tuple(static_argnums)
+        self.key = None if static_argnums else key  # static values would have to be in the key
+        self.executables: dict = {}  # signature -> compiled program (see executable())
+
+    def __call__(self, *args):
+        if any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves(args)):
+            return self.jitted(*args)
+        return self.executable(*args)(*self.dynamic(args))
+
+    def dynamic(self, args: tuple) -> tuple:
+        """The arguments a compiled program takes (all but the static ones)."""
+        if not self.static_argnums:
+            return args
+        return tuple(a for i, a in enumerate(args) if i not in self.static_argnums)
+
+    def signature(self, args: tuple) -> tuple:
+        """What a compiled program is specific to: the arguments' tree, shapes and types, and static values."""
+        leaves, tree = jax.tree_util.tree_flatten(self.dynamic(args))
+        return tree, tuple(jax.typeof(a) for a in leaves), tuple(args[i] for i in self.static_argnums)
+
+    def lower(self, args: tuple):
+        """The traced and lowered program for ``args``: from the store where it is kept there."""
+        lowered = store.lowered(self.jitted, self.key, args) if self.key is not None else None
+        return self.jitted.lower(*args) if lowered is None else lowered
+
+    def executable(self, *args):
+        """The program compiled for these arguments' shapes and types (and static values), kept.
+
+        It takes the arguments other than the static ones.  Callers that run one program from
+        several threads at once fetch it first: through ``__call__`` each thread's first call
+        would compile it again.
+        """
+        signature = self.signature(args)
+        found = self.executables.get(signature)
+        if found is None:
+            found = self.executables[signature] = compile_lowered(self.lower(args))
+        return found
+
+    def compile_in_background(self, *args) -> Future:
+        """`executable()` as a future: traced and lowered now, compiled by XLA in a thread (which frees
+        the interpreter) while the caller goes on; done at once where it was compiled already.
+
+        A fit compiles its exact Hessian program so while its first scoring or quasi-Newton steps
+        run: the quasi-Newton setting's first fit with a warm cache takes a fifth less time
+        (docs/performance.md).
+        """
+        signature = self.signature(args)
+        if signature in self.executables:
+            done: Future = Future()
+            done.set_result(self.executables[signature])
+            return done
+        lowered = self.lower(args)
+
+        def compile_and_keep():
+            found = self.executables[signature] = compile_lowered(lowered)
+            return found
+
+        pool = ThreadPoolExecutor(1)
+        future = pool.submit(compile_and_keep)
+        pool.shutdown(wait=False)  # the thread ends with its one task
+        return future
+
+
+def jit(fun: Callable, key=None, static_argnums: tuple[int, ...] = ()) -> Program:
+    """``jax.jit`` with greyid's compiler options; ``key`` keeps the traced program on disk (see
+    [`Program`][greyid.runtime.jit.Program])."""
+    return Program(fun, key=key, static_argnums=static_argnums)
+
+
+def structure_program(structure, key: tuple, make: Callable) -> Program:
+    """The jitted ``make()`` for one model structure and settings ``key``, built once per structure.
+
+    ``key`` must name every setting ``make`` closes over besides the structure:
+    with the structure's fingerprint (models written as equations) it is also
+    the program's key on disk.
+    """
+    if key not in structure.cache:
+        fun = make()
+        fun = fun.__wrapped__ if isinstance(fun, Program) else fun
+        structure.cache[key] = jit(fun, key=kept_key(structure, key))
+    return structure.cache[key]
+
+
+def kept_key(structure, key: tuple):
+    """The key on disk of a program of ``structure`` with settings ``key``: None for models of
+    Python functions (no fingerprint), whose programs are never kept."""
+    return None if structure.fingerprint is None else ("structure", structure.fingerprint, key)

@@ -1,0 +1,183 @@
+"""Traced programs kept on disk, so that a later process need not trace them again.
+
+Tracing greyid's estimation programs (a filter's scan differentiated twice,
+vectorised over directions) takes most of a first fit's time once XLA's own
+compilation comes from JAX's persistent cache.  A program given a key is exported
+with ``jax.export`` into ``$GREYID_CACHE_DIR/programs``, its arguments' and
+results' tree structures with it (greyid's named tuples registered for that by
+name), and a later process with the same key loads it instead of tracing.  On by
+default; ``GREYID_PROGRAMS=off`` (or ``GREYID_CACHE_DIR=off``) switches it off.
+
+A kept program must be the one tracing would give, or answers would be silently
+wrong: its file name is a hash of the key (the model's equations and every setting
+the program closes over, see
+[`greyid.model.structure.Structure.fingerprint`][greyid.model.structure.Structure.fingerprint]), the
+arguments' shapes and types, greyid's source files and JAX's version and backend.
+A process that replaces greyid's functions or constants at run time (the test suite
+does) must switch the store off: the key does not see such changes.  A program
+that cannot be exported, or a file that cannot be read or written, is traced, as
+without the store.
+
+A file is JAX's serialized program (a flatbuffer of StableHLO and the trees;
+nothing in it is executable Python) followed by its SHA-256, so that a damaged or
+edited file is found before JAX reads it: it is removed and the program exported
+again.  ``greyid cache info`` and ``greyid cache clear`` show and empty the folder.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+import jax
+
+from . import config
+
+#: Bump to invalidate every kept program (a change in how they are stored).
+FORMAT = 4
+#: Values of ``GREYID_PROGRAMS`` that switch the store off.
+OFF = ("off", "0", "no", "false")
+DIGEST = 32  # bytes of a SHA-256
+
+
+def folder() -> Path | None:
+    """Where programs are kept, or None where greyid's cache is switched off or cannot be used."""
+    base = config.cache_dir()
+    return None if base is None or config.cache_folder_problem(base) else Path(base) / "programs"
+
+
+def enabled() -> bool:
+    """Whether programs are kept: greyid's cache is on and ``GREYID_PROGRAMS`` is not ``off``."""
+    return folder() is not None and os.environ.get("GREYID_PROGRAMS", "on").lower() not in OFF
+
+
+@functools.cache
+def source_hash() -> str:
+    """A hash of greyid's source files and of the JAX that traces them."""
+    digest = hashlib.sha256()
+    root = Path(__file__).resolve().parents[1]
+    for path in sorted(root.rglob("*.py")):
+        digest.update(str(path.relative_to(root)).encode())
+        digest.update(path.read_bytes())
+    import jaxlib
+
+    for part in (jax.__version__, jaxlib.__version__, jax.default_backend(), FORMAT,
+                 jax.config.jax_enable_x64, jax.config.jax_default_matmul_precision):
+        digest.update(repr(part).encode())
+    return digest.hexdigest()
+
+
+def path_for(key, args) -> Path:
+    """The file of the program with ``key`` for arguments like ``args``."""
+    leaves, tree = jax.tree_util.tree_flatten(args)
+    signature = (str(tree), [str(jax.typeof(a)) for a in leaves])
+    text = repr((key, signature, source_hash()))
+    return folder() / f"{hashlib.sha256(text.encode()).hexdigest()}.jaxexport"
+
+
+_registered: set = set()
+
+
+def register_named_tuples() -> None:
+    """Register greyid's named tuples with ``jax.export`` by module and name, so that programs whose
+    arguments or results hold them serialize and load (those of every greyid module imported so far)."""
+    for name, module in list(sys.modules.items()):
+        if not name.startswith("greyid.") or module is None:
+            continue
+        for value in list(vars(module).values()):
+            if (isinstance(value, type) and issubclass(value, tuple) and hasattr(value, "_fields")
+                    and value.__module__ == name and value not in _registered):
+                jax.export.register_namedtuple_serialization(value, serialized_name=f"{name}.{value.__qualname__}")
+                _registered.add(value)
+
+
+def seal(blob: bytes) -> bytes:
+    """A kept file: the serialized program, then its SHA-256."""
+    blob = bytes(blob)
+    return blob + hashlib.sha256(blob).digest()
+
+
+def unseal(data: bytes) -> bytes:
+    """The serialized program of a kept file; ValueError where it does not match its hash."""
+    blob, digest = data[:-DIGEST], data[-DIGEST:]
+    if len(data) <= DIGEST or hashlib.sha256(blob).digest() != digest:
+        raise ValueError("the program does not match its hash")
+    return blob
+
+
+def load(path: Path):
+    """The ``jax.export.Exported`` kept at ``path``, or None (none there; a damaged one is removed)."""
+    try:
+        data = path.read_bytes()
+    except OSError:
+        return None
+    try:
+        register_named_tuples()
+        return jax.export.deserialize(bytearray(unseal(data)))
+    except Exception:  # noqa: BLE001  damaged, edited or of unknown types: removed, exported again
+        path.unlink(missing_ok=True)
+        return None
+
+
+def lowered(jitted, key, args):
+    """The lowered call of ``jitted`` (a ``jax.jit`` function) for ``args``: from its kept export, or
+    exported now and kept; None where the store is off or the program cannot be kept (the caller then
+    traces it)."""
+    if not enabled():
+        return None
+    try:
+        path = path_for(key, args)
+        exported = load(path)
+        if exported is None:
+            exported = jax.export.export(jitted)(*args)
+            register_named_tuples()
+            write(path, seal(exported.serialize()))
+        return jax.jit(exported.call).lower(*args)
+    except Exception:  # noqa: BLE001  any failure: traced as without the store
+        return None
+
+
+def write(path: Path, blob: bytes) -> None:
+    """Write atomically, so that a process reading at the same time sees all of it or nothing."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+    try:
+        with os.fdopen(handle, "wb") as out:
+            out.write(blob)
+        os.replace(temporary, path)
+    except OSError:
+        Path(temporary).unlink(missing_ok=True)
+
+
+def usage() -> dict:
+    """What greyid's cache folder holds: ``{"folder", "programs": (files, bytes), "compiled": (files, bytes),
+    "problem"}`` (compiled: JAX's persistent cache entries in the folder; problem: why the folder cannot be
+    used, or None)."""
+    base = config.cache_dir()
+    out = {"folder": base, "programs": (0, 0), "compiled": (0, 0),
+           "problem": None if base is None else config.cache_folder_problem(base)}
+    if base is None or out["problem"] or not Path(base).is_dir():
+        return out
+    kept = [p for p in (Path(base) / "programs").glob("*") if p.is_file()]
+    compiled = [p for p in Path(base).iterdir() if p.is_file()]
+    out["programs"] = (len(kept), sum(p.stat().st_size for p in kept))
+    out["compiled"] = (len(compiled), sum(p.stat().st_size for p in compiled))
+    return out
+
+
+def clear() -> int:
+    """Remove what greyid's cache folder holds (kept programs and JAX's compiled entries); returns the
+    number of files removed.  A process using them meanwhile falls back to tracing and compiling."""
+    base = config.cache_dir()
+    if base is None or config.cache_folder_problem(base) or not Path(base).is_dir():
+        return 0
+    removed = 0
+    for path in list((Path(base) / "programs").glob("*")) + list(Path(base).iterdir()):
+        if path.is_file():
+            path.unlink(missing_ok=True)
+            removed += 1
+    return removed

@@ -1,0 +1,125 @@
+"""How greyid compiles (greyid.runtime): one jit for nested and top-level calls, XLA's options, and the
+scan's initial carries tied to θ changing no number."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+import pytest
+
+import greyid
+from greyid.runtime import jit as compiler
+from greyid.filters import gaussian
+
+
+def test_the_estimation_package_loads_its_results_module_only_when_used():
+    code = ("import sys, greyid.estimate as e; assert 'greyid.estimate.results' not in sys.modules; "
+            "from greyid.estimate import Estimates; "
+            "assert Estimates is sys.modules['greyid.estimate.results'].Estimates")
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def ou_model():
+    m = greyid.Model("ou_fixed_p0")
+    m.add_system("dx = theta*(mu - x)*dt + exp(ls)*dw1")
+    m.add_observation("y = x", variance="exp(le)")
+    m.set_initial_state(mean={"x": "x0"}, covariance=[[1.0]])  # P0 independent of θ
+    for name, value, low, high in [("theta", 1.0, 0.01, 20), ("mu", 0.5, -10, 10), ("ls", -1.0, -10, 3),
+                                   ("le", -3.0, -10, 3), ("x0", 0.0, -10, 10)]:
+        m.set_parameter(name, value, lower=low, upper=high)
+    return m
+
+
+def test_tying_the_initial_carries_to_theta_changes_no_number(monkeypatch):
+    truth = {"theta": 0.8, "mu": 1.0, "ls": -1.0, "le": -3.0, "x0": 0.5}
+    times = pd.DataFrame({"t": np.arange(150) * 0.5})
+    data = times.assign(y=ou_model().simulate(truth, times, method="exact", seed=5).outputs[0, :, 0])
+    tied = ou_model().fit(data)
+    monkeypatch.setattr(gaussian, "carried_from_start", lambda theta, *initial: tuple(initial))
+    untied = ou_model().fit(data)
+    assert tied.loglik == pytest.approx(untied.loglik, rel=1e-13)
+    np.testing.assert_allclose(tied.params["estimate"], untied.params["estimate"], rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(tied.params["std_error"], untied.params["std_error"], rtol=1e-10)
+    assert tied.iterations == untied.iterations
+
+
+def test_an_xla_option_this_jaxlib_does_not_know_is_left_out(monkeypatch):
+    """A JAX upgrade that drops or renames an (experimental) XLA option must not fail every compilation:
+    the option is left out and XLA's default applies."""
+
+
+    monkeypatch.setattr(compiler, "CPU_OPTIONS", dict(compiler.CPU_OPTIONS, xla_no_such_option_in_any_xla=True))
+    compiler.compiler_options.cache_clear()
+    try:
+        options = compiler.compiler_options()
+        assert "xla_no_such_option_in_any_xla" not in options
+        assert "xla_cpu_use_fusion_emitters" in options  # known to this jaxlib: kept
+        assert float(compiler.jit(lambda x: jnp.sin(x) * 2.0)(0.5)) == pytest.approx(2 * np.sin(0.5))
+    finally:
+        compiler.compiler_options.cache_clear()
+
+
+def test_a_compile_without_options_compiles_with_none(monkeypatch):
+    """A JAX whose compile() takes no XLA options: greyid compiles with JAX's defaults."""
+    import jax
+
+    real = jax.stages.Lowered.compile
+
+    def old_compile(self, compiler_options=None, **kwargs):
+        if compiler_options:
+            raise TypeError("compile() got an unexpected argument 'compiler_options'")
+        return real(self, **kwargs)
+
+    monkeypatch.setattr(jax.stages.Lowered, "compile", old_compile)
+    compiler.compiler_options.cache_clear()
+    try:
+        assert compiler.compiler_options() == {}
+        assert float(compiler.jit(lambda x: jnp.cos(x))(0.25)) == pytest.approx(np.cos(0.25))
+    finally:
+        monkeypatch.setattr(jax.stages.Lowered, "compile", real)
+        compiler.compiler_options.cache_clear()
+
+
+def test_one_jit_serves_nested_and_top_level_calls_with_the_options(compilations):
+    """A program called inside another traced function runs as that program's part (XLA takes options
+    only for the outermost one); at top level it runs an executable compiled with greyid's options, one
+    per signature (shapes, types and static values)."""
+    import jax
+
+    scaled = compiler.jit(lambda x, a: jnp.sin(x) * a)
+    assert float(scaled(0.5, 2.0)) == pytest.approx(2 * np.sin(0.5))
+    assert float(jax.grad(scaled)(0.5, 2.0)) == pytest.approx(2 * np.cos(0.5))  # nested: traced
+    outer = compiler.jit(lambda x: scaled(x, 3.0) + 1.0)
+    assert float(outer(0.25)) == pytest.approx(3 * np.sin(0.25) + 1.0)
+    np.testing.assert_allclose(np.asarray(scaled(np.ones(3), 2.0)), 2 * np.sin(np.ones(3)))
+    scaled(0.7, 1.0)  # the same signature as the first call: no new compilation
+    assert len(scaled.executables) == 2 and len(outer.executables) == 1 and len(compilations) == 3
+    powers = compiler.jit(lambda x, n: x ** n, static_argnums=(1,))
+    assert float(powers(2.0, 3)) == 8.0 and float(powers(2.0, 2)) == 4.0 and float(powers(3.0, 2)) == 9.0
+    assert len(powers.executables) == 2
+
+
+def test_only_greyids_own_process_is_frozen_and_keeps_every_program(tmp_path):
+    """A user's script: greyid freezes none of its objects and leaves JAX's minimum compile time of the
+    persistent cache alone; greyid's command line (its own process) loads its layers with the collector
+    paused, freezes them and keeps every program; a collector the user switched off stays off."""
+    user = ("import gc, jax, greyid; before = jax.config.jax_persistent_cache_min_compile_time_secs; "
+            "import greyid.model, greyid.api, sys; assert 'jax' in sys.modules and 'sympy' in sys.modules; "
+            "assert gc.isenabled() and gc.get_freeze_count() == 0, gc.get_freeze_count(); "
+            "assert jax.config.jax_persistent_cache_min_compile_time_secs == before")
+    subprocess.run([sys.executable, "-c", user], check=True)
+    own = ("import gc; from greyid import cli; cli.OWN_PROCESS['on'] = True; cli._load_layers(); import jax; "
+           "assert gc.isenabled() and gc.get_freeze_count() > 100_000, gc.get_freeze_count(); "
+           "assert jax.config.jax_persistent_cache_min_compile_time_secs == 0.0")
+    env = dict(__import__("os").environ, GREYID_CACHE_DIR=str(tmp_path))
+    subprocess.run([sys.executable, "-c", own], check=True, env=env)
+    off = ("import gc; from greyid import cli; cli.OWN_PROCESS['on'] = True; gc.disable(); cli._load_layers(); "
+           "assert not gc.isenabled() and gc.get_freeze_count() == 0")
+    subprocess.run([sys.executable, "-c", off], check=True, env=env)
+    called = ("import gc; from greyid import cli; cli._load_layers(); "  # main([...]) from a user's script
+              "assert gc.get_freeze_count() == 0 and 'greyid.api' not in __import__('sys').modules")
+    subprocess.run([sys.executable, "-c", called], check=True, env=env)
