@@ -10,7 +10,6 @@ with it switched off (the variants take turns):
   default and ``optimizer="quasi-newton"``: with everything; without the store
   of traced programs (``GREYID_PROGRAMS=off``); without compiling the exact
   Hessian program in a thread (compiled where it is first needed instead);
-  without pausing the garbage collector while JAX, SymPy and pandas import;
 * ``greyid demo -q``: with everything; without freezing the imports' objects;
   without either that or keeping every program however quick (a process run
   as a user's script runs the command line).
@@ -44,12 +43,6 @@ def _at_once(self, *args):
 Program.compile_in_background = _at_once
 """
 
-#: The garbage collector left running while JAX, SymPy and pandas import.
-NO_PAUSE = """
-import gc
-gc.disable = lambda: None
-"""
-
 DEMO = """
 import sys, gc
 from greyid import cli
@@ -73,7 +66,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3, help="fresh cache folders per variant")
     args = parser.parse_args()
     fits = {"everything": ("", {}), "no store": ("", {"GREYID_PROGRAMS": "off"}),
-            "no compilation in a thread": (NO_THREAD, {}), "no collector pause": (NO_PAUSE, {})}
+            "no compilation in a thread": (NO_THREAD, {})}
     demos = ("own process", "no-freeze", "user")
     times: dict = {}
     for _ in range(args.repeats):

@@ -197,3 +197,39 @@ def test_predict_gives_time_and_states(ou_case):
     np.testing.assert_allclose(pred["x_sd"], np.sqrt(filtered.predicted_cov[:, 0, 0]), rtol=1e-10)
     # The output's variance is the state's plus the measurement noise (y = x + e).
     np.testing.assert_allclose(pred["y_sd"] ** 2, pred["x_sd"] ** 2 + fit.values["r"], rtol=1e-9)
+
+
+def test_fit_settings_are_typed_read_as_a_mapping_and_survive_files_old_and_new(ou_case, tmp_path):
+    """A fit's settings are a FitSettings: read by key as before (``fit.settings["method"]``), saved and
+    loaded unchanged; a file written before a setting existed loads with its default, one with a
+    population member's random effects (``omega``) loads without them, and an unknown setting or a
+    missing one without a default is refused with the file named."""
+    import json
+
+    import greyid
+    from greyid.estimate.settings import FitSettings
+
+    m, df, fit = ou_case
+    s = fit.settings
+    assert isinstance(s, FitSettings) and s["method"] == s.method == "kalman" and s.get("robust") is None
+    assert dict(s)["hold"] == s.hold and set(s) == set(FitSettings._names()) and len(s) == len(set(s))
+    assert s.filter_kwargs() == {"time": "t", "hold": s.hold, "method": "kalman", "form": s.form,
+                                 "substeps": s.substeps, "iterations": s.iterations}
+    with pytest.raises(KeyError):
+        s["no_such_setting"]
+    fit.save(tmp_path / "fit.json")
+    assert greyid.load_fit(tmp_path / "fit.json").settings == s
+    document = json.loads((tmp_path / "fit.json").read_text())
+    old = dict(document, settings={k: v for k, v in document["settings"].items()
+                                   if k not in ("steady_state", "start_labels", "substeps_accurate")})
+    old["settings"]["omega"] = {"a": 0.1}
+    (tmp_path / "old.json").write_text(json.dumps(old))
+    loaded = greyid.load_fit(tmp_path / "old.json")
+    assert loaded.settings == s.updated(start_labels=(), substeps_accurate=None) and "omega" not in loaded.settings
+    assert loaded.loglik == fit.loglik
+    for name, settings, message in [
+            ("unknown.json", dict(document["settings"], colour="red"), "unknown setting 'colour'"),
+            ("missing.json", {k: v for k, v in document["settings"].items() if k != "hold"}, "no setting 'hold'")]:
+        (tmp_path / name).write_text(json.dumps(dict(document, settings=settings)))
+        with pytest.raises(greyid.ModelError, match=f"{name}.*{message}"):
+            greyid.load_fit(tmp_path / name)

@@ -382,8 +382,10 @@ class FitResult(Estimates):
         Why the optimiser stopped, or why the fit is not converged.
     iterations : int
         The optimiser's steps.
-    settings : dict
-        The settings the fit used (time, hold, method, criterion, ...).
+    settings : FitSettings
+        The settings the fit used (time, hold, method, criterion, ...), typed
+        ([`FitSettings`][greyid.estimate.settings.FitSettings]) and read as a mapping too
+        (``fit.settings["method"]``).
     warnings : list of str
         What the summary's warnings say (a bound, a flat direction, ...).
     data : list of pandas.DataFrame or None

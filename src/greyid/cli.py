@@ -170,8 +170,8 @@ def _load_layers() -> None:
 
     Both would reach a user's own objects and programs, so they are done only here: frozen, the
     imports' quarter of a million objects are walked by no later collection, and the report's many
-    small programs compile once for every later command (``greyid demo`` with a warm cache: 7.2 s with
-    both, 8.2 s without the freeze, 12.0 s without either; docs/performance.md).
+    small programs compile once for every later command (``greyid demo`` with a warm cache took a
+    tenth longer without the freeze and two thirds longer without either; docs/performance.md).
     """
     if not OWN_PROCESS["on"] or OWN_PROCESS["loaded"]:
         return
@@ -179,13 +179,16 @@ def _load_layers() -> None:
 
     OWN_PROCESS["loaded"] = True
     enabled = gc.isenabled()
-    from .runtime import config
-
-    with config.collector_paused():
-        from . import api  # noqa: F401  (every layer a command uses, and SymPy and pandas)
+    gc.disable()
+    try:
+        from . import api  # noqa: F401  (every layer a command uses, and JAX, SymPy and pandas)
+    finally:
         if enabled:
             gc.freeze()
+            gc.enable()
     import jax
+
+    from .runtime import config
 
     if config.cache_dir() is not None and jax.config.jax_compilation_cache_dir == config.cache_dir():
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)

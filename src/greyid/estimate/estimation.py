@@ -32,6 +32,7 @@ from .objective import Derivatives, Problem, combine_scoring, compiled, step_sco
 from .batch import BatchedPrograms, drive, prune_trailing
 from .lbfgs import QUASI_EVALUATIONS_PER_PARAMETER, quasi_newton_start
 from .optimize import EXACT, GRADIENT, SCORING, VALUE, NotFiniteError, Optimum, run_alone
+from .settings import FitSettings
 from .trust_region import HANDOVER_DECREASE, MAX_STEP, Search
 from .starts import nested_start, reductions, space_filling
 from .transforms import NONE, Transform
@@ -522,9 +523,9 @@ def finish(model, frames, problem: Problem, best, optima, args, datasets, theta0
     scores = None
     if call["cov_type"] != "hessian":
         scores = score_covariance(step_scores(model.structure, problem, best.z, args, datasets), int(call["horizon"]))
-    settings = dict(call, method=options.method, form=options.form, substeps=options.substeps,
-                    iterations=options.iterations, steady_state=options.steady_state,
-                    substep_note=None if substep_choice is None else substep_choice.describe(),
-                    substeps_accurate=None if substep_choice is None else substep_choice.accurate,
-                    start_labels=labels)
+    settings = FitSettings(**call, method=options.method, form=options.form, substeps=options.substeps,
+                           iterations=options.iterations, steady_state=options.steady_state,
+                           substep_note=None if substep_choice is None else substep_choice.describe(),
+                           substeps_accurate=None if substep_choice is None else substep_choice.accurate,
+                           start_labels=tuple(labels))
     return build_result(model, frames, theta, problem, best, optima, settings, scores)

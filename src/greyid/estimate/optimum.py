@@ -15,10 +15,11 @@ import pandas as pd
 from scipy import special
 
 from ..errors import warn as warn_user
-from ..model.parameters import equation_expressions, log_parametrised
+from ..model.parameters import equation_expressions
 from .covariance import FEW_STEPS, parameter_covariance
 from .calls import loglik_at
-from .results import Estimates, FitWarning, filter_settings
+from .results import Estimates, FitWarning, parameter_table
+from .settings import filter_settings
 
 #: Eigenvalues of the scaled Hessian below this fraction of the largest are ill-determined.
 ILL_DETERMINED = 1e-8
@@ -187,32 +188,8 @@ def build_result(model, frames, theta, problem, best, optima, settings, scores=N
     if settings.get("substeps_accurate") is False:
         warn.append(f"the filter is not accurate between samples: {settings['substep_note']}")
 
-    # The table built column by column (a row of dicts and set_index cost a millisecond a fit).
-    declared = model.parameters
-    position = {i: j for j, i in enumerate(free)}
-    free_rows = [position.get(i) for i in range(len(names))]
-
-    def column(values, fixed_value):
-        return np.array([fixed_value if j is None else values[j] for j in free_rows], dtype=float)
-
-    def bound(side):
-        return np.array([np.nan if declared.get(name) is None or getattr(declared[name], side) is None
-                         else getattr(declared[name], side) for name in names], dtype=float)
-
-    params = pd.DataFrame({
-        "estimate": np.asarray(theta, dtype=float), "std_error": column(se, np.nan),
-        "t_value": column(tval, np.nan), "p_value": column(pval, np.nan),
-        "lower_bound": bound("lower"), "upper_bound": bound("upper"),
-        "fixed": np.array([j is None for j in free_rows]),
-        "at_bound": np.array([j is not None and bool(at_bound[j]) for j in free_rows]),
-        "reliable": np.array([j is None or bool(reliable[j] and not at_bound[j]) for j in free_rows]),
-        "gradient": column(-g_theta, np.nan)}, index=pd.Index(names))
-    units = getattr(model, "units", {})
-    if units:
-        # A log-parameter holds the logarithm of a quantity in its declared unit (exp(p11)·dω).
-        logs = log_parametrised(model.structure)
-        params["unit"] = [(f"log({units[name]})" if name in logs else units[name]) if units.get(name) else ""
-                          for name in params.index]
+    params = parameter_table(model, theta, free, se, t_value=tval, p_value=pval, at_bound=at_bound,
+                             reliable=reliable & ~at_bound, gradient=-g_theta)
 
     criterion_value = -best.value
     simple = settings["criterion"] == "ml" and not settings["robust"] and settings["horizon"] == 1

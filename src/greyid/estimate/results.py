@@ -29,6 +29,7 @@ from ..model.units import derived_unit, pretty
 from ..outputs import complete_generation, write_atomic
 from ..schema import FIT_FORMAT, check_fit_document
 from .calls import filter_at, predict_at, simulate_at, smooth_at
+from .settings import FitSettings, filter_settings
 
 
 class FitWarning(UserWarning):
@@ -60,7 +61,7 @@ class Estimates:
     converged: bool
     message: str
     iterations: int
-    settings: dict
+    settings: FitSettings
     warnings: list = field(default_factory=list)
     ill_determined: list = field(default_factory=list)
     data: list | None = None
@@ -600,14 +601,67 @@ def check_level(interval) -> None:
         raise ModelError(f"interval must lie between 0 and 1 (e.g. 0.95), got {interval!r}")
 
 
-def filter_settings(settings: dict) -> dict:
-    """The keyword arguments that rerun a fit's filter (time column, hold, method ...)."""
-    out = {k: settings[k] for k in ("time", "hold", "method", "form", "substeps", "iterations")}
-    if settings.get("steady_state"):  # fits saved before the setting existed leave it out
-        out["steady_state"] = True
-    if settings.get("time_unit"):
-        out["time_unit"] = settings["time_unit"]
-    return out
+def parameter_table(model, theta, free, std_error, *, t_value=None, p_value=None, at_bound=None,
+                    reliable=None, gradient=None) -> pd.DataFrame:
+    """A fit's ``params`` table: one row per parameter of ``model`` (free and fixed), in its order.
+
+    Parameters
+    ----------
+    model : ModelSpec
+        The model (its parameters' bounds and units).
+    theta : array
+        Every parameter's value.
+    free : sequence of int
+        The positions of the free parameters; the other rows are fixed.
+    std_error : array
+        The free parameters' standard errors.
+    t_value, p_value, gradient : array, optional
+        The free parameters' t- and p-values and the criterion's gradient (NaN where not given).
+    at_bound, reliable : array of bool, optional
+        Per free parameter, whether it ended at a bound (default: none) and whether its standard
+        error can be trusted (default: all).
+
+    Returns
+    -------
+    pandas.DataFrame
+        Columns ``estimate``, ``std_error``, ``t_value``, ``p_value``, ``lower_bound``, ``upper_bound``,
+        ``fixed``, ``at_bound``, ``reliable``, ``gradient`` and, where the model has units, ``unit``.
+    """
+    from ..model.parameters import log_parametrised
+
+    names = list(model.parameter_names)
+    n_free = len(free)
+    missing = np.full(n_free, np.nan)
+    at_bound = np.zeros(n_free, dtype=bool) if at_bound is None else np.asarray(at_bound, dtype=bool)
+    reliable = np.ones(n_free, dtype=bool) if reliable is None else np.asarray(reliable, dtype=bool)
+    # The table built column by column (a row of dicts and set_index cost a millisecond a fit).
+    declared = model.parameters
+    position = {i: j for j, i in enumerate(free)}
+    free_rows = [position.get(i) for i in range(len(names))]
+
+    def column(values, fixed_value=np.nan):
+        values = missing if values is None else values
+        return np.array([fixed_value if j is None else values[j] for j in free_rows], dtype=float)
+
+    def bound(side):
+        return np.array([np.nan if declared.get(name) is None or getattr(declared[name], side) is None
+                         else getattr(declared[name], side) for name in names], dtype=float)
+
+    params = pd.DataFrame({
+        "estimate": np.asarray(theta, dtype=float), "std_error": column(std_error),
+        "t_value": column(t_value), "p_value": column(p_value),
+        "lower_bound": bound("lower"), "upper_bound": bound("upper"),
+        "fixed": np.array([j is None for j in free_rows]),
+        "at_bound": np.array([j is not None and bool(at_bound[j]) for j in free_rows]),
+        "reliable": np.array([j is None or bool(reliable[j]) for j in free_rows]),
+        "gradient": column(gradient)}, index=pd.Index(names))
+    units = getattr(model, "units", {})
+    if units:
+        # A log-parameter holds the logarithm of a quantity in its declared unit (exp(p11)·dω).
+        logs = log_parametrised(model.structure)
+        params["unit"] = [(f"log({units[name]})" if name in logs else units[name]) if units.get(name) else ""
+                          for name in params.index]
+    return params
 
 
 def read_fit_file(path) -> dict:
@@ -651,9 +705,7 @@ def estimates_from_dict(spec: dict, model_class, where: str = "the fit", model=N
     names = spec["cov"]["names"]
     cov = pd.DataFrame(np.asarray(spec["cov"]["matrix"], dtype=float).reshape(len(names), len(names)),
                        index=names, columns=names)
-    settings = spec["settings"]
-    if settings.get("robust"):
-        settings["robust"] = tuple(settings["robust"])
+    settings = FitSettings.from_dict(spec["settings"], where)
     return cls(model=model, params=params, cov=cov, loglik=spec["loglik"],
                criterion_value=spec["criterion_value"], n_obs=spec["n_obs"], converged=spec["converged"],
                message=spec["message"], iterations=spec["iterations"], settings=settings,

@@ -1,10 +1,7 @@
 """Model specification: equations as text (or Python functions) to JAX functions."""
 
-from ..runtime.config import collector_paused
-
-with collector_paused():  # SymPy, pandas and the model's modules
-    from .model import ModelSpec
-    from .parameters import Parameter
-    from .structure import LTI, LTV, NONLINEAR, Structure
+from .model import ModelSpec
+from .parameters import Parameter
+from .structure import LTI, LTV, NONLINEAR, Structure
 
 __all__ = ["ModelSpec", "Parameter", "Structure", "LTI", "LTV", "NONLINEAR"]

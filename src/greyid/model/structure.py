@@ -72,7 +72,7 @@ class Structure:
     #: differentiating or evaluating f in every step.
     linear_drift: Callable[[Array], tuple] | None = None
     #: A hash of everything the functions above compute (the equations as lambdified, names,
-    #: settings), for programs kept on disk ([`greyid.programs`][greyid.programs]); None for models of Python
+    #: settings), for programs kept on disk ([`greyid.runtime.store`][greyid.runtime.store]); None for models of Python
     #: functions, whose programs are never kept.
     fingerprint: str | None = field(default=None, compare=False)
     #: Compiled filters and simulators for this structure, keyed by their settings.

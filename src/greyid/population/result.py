@@ -16,7 +16,8 @@ import jax.numpy as jnp
 from ..data.files import read_source
 from ..errors import DataError
 from ..api import FitResult, Model
-from ..estimate.results import filter_settings
+from ..estimate.results import parameter_table
+from ..estimate.settings import FitSettings, filter_settings
 from ..estimate.transforms import Transform
 from ..filters.api import filter_options
 from ..outputs import write_atomic
@@ -258,33 +259,15 @@ class PopulationResult:
         """A FitResult at individual parameters θ: random parameters with their conditional SEs, the
         other free ones with their population SEs."""
         spec = self.spec
-        settings = dict(self.call)
-        settings.pop("loglik", None)
-        loglik = self.model.loglik(dict(zip(spec.names, theta)), frames[0], **filter_settings(settings))
-        declared = self.model.parameters
-        rows, free_names = [], []
-        for i, pname in enumerate(spec.names):
-            p = declared.get(pname)
-            free = i in spec.free
-            if pname in random_se:
-                se = random_se[pname]
-            elif free and pname in self.params.index:
-                se = float(self.params.loc[pname, "std_error"])
-            else:
-                se = np.nan
-            if free:
-                free_names.append(pname)
-            rows.append(dict(name=pname, estimate=theta[i], std_error=se, t_value=np.nan, p_value=np.nan,
-                             lower_bound=None if p is None else p.lower, upper_bound=None if p is None else p.upper,
-                             fixed=not free, at_bound=False, reliable=True, gradient=np.nan))
-        params = pd.DataFrame(rows).set_index("name")
-        params.index.name = None
-        for col in ("lower_bound", "upper_bound"):
-            params[col] = params[col].astype(float)
-        se = params.loc[free_names, "std_error"].to_numpy(dtype=float)
+        # The member's own filter settings; its estimates come from the population (optimizer).
+        settings = FitSettings(**{"time_unit": None, **filter_settings(self.call)}, optimizer="population")
+        loglik = self.model.loglik(dict(zip(spec.names, theta)), frames[0], **settings.filter_kwargs())
+        free_names = [spec.names[i] for i in spec.free]
+        se = np.array([random_se[name] if name in random_se
+                       else float(self.params.loc[name, "std_error"]) if name in self.params.index else np.nan
+                       for name in free_names], dtype=float)
+        params = parameter_table(self.model, np.asarray(theta, dtype=float), spec.free, se)
         cov = pd.DataFrame(np.diag(se ** 2), index=free_names, columns=free_names)
-        settings.update(criterion="ml", robust=None, horizon=1, starts=1, optimizer="population", prior=None,
-                        cov_type="hessian", substep_note=None, substeps_accurate=None, start_labels=[])
         return FitResult(model=self.model, params=params, cov=cov, loglik=float(loglik), criterion_value=float(loglik),
                          n_obs=n_obs, converged=self.converged,
                          message=f"{what} '{name}' of a population fit ({self.message})",

@@ -7,37 +7,13 @@ turns on JAX's persistent compilation cache in ``$GREYID_CACHE_DIR`` (default
 ``~/.cache/greyid/jax``; ``off`` keeps it off, and with it the traced programs of
 [`greyid.runtime.store`][greyid.runtime.store]).  JAX's own threshold applies: programs that
 compile in under a second are not kept.
-
-JAX, SymPy, pandas and greyid's model modules are imported with Python's cyclic
-garbage collector paused ([`collector_paused()`][greyid.runtime.config.collector_paused]).
 """
 
 from __future__ import annotations
 
-import contextlib
-import gc
 import os
 
-
-@contextlib.contextmanager
-def collector_paused():
-    """Python's cyclic garbage collector paused for the block, and restored after.
-
-    Importing JAX, SymPy and pandas makes about 240 000 objects that live as long as the
-    process; automatic collections among them took a tenth of a first fit in a script with a
-    warm cache (docs/performance.md).  A collector the user switched off stays off.
-    """
-    enabled = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        if enabled:
-            gc.enable()
-
-
-with collector_paused():
-    import jax
+import jax
 
 jax.config.update("jax_enable_x64", True)
 

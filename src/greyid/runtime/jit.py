@@ -81,11 +81,23 @@ class Program:
         self.static_argnums = tuple(static_argnums)
         self.key = None if static_argnums else key  # static values would have to be in the key
         self.executables: dict = {}  # signature -> compiled program (see executable())
+        self.last = None  # the executable of the last top-level call (functions without static arguments)
 
     def __call__(self, *args):
+        last = self.last
+        if last is not None:
+            try:
+                # JAX's compiled call checks its arguments itself (in C++): the common case, a call
+                # like the last one, costs no signature of our own.
+                return last(*args)
+            except TypeError:
+                pass  # other shapes or types, or tracers: below
         if any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves(args)):
             return self.jitted(*args)
-        return self.executable(*args)(*self.dynamic(args))
+        executable = self.executable(*args)
+        if not self.static_argnums:
+            self.last = executable
+        return executable(*self.dynamic(args))
 
     def dynamic(self, args: tuple) -> tuple:
         """The arguments a compiled program takes (all but the static ones)."""

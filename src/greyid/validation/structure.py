@@ -23,7 +23,8 @@ from scipy import stats
 from ..errors import ModelError
 from ..estimate.calls import simulate_at
 from ..estimate.information import loglik_derivatives
-from ..estimate.results import filter_settings, parameter_expression
+from ..estimate.results import parameter_expression
+from ..estimate.settings import filter_settings
 from ..model.equations import parse_expression
 from ..model.structure import lambdify_parameters
 from .series import TestResult
