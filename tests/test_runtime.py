@@ -86,8 +86,9 @@ def test_a_compile_without_options_compiles_with_none(monkeypatch):
 
 def test_one_jit_serves_nested_and_top_level_calls_with_the_options(compilations):
     """A program called inside another traced function runs as that program's part (XLA takes options
-    only for the outermost one); at top level it runs an executable compiled with greyid's options, one
-    per signature (shapes, types and static values)."""
+    only for the outermost one).  At top level a kept program (one with a key) runs an executable
+    compiled with greyid's options, one per signature (tree, shapes, types, weak types, static values);
+    one without a key runs JAX's own dispatch of the function jitted with those options."""
     import jax
 
     scaled = compiler.jit(lambda x, a: jnp.sin(x) * a)
@@ -95,12 +96,19 @@ def test_one_jit_serves_nested_and_top_level_calls_with_the_options(compilations
     assert float(jax.grad(scaled)(0.5, 2.0)) == pytest.approx(2 * np.cos(0.5))  # nested: traced
     outer = compiler.jit(lambda x: scaled(x, 3.0) + 1.0)
     assert float(outer(0.25)) == pytest.approx(3 * np.sin(0.25) + 1.0)
-    np.testing.assert_allclose(np.asarray(scaled(np.ones(3), 2.0)), 2 * np.sin(np.ones(3)))
-    scaled(0.7, 1.0)  # the same signature as the first call: no new compilation
-    assert len(scaled.executables) == 2 and len(outer.executables) == 1 and len(compilations) == 3
-    powers = compiler.jit(lambda x, n: x ** n, static_argnums=(1,))
+    assert scaled._top is not None and not scaled.executables and not compilations
+
+    kept = compiler.Program(lambda x, a: jnp.sin(x) * a, key=("test", "kept"))
+    assert float(kept(0.5, 2.0)) == pytest.approx(2 * np.sin(0.5))
+    assert float(jax.grad(kept)(0.5, 2.0)) == pytest.approx(2 * np.cos(0.5))
+    np.testing.assert_allclose(np.asarray(kept(np.ones(3), 2.0)), 2 * np.sin(np.ones(3)))
+    kept(0.7, 1.0)  # the same signature as the first call: no new compilation
+    kept(np.float64(0.7), 1.0)  # a NumPy scalar is strongly typed: another program
+    assert len(kept.executables) == 3 and len(compilations) == 3
+    powers = compiler.Program(lambda x, n: x ** n, key=("test", "powers"), static_argnums=(1,))
     assert float(powers(2.0, 3)) == 8.0 and float(powers(2.0, 2)) == 4.0 and float(powers(3.0, 2)) == 9.0
-    assert len(powers.executables) == 2
+    unkept_powers = compiler.jit(lambda x, n: x ** n, static_argnums=(1,))
+    assert float(unkept_powers(2.0, 3)) == 8.0 and float(unkept_powers(3.0, 2)) == 9.0
 
 
 def test_only_greyids_own_process_is_frozen_and_keeps_every_program(tmp_path):

@@ -170,8 +170,8 @@ def _load_layers() -> None:
 
     Both would reach a user's own objects and programs, so they are done only here: frozen, the
     imports' quarter of a million objects are walked by no later collection, and the report's many
-    small programs compile once for every later command (``greyid demo`` with a warm cache took a
-    tenth longer without the freeze and two thirds longer without either; docs/performance.md).
+    small programs compile once for every later command (``benchmarks/runtime.py`` measures what
+    each buys ``greyid demo``; docs/performance.md).
     """
     if not OWN_PROCESS["on"] or OWN_PROCESS["loaded"]:
         return

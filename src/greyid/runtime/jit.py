@@ -4,8 +4,10 @@
 (its arguments are tracers) the jitted function is used as it is: XLA takes compiler
 options only for the outermost program.  Called at top level, the program is
 compiled ahead of time for the arguments' shapes and types with the options of
-[`CPU_OPTIONS`][greyid.runtime.jit.CPU_OPTIONS] and kept per signature; with a ``key`` its
-traced program comes from (or goes to) [`greyid.runtime.store`][greyid.runtime.store].  Every
+[`CPU_OPTIONS`][greyid.runtime.jit.CPU_OPTIONS]: by a second ``jax.jit`` of the function with
+those options (JAX's dispatch finds the executable for the arguments), or, for a program with a
+``key``, ahead of time and kept per signature, its traced program coming from (or going to)
+[`greyid.runtime.store`][greyid.runtime.store].  Every
 program compiles with the same options whichever process or cache state compiles it
 first, so that no answer depends on the cache.
 
@@ -81,23 +83,25 @@ class Program:
         self.static_argnums = tuple(static_argnums)
         self.key = None if static_argnums else key  # static values would have to be in the key
         self.executables: dict = {}  # signature -> compiled program (see executable())
-        self.last = None  # the executable of the last top-level call (functions without static arguments)
+        self._top = None  # see top
 
     def __call__(self, *args):
-        last = self.last
-        if last is not None:
-            try:
-                # JAX's compiled call checks its arguments itself (in C++): the common case, a call
-                # like the last one, costs no signature of our own.
-                return last(*args)
-            except TypeError:
-                pass  # other shapes or types, or tracers: below
         if any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves(args)):
             return self.jitted(*args)
-        executable = self.executable(*args)
-        if not self.static_argnums:
-            self.last = executable
-        return executable(*self.dynamic(args))
+        if self.key is None:
+            return self.top(*args)
+        return self.executable(*args)(*self.dynamic(args))
+
+    @property
+    def top(self):
+        """The function jitted with greyid's options, for top-level calls of a program not kept on disk:
+        JAX's own dispatch (in C++) finds its executable for the arguments, a tenth of a likelihood
+        evaluation faster than a signature of ours (``benchmarks/likelihood.py``)."""
+        if self._top is None:
+            options = compiler_options()
+            kwargs = dict(static_argnums=self.static_argnums, **({"compiler_options": options} if options else {}))
+            self._top = jax.jit(self.__wrapped__, **kwargs)
+        return self._top
 
     def dynamic(self, args: tuple) -> tuple:
         """The arguments a compiled program takes (all but the static ones)."""
@@ -106,9 +110,16 @@ class Program:
         return tuple(a for i, a in enumerate(args) if i not in self.static_argnums)
 
     def signature(self, args: tuple) -> tuple:
-        """What a compiled program is specific to: the arguments' tree, shapes and types, and static values."""
+        """What a compiled program is specific to: the arguments' tree, each leaf's type, shape, dtype
+        and weak type (a Python float is weakly typed, a NumPy one is not), and the static values.
+
+        Read from the leaves' attributes rather than ``jax.typeof``, which costs several times as
+        much per leaf on every call; a compiled program checks its arguments again itself.
+        """
         leaves, tree = jax.tree_util.tree_flatten(self.dynamic(args))
-        return tree, tuple(jax.typeof(a) for a in leaves), tuple(args[i] for i in self.static_argnums)
+        kinds = tuple((type(a), getattr(a, "shape", None), getattr(a, "dtype", None), getattr(a, "weak_type", None))
+                      for a in leaves)
+        return tree, kinds, tuple(args[i] for i in self.static_argnums)
 
     def lower(self, args: tuple):
         """The traced and lowered program for ``args``: from the store where it is kept there."""
@@ -133,8 +144,8 @@ class Program:
         the interpreter) while the caller goes on; done at once where it was compiled already.
 
         A fit compiles its exact Hessian program so while its first scoring or quasi-Newton steps
-        run: the quasi-Newton setting's first fit with a warm cache takes a fifth less time
-        (docs/performance.md).
+        run, which shortens a quasi-Newton first fit by more than the 10 % a mechanism must buy
+        (``benchmarks/runtime.py``, docs/performance.md).
         """
         signature = self.signature(args)
         if signature in self.executables:
