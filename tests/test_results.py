@@ -233,3 +233,17 @@ def test_fit_settings_are_typed_read_as_a_mapping_and_survive_files_old_and_new(
         (tmp_path / name).write_text(json.dumps(dict(document, settings=settings)))
         with pytest.raises(greyid.ModelError, match=f"{name}.*{message}"):
             greyid.load_fit(tmp_path / name)
+
+
+def test_a_fit_result_is_constructed_in_one_place():
+    """FitResult objects come from FitResult.of only: a fit's optimum, a saved file and a population
+    member each give it their Estimates (no other call of the FitResult constructor in greyid)."""
+    import ast
+    from pathlib import Path
+
+    source = Path(__file__).resolve().parents[1] / "src" / "greyid"
+    calls = [f"{path.relative_to(source)}:{node.lineno}" for path in sorted(source.rglob("*.py"))
+             for node in ast.walk(ast.parse(path.read_text(encoding="utf-8")))
+             if isinstance(node, ast.Call) and "FitResult" in (getattr(node.func, "id", None),
+                                                                getattr(node.func, "attr", None))]
+    assert calls == []

@@ -691,7 +691,7 @@ def fit_from_dict(spec: dict, where: str = "the fit", model=None) -> FitResult:
     FitResult
         The fit.
     """
-    return estimates_from_dict(spec, Model, where, model, cls=FitResult)
+    return FitResult.of(estimates_from_dict(spec, Model, where, model))
 
 
 def load_fit(path) -> FitResult:

@@ -683,9 +683,8 @@ def read_fit_file(path) -> dict:
         raise ModelError(f"fit file '{path}' is not valid JSON ({err})") from None
 
 
-def estimates_from_dict(spec: dict, model_class, where: str = "the fit", model=None,
-                        cls: type[Estimates] = Estimates) -> Estimates:
-    """``cls`` (the [`Estimates`][greyid.estimate.results.Estimates] or a subclass) from
+def estimates_from_dict(spec: dict, model_class, where: str = "the fit", model=None) -> Estimates:
+    """The [`Estimates`][greyid.estimate.results.Estimates] of
     [`to_dict()`][greyid.api.FitResult.to_dict]'s form; errors name ``where`` it came from.
 
     The document is checked first; then ``model`` (the caller's) or a ``model_class`` built from the
@@ -706,7 +705,7 @@ def estimates_from_dict(spec: dict, model_class, where: str = "the fit", model=N
     cov = pd.DataFrame(np.asarray(spec["cov"]["matrix"], dtype=float).reshape(len(names), len(names)),
                        index=names, columns=names)
     settings = FitSettings.from_dict(spec["settings"], where)
-    return cls(model=model, params=params, cov=cov, loglik=spec["loglik"],
+    return Estimates(model=model, params=params, cov=cov, loglik=spec["loglik"],
                criterion_value=spec["criterion_value"], n_obs=spec["n_obs"], converged=spec["converged"],
                message=spec["message"], iterations=spec["iterations"], settings=settings,
                warnings=spec.get("warnings", []), ill_determined=spec.get("ill_determined", []), data=None,

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 from ..data.files import read_source
 from ..errors import DataError
 from ..api import FitResult, Model
-from ..estimate.results import parameter_table
+from ..estimate.results import Estimates, parameter_table
 from ..estimate.settings import FitSettings, filter_settings
 from ..estimate.transforms import Transform
 from ..filters.api import filter_options
@@ -268,10 +268,10 @@ class PopulationResult:
                        for name in free_names], dtype=float)
         params = parameter_table(self.model, np.asarray(theta, dtype=float), spec.free, se)
         cov = pd.DataFrame(np.diag(se ** 2), index=free_names, columns=free_names)
-        return FitResult(model=self.model, params=params, cov=cov, loglik=float(loglik), criterion_value=float(loglik),
-                         n_obs=n_obs, converged=self.converged,
-                         message=f"{what} '{name}' of a population fit ({self.message})",
-                         iterations=self.iterations, settings=settings, data=frames)
+        return FitResult.of(Estimates(model=self.model, params=params, cov=cov, loglik=float(loglik),
+                                      criterion_value=float(loglik), n_obs=n_obs, converged=self.converged,
+                                      message=f"{what} '{name}' of a population fit ({self.message})",
+                                      iterations=self.iterations, settings=settings, data=frames))
 
     def predict(self, new_data, covariates=None, name: str = "new"):
         """A data set not in the fit, with the population as its prior (MAP).
