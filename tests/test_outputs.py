@@ -107,6 +107,28 @@ def test_a_reader_sees_one_whole_generation_at_every_moment(tmp_path, monkeypatc
     assert len(seen) >= 2  # the reader did see the folder change
 
 
+def test_a_reader_that_opened_the_folder_before_an_exchange_reads_the_whole_previous_generation(tmp_path):
+    """The retired generation stays until the next write exchanges its own: a reader holding the folder
+    open across one write still reads every file of the generation it opened; one more write removes it."""
+    folder = tmp_path / "out"
+    names = ("fit.json", "summary.txt")
+    write_generation(folder, {n: "1" for n in names})
+    handle = os.open(folder, os.O_RDONLY)
+    try:
+        write_generation(folder, {n: "2" for n in names})
+        assert _generation(folder) == {n: "2" for n in names}
+        for name in names:
+            with open(os.open(name, os.O_RDONLY, dir_fd=handle)) as file:
+                assert file.read() == "1"
+        write_generation(folder, {n: "3" for n in names})
+        assert os.listdir(handle) == []  # the generation two writes back is gone
+    finally:
+        os.close(handle)
+    hidden = [p.name for p in tmp_path.iterdir() if p.name.startswith(".")]
+    assert len(hidden) == 1 and {p.name: p.read_text() for p in (tmp_path / hidden[0]).iterdir()} == {
+        n: "2" for n in names}
+
+
 def test_without_folder_exchange_the_journal_completes_a_generation(tmp_path, monkeypatch):
     """Where folders cannot be exchanged (another system), the files move behind a journal that the
     next reader or writer carries out."""
@@ -200,7 +222,10 @@ def test_a_killed_fit_leaves_one_generation(tmp_path):
     assert set(after) == set(before) and after != before
     fit = json.loads(after["fit.json"])
     assert fit["n_obs"] == 500 and f"observations: {fit['n_obs']}" in after["summary.txt"].decode()
-    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []  # no leftovers
+    # No leftover of the killed run: only the generation the last write retired, kept for its readers
+    hidden = [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+    assert [p.name.split(".")[-2] for p in hidden] == ["retired"]
+    assert {p.name: p.read_bytes() for p in hidden[0].iterdir()} == before
 
 
 def test_output_paths_are_refused_before_any_work(tmp_path):

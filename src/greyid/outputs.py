@@ -14,6 +14,10 @@
   renamed into place and the journal removed; a run killed after the journal
   leaves it for [`complete_generation()`][greyid.outputs.complete_generation], which every reader and writer of the
   folder calls.  Leftovers of a killed run are removed by the next write.
+
+The generation an exchange retires stays beside the folder, hidden, until the
+next write has exchanged its own: a program that opened the folder just before
+an exchange reads the whole previous generation, not files removed under it.
 """
 
 from __future__ import annotations
@@ -141,11 +145,12 @@ def _sibling(folder: Path, kind: str, tag: str) -> Path:
     return folder.parent / f".{folder.name}.{tag}.{kind}{PARTIAL}"
 
 
-def _remove_leftovers(folder: Path) -> None:
-    """The sibling folders of a run killed before or after its exchange."""
+def _remove_leftovers(folder: Path, kinds: str = "*", keep: Path | None = None) -> None:
+    """Remove the sibling folders of ``kinds`` ("new": a run killed before its exchange, "retired": a
+    previous generation), all but ``keep``."""
     if folder.parent.is_dir():
-        for leftover in folder.parent.glob(f".{folder.name}.*{PARTIAL}"):
-            if leftover.is_dir() and not leftover.is_symlink():
+        for leftover in folder.parent.glob(f".{folder.name}.*.{kinds}{PARTIAL}"):
+            if leftover.is_dir() and not leftover.is_symlink() and leftover != keep:
                 shutil.rmtree(leftover, ignore_errors=True)
 
 
@@ -157,7 +162,7 @@ def write_generation(folder, files: dict) -> None:
     if folder.exists() and not folder.is_dir():
         raise NotADirectoryError(f"'{folder}' is a file, not a folder for the generation's files")
     folder.parent.mkdir(parents=True, exist_ok=True)
-    _remove_leftovers(folder)
+    _remove_leftovers(folder, kinds="new")  # the retired generation may still be read: it goes after the exchange
     if folder.is_dir():
         complete_generation(folder)
     tag = uuid.uuid4().hex[:12]
@@ -174,14 +179,19 @@ def write_generation(folder, files: dict) -> None:
             _sync_folder(folder.parent)
             return
         if _exchange(new, folder):
+            # The previous generation, now under the new one's name, is kept for a reader that opened
+            # it before the exchange; the one before it goes.
+            retired = _sibling(folder, "retired", tag)
+            os.rename(new, retired)
             _sync_folder(folder.parent)
-            shutil.rmtree(new, ignore_errors=True)  # the previous generation, now under the new one's name
+            _remove_leftovers(folder, keep=retired)
             return
     except BaseException:
         shutil.rmtree(new, ignore_errors=True)
         raise
     shutil.rmtree(new, ignore_errors=True)
     _write_by_journal(folder, files, tag)
+    _remove_leftovers(folder)
 
 
 def _write_by_journal(folder: Path, files: dict, tag: str) -> None:
