@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Iterator, Mapping
-from dataclasses import MISSING, asdict, dataclass, field, fields, replace
+from dataclasses import MISSING, dataclass, field, fields, replace
 from typing import Any
 
 
@@ -95,7 +95,7 @@ class FitSettings(Mapping):
 
     @classmethod
     def _names(cls) -> tuple[str, ...]:
-        return tuple(f.name for f in fields(cls))
+        return _FIELD_NAMES
 
     def updated(self, **changes) -> FitSettings:
         """A copy with ``changes``."""
@@ -104,10 +104,6 @@ class FitSettings(Mapping):
     def filter_kwargs(self) -> dict:
         """The keyword arguments that rerun the fit's filter (time column, hold, method ...)."""
         return filter_settings(self)
-
-    def to_dict(self) -> dict:
-        """The settings as a dict of plain values (tuples as they are; see ``Estimates.to_dict``)."""
-        return asdict(self)
 
     @classmethod
     def from_dict(cls, settings: Mapping, where: str = "the fit") -> FitSettings:
@@ -145,3 +141,6 @@ def filter_settings(settings: Mapping) -> dict:
     if settings.get("time_unit"):
         out["time_unit"] = settings["time_unit"]
     return out
+
+
+_FIELD_NAMES = tuple(f.name for f in fields(FitSettings))

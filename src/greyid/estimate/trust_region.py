@@ -198,14 +198,6 @@ class SearchState:
     message: str = "maximum number of iterations reached"
     optimum: Optimum | None = None
 
-    @property
-    def gradient(self):
-        return self.g
-
-    @property
-    def hessian(self):
-        return self.H
-
 
 @dataclass
 class Search:
@@ -247,10 +239,6 @@ class Search:
     step_limit: np.ndarray | float = np.inf
     hessian: np.ndarray | None = None
     expand: bool = False
-
-    @property
-    def initial_hessian(self):
-        return self.hessian
 
     # ---------------------------------------------------------------- the protocol
 

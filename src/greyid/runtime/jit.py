@@ -141,7 +141,8 @@ class Program:
 
     def compile_in_background(self, *args) -> Future:
         """`executable()` as a future: traced and lowered now, compiled by XLA in a thread (which frees
-        the interpreter) while the caller goes on; done at once where it was compiled already.
+        the interpreter) while the caller goes on; done at once where it was compiled already. The
+        caller runs the executable the future returns.
 
         A fit compiles its exact Hessian program so while its first scoring or quasi-Newton steps
         run, which shortens a quasi-Newton first fit by more than the 10 % a mechanism must buy
