@@ -22,7 +22,8 @@ from .errors import ModelError
 #: mapping from model names (inputs, outputs) to the data's column names.
 DATA_KEYS = ("time", "hold", "time_unit", "columns", "time_format", "time_zone")
 #: Filter settings (see [`greyid.filters.api.filter_options()`][greyid.filters.api.filter_options]).
-FILTER_KEYS = ("method", "form", "substeps", "iterations", "alpha", "beta", "kappa", "steady_state")
+FILTER_KEYS = ("method", "form", "substeps", "iterations", "alpha", "beta", "kappa", "steady_state", "particles",
+               "resample", "scheme")
 #: Estimation settings of [`Model.fit()`][greyid.api.Model.fit].
 ESTIMATION_KEYS = ("criterion", "robust", "horizon", "starts", "seed", "maxiter", "prior_correlation", "cov_type",
                    "optimizer")
@@ -32,7 +33,7 @@ FILE_KEYS = ("file", "dataset", "separator", "decimal")
 ALL_KEYS = DATA_KEYS + FILE_KEYS + FILTER_KEYS + ESTIMATION_KEYS
 
 HOLDS = ("zoh", "foh")
-METHODS = ("kalman", "ekf", "iekf", "ekf2", "ukf", "truncated2", "gaussian2")
+METHODS = ("kalman", "ekf", "iekf", "ekf2", "ukf", "truncated2", "gaussian2", "particle", "laplace")
 FORMS = ("sqrt", "plain")
 
 
@@ -51,6 +52,8 @@ def check_options(options: Mapping) -> dict:
             raise ModelError(f"setting 'hold' must be 'zoh' or 'foh', got {value!r}")
         if key == "method" and value not in METHODS:
             raise ModelError(f"setting 'method' must be one of {list(METHODS)}, got {value!r}")
+        if key == "scheme" and value not in ("auto", "euler", "ctsmtmb"):
+            raise ModelError(f"setting 'scheme' must be 'auto', 'euler' or 'ctsmtmb', got {value!r}")
         if key == "form" and value not in FORMS:
             raise ModelError(f"setting 'form' must be 'sqrt' or 'plain', got {value!r}")
         if key == "criterion" and value not in ("ml", "map"):
@@ -60,7 +63,10 @@ def check_options(options: Mapping) -> dict:
         if key == "optimizer" and value not in ("auto", "scoring", "newton", "quasi-newton"):
             raise ModelError(f"setting 'optimizer' must be 'auto', 'scoring', 'newton' or 'quasi-newton', "
                              f"got {value!r}")
-        if key in ("horizon", "starts", "substeps", "iterations", "maxiter") and not (
+        if key == "resample" and not (isinstance(value, (int, float)) and not isinstance(value, bool)
+                                      and 0 < value <= 1):
+            raise ModelError(f"setting 'resample' must be a fraction in (0, 1] of the particles, got {value!r}")
+        if key in ("horizon", "starts", "substeps", "iterations", "maxiter", "particles") and not (
             isinstance(value, int) and not isinstance(value, bool) and value >= 1
         ):
             raise ModelError(f"setting '{key}' must be a positive integer, got {value!r}")
@@ -111,7 +117,7 @@ MODEL_SECTIONS = {
     "population": ("random", "effects", "omega", "covariates", "omega_init"),
 }
 PARAMETER_KEYS = ("init", "lower", "upper", "fixed", "prior")
-OBSERVATION_KEYS = ("equation", "variance")
+OBSERVATION_KEYS = ("equation", "variance", "distribution")
 
 
 def check_keys(table: Mapping, allowed, where: str) -> None:
@@ -121,11 +127,16 @@ def check_keys(table: Mapping, allowed, where: str) -> None:
 
 
 def observation_entry(name: str, value) -> dict:
-    """A ``[model.observations]`` entry, checked: ``{equation, variance}``."""
-    if not isinstance(value, Mapping) or "equation" not in value or "variance" not in value:
-        raise ModelError(f"observation '{name}' must be a table {{ equation = \"...\", variance = ... }}")
+    """A ``[model.observations]`` entry, checked: ``{equation, variance}``, or ``{equation, distribution}``
+    for counts (``{equation, variance, distribution}`` for the Student-t and log-normal distributions)."""
+    if not isinstance(value, Mapping) or "equation" not in value or not ({"variance", "distribution"} & set(value)):
+        raise ModelError(f"observation '{name}' must be a table {{ equation = \"...\", variance = ... }} "
+                         "(or {{ equation = \"...\", distribution = \"poisson\" }} for counts)")
     check_keys(value, OBSERVATION_KEYS, f"[model.observations] {name}")
-    return {"equation": f"{name} = {value['equation']}", "variance": value["variance"]}
+    out = {"equation": f"{name} = {value['equation']}", "variance": value.get("variance")}
+    if "distribution" in value:
+        out["distribution"] = value["distribution"]
+    return out
 
 
 def parameter_entry(name: str, value) -> dict:

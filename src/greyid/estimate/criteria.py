@@ -23,7 +23,7 @@ import numpy as np
 
 from ..errors import ModelError
 from ..filters.api import _prepare, accurate_options, compiled_filter
-from ..filters.updates import LOG_2PI
+from ..filters.updates import LOG_2PI, DensityTerms
 
 ROBUST_NORMS = ("huber", "tukey")
 
@@ -91,8 +91,15 @@ def step_criterion(terms, robust=None, kappa: float = 1.0):
     [`log_criterion()`][greyid.estimate.criteria.log_criterion].
 
     κ is [`scale_consistency()`][greyid.estimate.criteria.scale_consistency] of the norm (1 for the Gaussian
-    log-likelihood).
+    log-likelihood).  A filter that evaluates the observations' density (the particle filter) gives
+    each step's log-likelihood itself ([`DensityTerms`][greyid.filters.updates.DensityTerms]), which has no
+    innovation for a robust norm to weigh.
     """
+    if isinstance(terms, DensityTerms):
+        if robust is not None:
+            raise ModelError("a robust criterion weighs Gaussian innovations; the particle filter has none "
+                             "(fit it by maximum likelihood)")
+        return terms.loglik
     return -0.5 * (terms.n_obs * LOG_2PI + kappa * terms.logdet
                    + jnp.sum(squared_norm(terms.whitened, robust), -1))
 

@@ -54,6 +54,12 @@ class FitSettings(Mapping):
         Whether the filter is accurate between samples with these sub-steps (None: not checked).
     start_labels : tuple of str
         Where each start came from.
+    seed : int
+        The seed of the starts and of the particle filter's random numbers.
+    particles : int, optional
+        The particle filter's particles (None for the Gaussian filters).
+    resample : float, optional
+        The particle filter's resampling threshold (a fraction of the particles).
 
     Examples
     --------
@@ -80,6 +86,9 @@ class FitSettings(Mapping):
     substep_note: str | None = None
     substeps_accurate: bool | None = None
     start_labels: tuple = field(default_factory=tuple)
+    seed: int = 0
+    particles: int | None = None
+    resample: float | None = None
 
     # A mapping of the fields, so that code and users that read a fit's settings by key go on working.
     def __getitem__(self, key: str):
@@ -140,6 +149,8 @@ def filter_settings(settings: Mapping) -> dict:
         out["steady_state"] = True
     if settings.get("time_unit"):
         out["time_unit"] = settings["time_unit"]
+    if settings.get("particles") is not None:  # the particle filter's own random numbers
+        out.update(particles=settings["particles"], resample=settings["resample"], seed=settings.get("seed", 0))
     return out
 
 

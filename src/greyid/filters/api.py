@@ -23,7 +23,8 @@ from ..model.structure import Structure
 from .accuracy import choose_substeps, needs_substeps
 from .driver import make_ahead, make_filter
 from .gaussian import initial_state
-from .protocol import EKF, KALMAN, FilterInputs, FilterOptions
+from ..model.distributions import check_method, check_observed
+from .protocol import EKF, KALMAN, PARTICLE, FilterInputs, FilterOptions
 from .delays import check_delays, delay_slots, with_delayed_inputs
 from .result import FilterResult, SmootherResult
 from .smoother import rts_smooth
@@ -112,13 +113,30 @@ def filter_inputs(series: Series, hold: str, on_device: bool = True) -> FilterIn
     return FilterInputs(**(jax.device_put(arrays) if on_device else arrays))
 
 
+#: Euler–Maruyama steps per sampling interval of the particle filter where ``substeps`` is not given
+#: (a model that is not linear and time-invariant; such a model's transition is sampled exactly).
+PARTICLE_SUBSTEPS = 8
+
+
 def filter_options(structure: Structure, method: str | None, **options) -> FilterOptions:
-    """Settings with the default method: exact Kalman for linear models, EKF otherwise."""
+    """Settings with the default method: exact Kalman for linear models, EKF otherwise.
+
+    Raises
+    ------
+    ModelError
+        An unknown option, or a Gaussian filter for outputs whose distribution is not normal.
+    """
     if method is None:
         method = KALMAN if structure.is_linear else EKF
-    unknown = set(options) - {"form", "substeps", "iterations", "alpha", "beta", "kappa", "steady_state"}
+    unknown = set(options) - {"form", "substeps", "iterations", "alpha", "beta", "kappa", "steady_state",
+                              "particles", "seed", "resample", "scheme"}
     if unknown:
         raise ModelError(f"unknown filter option '{sorted(unknown)[0]}'")
+    if method == PARTICLE and options.get("substeps") is None:
+        options = dict(options, substeps=PARTICLE_SUBSTEPS)
+    if options.get("scheme") == "ctsmtmb" and options.get("substeps") is None:  # one step per interval
+        options = dict(options, substeps=1)
+    check_method(structure.distributions, structure.output_names, method)
     return FilterOptions(method=method, **{k: v for k, v in options.items() if v is not None})
 
 
@@ -127,7 +145,8 @@ def accurate_options(structure: Structure, theta, prepared, method, **options):
 
     See [`accuracy`][greyid.filters.accuracy]; the choice is made on the log-likelihood at ``theta``.
     """
-    if options.get("substeps") is not None or not needs_substeps(structure):
+    if (options.get("substeps") is not None or not needs_substeps(structure) or method == PARTICLE
+            or options.get("scheme") == "ctsmtmb"):
         return filter_options(structure, method, **options), None
     rest = {k: v for k, v in options.items() if k != "substeps"}
     theta = jnp.asarray(theta)
@@ -252,6 +271,8 @@ def prepare_datasets(structure: Structure, theta: np.ndarray, data, time, hold, 
     prepared = []
     for df in as_frames(data):
         series = prepare_series(df, structure.input_names, structure.output_names, time, time_unit)
+        for family, name, values in zip(structure.distributions, structure.output_names, series.outputs.T):
+            check_observed(family, name, values, series.times, series.time_name)
         inputs = filter_inputs(series, hold, on_device)
         if structure.initial_covariance.kind == "process" and series.n_rows < 2:
             raise DataError(f"the data have one row (t = {series.times[0]:g}): the model's initial covariance "

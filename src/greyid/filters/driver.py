@@ -22,11 +22,12 @@ import jax.numpy as jnp
 from ..runtime.jit import jit
 from ..errors import ModelError
 from ..model.structure import Structure
-from . import extended, kalman, second_order, unscented
+from ..model.distributions import check_method
+from . import extended, kalman, laplace, particle, second_order, unscented
 from . import steady as steady_form
-from .protocol import (EKF, EKF2, GAUSSIAN2, IEKF, KALMAN, TRUNCATED2, UKF, Family, FilterInputs, FilterOptions,
-                       FilterSteps)
-from .updates import GaussianState, StepTerms, to_matrix
+from .protocol import (EKF, EKF2, GAUSSIAN2, IEKF, KALMAN, LAPLACE, PARTICLE, TRUNCATED2, UKF, Family,
+                       FilterInputs, FilterOptions, FilterSteps)
+from .updates import DensityTerms, GaussianState, StepTerms, to_matrix
 
 #: The module that prepares each method's steps: ``prepare(structure, options)(theta, data) -> FilterSteps``.
 FAMILIES: dict[str, Family] = {
@@ -37,12 +38,48 @@ FAMILIES: dict[str, Family] = {
     TRUNCATED2: second_order.prepare,
     GAUSSIAN2: second_order.prepare,
     UKF: unscented.prepare,
+    PARTICLE: particle.prepare,
 }
+#: Methods that give the log-likelihood of a series as a whole (a marginal), not row by row:
+#: ``prepare(structure, options)(theta, data) -> (log-likelihood, what the method found)``.
+MARGINALS = {LAPLACE: laplace.prepare}
 
 
 def filter_steps(structure: Structure, options: FilterOptions) -> Callable[..., FilterSteps]:
-    """``steps(theta, data) -> FilterSteps`` of the options' method (see [`protocol`][greyid.filters.protocol])."""
+    """``steps(theta, data) -> FilterSteps`` of the options' method (see [`protocol`][greyid.filters.protocol]).
+
+    Raises
+    ------
+    ModelError
+        A Gaussian filter asked for outputs whose distribution is not normal.
+    """
+    check_method(structure.distributions, structure.output_names, options.method)
+    if options.method in MARGINALS:
+        raise ModelError(f"the {options.method} method gives a likelihood, not a filter's predictions and updates; "
+                         "use a filter (method='ekf', 'ukf', 'particle', ...) for filtered states and predictions")
     return FAMILIES[options.method](structure, options)
+
+
+def marginal_terms(structure: Structure, options: FilterOptions):
+    """``run(theta, data) -> DensityTerms`` of a marginal method: the series' log-likelihood in row 0's
+    term (nothing in the others'), each row's count of observed outputs."""
+    check_method(structure.distributions, structure.output_names, options.method)
+    marginal = MARGINALS[options.method](structure, options)
+
+    def run(theta, data: FilterInputs):
+        value, _ = marginal(theta, data)
+        loglik = jnp.zeros(data.t.shape[0]).at[0].set(value)
+        return DensityTerms(loglik, jnp.sum(data.mask, axis=-1))
+
+    return run
+
+
+def state_moments(state, form: str):
+    """The mean and covariance matrix of a filter's state: a Gaussian state's own (its covariance in the
+    carried ``form``), or the moments a family's state computes (the particles')."""
+    if isinstance(state, GaussianState):
+        return state.mean, to_matrix(state.covariance, form)
+    return state.moments()
 
 
 class StepOutput(NamedTuple):
@@ -68,6 +105,11 @@ def make_filter(structure: Structure, options: FilterOptions, keep_outputs: bool
     matrix needs, without the states' per-step storage.
     """
     form = options.form
+    if options.method in MARGINALS:
+        if keep_outputs:
+            filter_steps(structure, options)  # the error that says what to use instead
+        terms = marginal_terms(structure, options)
+        return jit(lambda theta, data: (terms(theta, data), None))
     build = filter_steps(structure, options)
 
     def collect(predicted: GaussianState, transition, upd, y_pred):
@@ -75,9 +117,8 @@ def make_filter(structure: Structure, options: FilterOptions, keep_outputs: bool
         if keep_outputs == "innovations":
             out = (upd.innovation, upd.innovation_covariance)
         elif keep_outputs:
-            out = StepOutput(predicted.mean, to_matrix(predicted.covariance, form), upd.mean,
-                             to_matrix(upd.covariance, form), y_pred, upd.innovation, upd.innovation_covariance,
-                             transition,
+            out = StepOutput(*state_moments(predicted, form), *state_moments(upd.state, form), y_pred,
+                             upd.innovation, upd.innovation_covariance, transition,
                              jnp.broadcast_to(jnp.asarray(upd.guarded, jnp.float64), upd.innovation.shape[:-1]))
         return upd.terms, out
 
@@ -95,12 +136,35 @@ def make_summed_filter(structure: Structure, options: FilterOptions, per_step: C
     derivatives does not grow with the length of the series.  ``forward_only``: the
     sum is never differentiated in reverse mode (see [`scan_rows()`][greyid.filters.driver.scan_rows]).
     """
+    if options.method in MARGINALS:
+        terms = marginal_terms(structure, options)
+        return lambda theta, data: jnp.sum(per_step(terms(theta, data)))
     build = filter_steps(structure, options)
 
     def run(theta, data: FilterInputs):
         return scan_rows(build(theta, data), data.t.shape[0], None, accumulate=per_step, forward_only=forward_only)
 
     return run
+
+
+def make_replicated_filter(structure: Structure, options: FilterOptions, replicates: int):
+    """A jitted ``run(theta, data) -> (replicates,)`` log-likelihoods of a particle filter run with
+    independent random numbers (keys split from the seed's), vectorised: the spread of the estimate."""
+    if options.method != PARTICLE:
+        raise ModelError(f"replicates are runs of a particle filter with other random numbers; '{options.method}' "
+                         "has no random numbers")
+    build = filter_steps(structure, options)
+
+    def run(theta, data: FilterInputs):
+        keys = jax.random.split(jax.random.PRNGKey(options.seed), replicates)
+
+        def one(key):
+            return scan_rows(build(theta, data, key=key), data.t.shape[0], None,
+                             accumulate=lambda terms: terms.loglik)
+
+        return jax.vmap(one)(keys)
+
+    return jit(run)
 
 
 def scan_rows(parts: FilterSteps, n_rows: int, collect: Callable | None, accumulate: Callable | None = None,
@@ -306,7 +370,7 @@ def make_ahead(structure: Structure, options: FilterOptions, horizon: int):
             upd, y_pred = parts.update(state, row_at(k))
             # The prediction's covariance is wanted for every output, observed or not.
             full, _ = parts.update(state, row_at(k), jnp.ones_like(data.mask[k]))
-            return y_pred, full.innovation_covariance, state.mean, to_matrix(state.covariance, form), upd.terms
+            return y_pred, full.innovation_covariance, *state_moments(state, form), upd.terms
 
         y, R, x, P, terms = jax.vmap(ahead)(rows)
         return AheadOutput(y, R, x, P, terms)

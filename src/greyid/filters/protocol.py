@@ -36,7 +36,16 @@ KALMAN, EKF, IEKF, UKF, EKF2 = "kalman", "ekf", "iekf", "ukf", "ekf2"
 #: The modified truncated and Gaussian second-order filters (section 4.2.2).
 TRUNCATED2, GAUSSIAN2 = "truncated2", "gaussian2"
 SECOND_ORDER = (TRUNCATED2, GAUSSIAN2)
-METHODS = (KALMAN, EKF, IEKF, UKF, EKF2, TRUNCATED2, GAUSSIAN2)
+#: The bootstrap particle filter ([`particle`][greyid.filters.particle]).
+PARTICLE = "particle"
+#: The Laplace method over the states on a time grid ([`laplace`][greyid.filters.laplace]).
+LAPLACE = "laplace"
+GAUSSIAN_METHODS = (KALMAN, EKF, IEKF, UKF, EKF2, TRUNCATED2, GAUSSIAN2)
+METHODS = (*GAUSSIAN_METHODS, PARTICLE, LAPLACE)
+#: The Laplace method's transitions: "auto" (exact for linear time-invariant dynamics, else Euler–Maruyama),
+#: "euler" (Euler–Maruyama always) or "ctsmtmb" (ctsmTMB's: Euler–Maruyama with G Gᵀ + 10⁻⁸ I, inputs
+#: interpolated linearly, one step per interval unless given).
+SCHEMES = ("auto", "euler", "ctsmtmb")
 
 
 @dataclass(frozen=True)
@@ -59,6 +68,12 @@ class FilterOptions:
     #: over series or parameter vectors (fleets, populations, a fit's starts) would run both forms
     #: for every member and do not take it.
     steady_state: bool = False
+    #: The particle filter's number of particles, the seed of its random numbers, and the fraction of the
+    #: particles below which the effective sample size makes it resample.
+    particles: int = 1000
+    seed: int = 0
+    resample: float = 0.5
+    scheme: str = "auto"
 
     def __post_init__(self):
         if self.method not in METHODS:
@@ -69,6 +84,14 @@ class FilterOptions:
             raise ModelError(f"substeps must be a positive integer, got {self.substeps!r}")
         if not isinstance(self.iterations, int) or self.iterations < 1:
             raise ModelError(f"iterations must be a positive integer, got {self.iterations!r}")
+        if not isinstance(self.particles, (int, np.integer)) or isinstance(self.particles, bool) or self.particles < 1:
+            raise ModelError(f"particles must be a positive integer, got {self.particles!r}")
+        if not isinstance(self.seed, (int, np.integer)) or isinstance(self.seed, bool) or self.seed < 0:
+            raise ModelError(f"seed must be a non-negative integer, got {self.seed!r}")
+        if not (isinstance(self.resample, (int, float)) and 0 < self.resample <= 1):
+            raise ModelError(f"resample must be a fraction in (0, 1] of the particles, got {self.resample!r}")
+        if self.scheme not in SCHEMES:
+            raise ModelError(f"unknown scheme '{self.scheme}'; use one of {list(SCHEMES)}")
         if not isinstance(self.steady_state, (bool, np.bool_)):
             raise ModelError(f"steady_state must be True or False, got {self.steady_state!r}")
 

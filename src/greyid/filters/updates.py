@@ -66,6 +66,14 @@ class StepTerms(NamedTuple):
         return -0.5 * (self.n_obs * LOG_2PI + self.logdet + jnp.sum(self.whitened**2, axis=-1))
 
 
+class DensityTerms(NamedTuple):
+    """One step's contribution to the log-likelihood where it is not a Gaussian innovation's: log p(y_k |
+    y_1..k−1) itself (the particle filter's estimate of it), and the count of observed elements."""
+
+    loglik: jnp.ndarray
+    n_obs: jnp.ndarray
+
+
 def symmetrize(P: jnp.ndarray) -> jnp.ndarray:
     return 0.5 * (P + P.T)
 

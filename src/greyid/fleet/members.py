@@ -191,7 +191,8 @@ def _result(model, structure, problem, args, member, best, optima, labels, s, ro
             optima, labels = list(optima), list(labels)
             best = estimation.search_delays(structure, member["parameters"], member["prepared"], best, optima,
                                             labels, lambda z: optimize(problem, z))
-        if filter_settings.get("substeps") is None and needs_substeps(structure):
+        if (filter_settings.get("substeps") is None and needs_substeps(structure)
+                and problem.options.method != "particle" and problem.options.scheme != "ctsmtmb"):
             problem, best, substep_choice = estimation._accurate_substeps(structure, problem, best, args, datasets,
                                                                           optimize)
     call = dict(time=s["time"], hold=s["hold"], criterion=s["criterion"], robust=robust, horizon=int(s["horizon"]),

@@ -18,6 +18,7 @@ import sympy as sp
 
 from ..errors import ModelError
 from .delays import find_delays
+from .distributions import NORMAL, Distribution
 from .equations import CONSTANTS, is_wiener_name
 from .symbols import TIME
 from .structure import (LTI, InitialCovariance, Structure, classify, lambdify_model, lambdify_parameters,
@@ -49,6 +50,11 @@ def build_structure(model) -> Structure:
     diffusion = [[sub(e.diffusion.get(w, sp.Integer(0))) for w in noise_names] for e in model._system]
     observation = [sub(o[0].rhs) for o in model._observations]
     variance = [sub(o[1]) for o in model._observations]
+    laws = [model._distributions.get(o, Distribution(NORMAL)) for o in outputs]
+    families = tuple(law.family for law in laws)
+    # Each output's shape parameter (df, size, trials), 1 where its family has none.
+    shapes = [sub(model._expression(1.0 if law.shape is None else law.shape, f"{law.shape_name} of '{o}'"))
+              for law, o in zip(laws, outputs)]
     for entry, h in zip(model._observations, observation):
         # 'y = a + b*u + 0*x' (a static regression, on purpose) is a + b*u to SymPy: the text still
         # names the state, as '0*dt' does for a state without drift.
@@ -66,7 +72,7 @@ def build_structure(model) -> Structure:
         cov = [[sub(e) for e in row] for row in cov]
 
     known = {sp.Symbol(n, real=True) for n in states + inputs} | {TIME}
-    everything = [*drift, *[g for row in diffusion for g in row], *observation, *variance, *mean_exprs,
+    everything = [*drift, *[g for row in diffusion for g in row], *observation, *variance, *shapes, *mean_exprs,
                   *([] if correlation is None else [e for row in correlation for e in row])]
     if isinstance(cov, list):
         everything += [e for row in cov for e in row]
@@ -87,7 +93,8 @@ def build_structure(model) -> Structure:
         raise ModelError(f"'{outside[0][1].name}' may appear in system and observation equations, "
                          "not in the initial state")
     replace = {call: stand_in for call, _, stand_in in delays}
-    drift, observation, variance = ([e.xreplace(replace) for e in part] for part in (drift, observation, variance))
+    drift, observation, variance, shapes = ([e.xreplace(replace) for e in part]
+                                            for part in (drift, observation, variance, shapes))
     diffusion = [[g.xreplace(replace) for g in row] for row in diffusion]
 
     ordered: list[str] = []
@@ -118,6 +125,8 @@ def build_structure(model) -> Structure:
     f_mat, g_mat = sp.Matrix(drift), sp.Matrix(diffusion) if noise_names else sp.zeros(len(states), 0)
     h_mat, s_mat = sp.Matrix(observation), sp.Matrix(variance)
     kind = classify(f_mat, g_mat, h_mat, s_mat, state_syms, input_syms)
+    # Whether the dynamics alone are linear and time-invariant (the observations may not be).
+    dynamics = classify(f_mat, g_mat, sp.Matrix(state_syms[:1]), sp.Matrix([0]), state_syms, input_syms)
     # The outputs' noise covariances where they are correlated, delays replaced as above.
     covariances = [] if correlation is None else [e.xreplace(replace) for row in correlation for e in row]
     n, m, s = len(states), len(noise_names), len(outputs)
@@ -131,7 +140,7 @@ def build_structure(model) -> Structure:
     fingerprint = structure_fingerprint(
         states, input_syms, outputs, ordered, noise_names, kind, drift, flat_g, observation, variance,
         covariances, mean_exprs, cov if isinstance(cov, list) else (cov, model._initial_scale),
-        [(d.name, d.input, d.expression) for d in delayed])
+        [(d.name, d.input, d.expression) for d in delayed], families, shapes)
     return Structure(
         state_names=tuple(states),
         input_names=tuple(inputs),
@@ -152,6 +161,10 @@ def build_structure(model) -> Structure:
         constant_observation=observation_is_constant(h_mat, [*variance, *covariances], state_syms, input_syms),
         linear_drift=linear_drift_function(f_mat, state_syms, input_syms, param_syms) if kind == LTI else None,
         fingerprint=fingerprint,
+        linear_dynamics=(linear_drift_function(f_mat, state_syms, input_syms, param_syms) if dynamics == LTI
+                         else None),
+        distributions=families if any(f != NORMAL for f in families) else (),
+        observation_shape=None if all(f == NORMAL for f in families) else lambdify_model(shapes, *args, (s,)),
     )
 
 

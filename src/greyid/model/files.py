@@ -93,7 +93,7 @@ def model_to_dict(model) -> dict:
         "description": model.description,
         "system": [e.text for e in model._system],
         "inputs": list(model._inputs),
-        "observations": [{"equation": o[0].text, "variance": _plain(o[2])} for o in model._observations],
+        "observations": [_observation(model, o) for o in model._observations],
         "observation_covariance": _plain(model._observation_covariance),
         "algebraic": [a.text for a in model._algebraics],
         "parameters": {n: parameter(p) for n, p in model.parameters.items()},
@@ -109,6 +109,18 @@ def model_to_dict(model) -> dict:
     }
 
 
+def _observation(model, entry) -> dict:
+    """An observation's entry: its equation, variance and, where not normal, its distribution."""
+    equation, _, variance = entry
+    out = {"equation": equation.text, "variance": _plain(variance)}
+    law = model._distributions.get(equation.lhs)
+    if law is not None and not law.gaussian:
+        out["distribution"] = law.to_dict()
+        if variance is None:
+            del out["variance"]
+    return out
+
+
 def model_from_dict(spec: Mapping, cls):
     """Rebuild a model of class ``cls`` from its [`model_to_dict()`][greyid.model.files.model_to_dict] form."""
     m = cls(spec.get("name", "model"), spec.get("description", ""))
@@ -118,7 +130,7 @@ def model_from_dict(spec: Mapping, cls):
     for a in spec.get("algebraic", []):
         m.add_algebraic(a)
     for o in spec["observations"]:
-        m.add_observation(o["equation"], variance=o["variance"])
+        m.add_observation(o["equation"], variance=o.get("variance"), distribution=o.get("distribution"))
     if spec.get("observation_covariance") is not None:
         m.set_observation_covariance(spec["observation_covariance"])
     for name, p in spec.get("parameters", {}).items():
@@ -248,7 +260,8 @@ def model_to_toml(model) -> str:
     lines += ["", "[model.observations]"]
     for o in spec["observations"]:
         name, rhs = (part.strip() for part in o["equation"].split("=", 1))
-        lines.append(f"{_key(name)} = {_value({'equation': rhs, 'variance': o['variance']})}")
+        entry = {"equation": rhs, **{k: o[k] for k in ("variance", "distribution") if k in o}}
+        lines.append(f"{_key(name)} = {_value(entry)}")
     if initial is not None:
         lines += ["", "[model.initial_state]"] + [f"{_key(k)} = {_value(v)}" for k, v in initial["mean"].items()]
     if spec["parameters"]:

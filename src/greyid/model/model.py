@@ -28,6 +28,7 @@ from .equations import (
     parse_expression,
     parse_system_equation,
 )
+from .distributions import WITH_VARIANCE, Distribution, distribution_of
 from .files import model_from_dict, model_to_dict, read_model, write_model
 from .options import check_options, rename_columns, resolve
 from .parameters import Parameter
@@ -51,6 +52,7 @@ class ModelSpec:
         self._system: list = []
         self._inputs: list[str] = []
         self._observations: list[tuple] = []
+        self._distributions: dict[str, Distribution] = {}  # by output; normal where not non-Gaussian
         self._observation_covariance = None  # a full matrix of expressions (set_observation_covariance)
         self._algebraics: list = []
         self._parameters: dict[str, Parameter] = {}
@@ -137,16 +139,25 @@ class ModelSpec:
         self._changed()
         return self
 
-    def add_observation(self, equation: str, variance: str | float) -> Self:
-        """Add an observation ``y = h(x, u, t, θ)`` measured with Gaussian noise.
+    def add_observation(self, equation: str, variance: str | float | None = None, distribution=None) -> Self:
+        """Add an observation ``y = h(x, u, t, θ)``, measured with Gaussian noise or with another
+        distribution whose location is the equation's value.
 
         Parameters
         ----------
         equation : str
             ``"<output> = <expression>"``; the output's name is its data column.
-        variance : str or float
+        variance : str or float, optional
             The noise variance S, a number or an expression of the parameters (and of
-            the inputs and time), e.g. ``"exp(e11)"`` or ``"sigv^2"``.
+            the inputs and time), e.g. ``"exp(e11)"`` or ``"sigv^2"``.  Required for the
+            normal, Student-t (S = scale²) and log-normal (S of log y) distributions; not
+            given for counts.
+        distribution : str, dict or Distribution, optional
+            ``"normal"`` (the default), ``"poisson"``, ``"lognormal"``, or a table with a
+            shape parameter: ``{"family": "student_t", "df": "nu"}``,
+            ``{"family": "negative_binomial", "size": "r"}``, ``{"family": "binomial",
+            "trials": "n"}`` (see [`distributions`][greyid.model.distributions]).  Only
+            ``method="particle"`` fits a distribution other than the normal.
 
         Returns
         -------
@@ -156,7 +167,19 @@ class ModelSpec:
         Raises
         ------
         ModelError
-            An output defined twice, or an equation holding ``dt`` or ``dw`` terms.
+            An output defined twice, an equation holding ``dt`` or ``dw`` terms, an unknown
+            distribution, a variance missing where the distribution needs one or given where
+            it has none.
+
+        Examples
+        --------
+        >>> import greyid
+        >>> m = greyid.Model("counts")
+        >>> _ = m.add_system("dlogr = -a*(logr - mu)*dt + s*dw1")
+        >>> _ = m.add_observation("cases = exp(logr)", distribution="poisson")
+        >>> _ = m.set_initial_state(mean={"logr": "mu"})
+        >>> m.structure.distributions
+        ('poisson',)
         """
         eq = parse_equation(equation, "observation equation")
         if any(o[0].lhs == eq.lhs for o in self._observations):
@@ -167,8 +190,18 @@ class ModelSpec:
                 f"observation equation '{equation}' contains '{noise[0]}'; observations cannot hold dt or dw "
                 "terms (give the measurement noise as variance=...)"
             )
-        var = self._expression(variance, f"variance of observation '{eq.lhs}'")
+        law = distribution_of(distribution, f"observation '{eq.lhs}'")
+        if law.family in WITH_VARIANCE and variance is None:
+            raise ModelError(f"observation '{eq.lhs}' ({law.family}) needs its variance: give variance=...")
+        if law.family not in WITH_VARIANCE and variance is not None:
+            raise ModelError(f"observation '{eq.lhs}' has the {law.family} distribution, whose variance follows from "
+                             f"its mean; leave variance out (got {variance!r})")
+        # The variance slot of a count is 1: the Gaussian filters, which alone read it, refuse counts.
+        var = self._expression(1.0 if variance is None else variance, f"variance of observation '{eq.lhs}'")
+        if law.shape_name is not None:
+            self._expression(law.shape, f"{law.shape_name} of observation '{eq.lhs}'")  # checked here
         self._observations.append((eq, var, variance))
+        self._distributions[eq.lhs] = law
         self._changed()
         return self
 

@@ -75,6 +75,15 @@ class Structure:
     #: settings), for programs kept on disk ([`greyid.runtime.store`][greyid.runtime.store]); None for models of Python
     #: functions, whose programs are never kept.
     fingerprint: str | None = field(default=None, compare=False)
+    #: Where the drift and diffusion alone are linear and time-invariant (whatever the observations), θ →
+    #: (A, B, c) as ``linear_drift``: the particle filter samples their exact transition.
+    linear_dynamics: Callable[[Array], tuple] | None = None
+    #: Each output's distribution family ([`distributions`][greyid.model.distributions]); empty where all
+    #: are normal, as the Gaussian filters need.
+    distributions: tuple[str, ...] = ()
+    #: (x, u, t, θ) → each output's shape parameter (df, size, trials; 1 where it has none), or None where
+    #: all outputs are normal.
+    observation_shape: ModelFunction | None = None
     #: Compiled filters and simulators for this structure, keyed by their settings.
     cache: dict = field(default_factory=dict, compare=False, repr=False)
 

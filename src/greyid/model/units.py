@@ -264,8 +264,17 @@ def check_model_units(model, units: Mapping[str, str], time_name: str = "t") -> 
         for wiener, coefficient in equation.diffusion.items():
             terms += check_terms(algebra, f"d{x} ({wiener})", sub(coefficient), unit[x] / time_unit ** 0.5)
     for eq, variance, _ in model._observations:
-        terms += check_terms(algebra, eq.lhs, sub(eq.rhs), unit[eq.lhs])
-        terms += check_terms(algebra, f"variance of {eq.lhs}", sub(variance), unit[eq.lhs] ** 2)
+        law = model._distributions.get(eq.lhs)
+        family = "normal" if law is None else law.family
+        # A probability (binomial) is dimensionless, a count's mean has the count's unit.
+        terms += check_terms(algebra, eq.lhs, sub(eq.rhs), dimensionless if family == "binomial" else unit[eq.lhs])
+        if family in ("normal", "student_t"):
+            terms += check_terms(algebra, f"variance of {eq.lhs}", sub(variance), unit[eq.lhs] ** 2)
+        elif family == "lognormal":  # the variance of log y
+            terms += check_terms(algebra, f"variance of {eq.lhs}", sub(variance), dimensionless)
+        if law is not None and law.shape_name is not None:
+            shape = model._expression(law.shape, f"{law.shape_name} of {eq.lhs}")
+            terms += check_terms(algebra, f"{law.shape_name} of {eq.lhs}", sub(shape), dimensionless)
     return terms
 
 

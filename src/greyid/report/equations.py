@@ -62,8 +62,18 @@ def model_equations(model) -> list[tuple[str, str]]:
     for e in model._system:
         out.append((system_equation(e.state, e.drift, e.diffusion), e.text))
     for eq, variance, given in model._observations:
-        out.append((named_equation(eq.lhs, eq.rhs, noise=eq.lhs), eq.text))
-        out.append((variance_equation(eq.lhs, variance), f"Var(e_{eq.lhs}) = {given}"))
+        law = model._distributions.get(eq.lhs)
+        if law is None or law.gaussian:
+            out.append((named_equation(eq.lhs, eq.rhs, noise=eq.lhs), eq.text))
+            out.append((variance_equation(eq.lhs, variance), f"Var(e_{eq.lhs}) = {given}"))
+            continue
+        location = f"<msub><mi>m</mi><mi>{html.escape(eq.lhs)}</mi></msub>"
+        out.append((_block(f"{location}<mo>=</mo>{_math(eq.rhs)}"), f"m_{eq.text}"))
+        shape = "" if law.shape_name is None else f", {law.shape_name} = {law.shape}"
+        scale = "" if given is None else f", variance {given}"
+        out.append((_block(f"<mi>{html.escape(eq.lhs)}</mi><mo>~</mo><mtext>{html.escape(law.family)}</mtext><mo>(</mo>"
+                           f"{location}<mtext>{html.escape(scale + shape)}</mtext><mo>)</mo>"),
+                    f"{eq.lhs} ~ {law.family}(m_{eq.lhs}{scale}{shape})"))
     return out
 
 

@@ -28,6 +28,7 @@ from ..filters.api import HOLDS, filter_inputs
 from ..filters.gaussian import initial_state
 from ..filters.delays import check_delays, delays_at, values_at
 from ..filters.discretize import discretize, time_varying_step
+from ..model.distributions import moments, sample
 from ..model.structure import LTI
 from .schemes import make_integrator
 
@@ -224,7 +225,11 @@ def simulate(model, params, data_or_times, n_paths: int = 1, method: str = "eule
     if np.any(S < 0):
         raise ModelError("an observation variance is negative along the simulated paths")
     z = np.asarray(z)
-    if structure.observation_covariance is None:
+    if structure.distributions:  # counts and other non-Gaussian outputs: drawn from their distributions
+        draw = structure_program(structure, ("simulate", "distributions", bool(noise)),
+                                 lambda: _make_draw(structure, bool(noise)))
+        y = np.asarray(draw(theta, jnp.asarray(states), u, t, jax.random.fold_in(jax.random.PRNGKey(seed), 1)))
+    elif structure.observation_covariance is None:
         y = y_mean + scale * np.sqrt(S) * z
     else:  # correlated measurement noise: e = L z with L Lᵀ = S (S free of the states)
         full = jax.vmap(lambda uu, tt: structure.observation_covariance(jnp.zeros(n), uu, tt, theta))(u, t)
@@ -268,6 +273,27 @@ def _make_observe(structure):
         return at(structure.observation), at(structure.observation_variance)
 
     return observe
+
+
+def _make_draw(structure, noise: bool):
+    """Observations drawn from their distributions along paths (paths, N, outputs), or without
+    ``noise`` their means ([`distributions`][greyid.model.distributions])."""
+    families = structure.distributions
+
+    def draw(theta, states, u, t, key):
+        def at(fn):
+            return jax.vmap(jax.vmap(lambda x, uu, tt: fn(x, uu, tt, theta)), in_axes=(0, None, None))(states, u, t)
+
+        m, S, a = at(structure.observation), at(structure.observation_variance), at(structure.observation_shape)
+        columns = []
+        for j, family in enumerate(families):
+            if noise:
+                columns.append(sample(family, jax.random.fold_in(key, j), m[..., j], S[..., j], a[..., j]))
+            else:
+                columns.append(moments(family, m[..., j], S[..., j], a[..., j])[0])
+        return jnp.stack(columns, axis=-1)
+
+    return draw
 
 
 def _draw(key, x0, P0, scale, path_shape, observation_shape):

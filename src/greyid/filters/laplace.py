@@ -1,0 +1,272 @@
+"""The Laplace method: the states on a time grid as random effects, integrated out (``method="laplace"``).
+
+The states at the sample times, and at ``substeps`` − 1 points between each two,
+X = (x_0, …, x_T), have the joint log-density
+
+    J(X, θ) = log p(x_0) + Σ_j log N(x_{j+1}; m_j(x_j), V_j) + Σ_k log p(y_k | x_{k·s}),
+
+with Gaussian transitions: Euler–Maruyama (m_j = x_j + f Δ, V_j = G Gᵀ Δ) or,
+where the drift and diffusion are linear and time-invariant, the exact
+discretization (4.36)–(4.39) over Δ; and any observation distribution
+([`distributions`][greyid.model.distributions]).  The likelihood
+p(Y | θ) = ∫ e^{J} dX is approximated by Laplace's method about the mode X̂(θ):
+
+    log L(θ) ≈ J(X̂, θ) + (d/2) log 2π − ½ log det(−∂²J/∂X²(X̂, θ)),   d = n(T + 1).
+
+The Hessian of J is block-tridiagonal (each term couples at most two neighbouring
+states), so the mode is found by Newton steps solved with its block Cholesky
+factor and the log-determinant read off the same factor: cost linear in T.  The
+mode's derivative in θ is implicit, dX̂ = −H⁻¹ ∂²J/∂X∂θ dθ (a custom JVP), so
+value, gradient and Hessian in θ are exact derivatives of the approximation.
+For a linear Gaussian model the approximation is exact: it equals the Kalman
+filter of the same discretization.
+
+``scheme="euler"`` takes Euler–Maruyama transitions for any model (the grid's
+sub-steps then converge to the exact likelihood); ``scheme="ctsmtmb"`` reproduces
+ctsmTMB's ``method = "laplace"``: Euler–Maruyama transitions always, with
+G Gᵀ + 10⁻⁸ I in place of G Gᵀ, and the inputs interpolated linearly between
+samples.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+from .. import runtime  # noqa: F401  (64-bit JAX and greyid's cache folder before any JAX work)
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import ModelError
+from ..model.distributions import NORMAL, observations_log_density
+from ..model.structure import Structure
+from .discretize import discretize
+from .gaussian import initial_state
+from .protocol import FilterInputs, FilterOptions, series_rows
+
+#: Newton steps at most, and the largest step (relative to the states' size) that ends the search.
+NEWTON_STEPS = 50
+NEWTON_TOLERANCE = 1e-10
+#: ctsmTMB's jitter of G Gᵀ in its Laplace method.
+CTSMTMB_JITTER = 1e-8
+#: Step lengths tried along each Newton direction; the best is taken (a damped Newton method).
+STEP_LENGTHS = (1.0, 0.5, 0.25, 0.125, 0.0625)
+
+
+class Grid(NamedTuple):
+    """The fine grid's steps: from state j to j + 1 over ``length`` with inputs ``u_start``→``u_end``."""
+
+    start: jnp.ndarray  # (T,)
+    length: jnp.ndarray  # (T,)
+    u_start: jnp.ndarray  # (T, nu)
+    u_end: jnp.ndarray  # (T, nu)
+
+
+def check_structure(structure: Structure) -> None:
+    if structure.delays:
+        raise ModelError("the Laplace method does not take delay() inputs yet; use a Gaussian filter")
+    if structure.observation_covariance is not None:
+        raise ModelError("the Laplace method takes independent observation noise only (no observation covariance)")
+
+
+def fine_grid(data: FilterInputs, substeps: int, linear_inputs: bool) -> Grid:
+    """The grid's steps: ``substeps`` per sampling interval (rows 1 … N − 1; padding rows have length 0)."""
+    fraction = jnp.arange(substeps) / substeps
+    t_prev, dt = data.t_prev[1:], data.dt[1:]
+    start = (t_prev[:, None] + dt[:, None] * fraction[None, :]).reshape(-1)
+    length = jnp.repeat(dt / substeps, substeps)
+    ramp = 1.0 if linear_inputs else data.foh
+    du = (data.u_cur[1:] - data.u_prev[1:]) * ramp
+    shape = (du.shape[0] * substeps, du.shape[-1])
+    u_start = (data.u_prev[1:, None, :] + du[:, None, :] * fraction[None, :, None]).reshape(shape)
+    u_end = (data.u_prev[1:, None, :] + du[:, None, :] * (fraction[None, :, None] + 1 / substeps)).reshape(shape)
+    return Grid(start, length, u_start, u_end)
+
+
+def block_cholesky(diagonal, lower):
+    """The block Cholesky factor of a symmetric positive definite block-tridiagonal matrix with diagonal
+    blocks ``diagonal`` (T+1, n, n) and blocks ``lower`` (T, n, n) below it: L_j and W_j = C_{j−1} L_{j−1}⁻ᵀ."""
+    first = jnp.linalg.cholesky(diagonal[0])
+
+    def step(previous, blocks):
+        D, C = blocks
+        W = jax.scipy.linalg.solve_triangular(previous, C.T, lower=True).T
+        L = jnp.linalg.cholesky(D - W @ W.T)
+        return L, (L, W)
+
+    _, (rest, couplings) = jax.lax.scan(step, first, (diagonal[1:], lower))
+    return jnp.concatenate([first[None], rest]), couplings
+
+
+def block_solve(factor, couplings, b):
+    """x with A x = b, A = L Lᵀ from [`block_cholesky()`][greyid.filters.laplace.block_cholesky]; b (T+1, n)."""
+    first = jax.scipy.linalg.solve_triangular(factor[0], b[0], lower=True)
+
+    def forward(previous, parts):
+        L, W, bj = parts
+        z = jax.scipy.linalg.solve_triangular(L, bj - W @ previous, lower=True)
+        return z, z
+
+    _, rest = jax.lax.scan(forward, first, (factor[1:], couplings, b[1:]))
+    z = jnp.concatenate([first[None], rest])
+    last = jax.scipy.linalg.solve_triangular(factor[-1].T, z[-1], lower=False)
+
+    def backward(following, parts):
+        L, W_next, zj = parts
+        x = jax.scipy.linalg.solve_triangular(L.T, zj - W_next.T @ following, lower=False)
+        return x, x
+
+    _, earlier = jax.lax.scan(backward, last, (factor[:-1], couplings, z[:-1]), reverse=True)
+    return jnp.concatenate([earlier, last[None]])
+
+
+def block_matvec(diagonal, lower, x):
+    """A x for the block-tridiagonal A (see [`block_cholesky()`][greyid.filters.laplace.block_cholesky])."""
+    out = jnp.einsum("jab,jb->ja", diagonal, x)
+    out = out.at[1:].add(jnp.einsum("jab,jb->ja", lower, x[:-1]))
+    return out.at[:-1].add(jnp.einsum("jba,jb->ja", lower, x[1:]))
+
+
+def prepare(structure: Structure, options: FilterOptions):
+    """``marginal(theta, data) -> (log-likelihood, mode)`` of the Laplace method (see the module doc)."""
+    check_structure(structure)
+    n, s = structure.n_states, options.substeps
+    families = structure.distributions or (NORMAL,) * len(structure.output_names)
+    f, G, h = structure.drift, structure.diffusion, structure.observation
+    variance_of, shape_of = structure.observation_variance, structure.observation_shape
+    ctsmtmb = options.scheme == "ctsmtmb"
+    exact = structure.linear_dynamics is not None and options.scheme == "auto"
+    zeros = np.zeros(n)
+
+    def pieces(theta, data: FilterInputs):
+        """The functions of the joint log-density's terms at θ, and the grid."""
+        data = series_rows(structure, theta, data).data
+        grid = fine_grid(data, s, linear_inputs=ctsmtmb)
+        x0, P0 = initial_state(structure, theta, data)
+        prior_root = jnp.linalg.cholesky(0.5 * (P0 + P0.T))
+        if exact:
+            A, B, c = structure.linear_dynamics(theta)
+            g = G(zeros, data.u_cur[0], data.t[0], theta)
+            Q = g @ g.T
+
+        def transition(x, step):
+            """log N(x_{j+1}; m_j(x_j), V_j); a step of length 0 (padding) is N(x_{j+1}; x_j, I)."""
+            x_now, x_next = x[:n], x[n:]
+            start, length, u_start, u_end = step
+            still = length <= 0
+            if exact:
+                disc = discretize(A, Q, length)
+                b_start, b_end = B @ u_start + c, B @ u_end + c
+                ramp = 1.0 if ctsmtmb else data.foh
+                mean = (disc.transition @ x_now + disc.input_gain @ b_start
+                        + ramp * disc.ramp_gain @ (b_end - b_start))
+                V = disc.noise_covariance
+            else:
+                g = G(x_now, u_start, start, theta)
+                mean = x_now + f(x_now, u_start, start, theta) * length
+                V = (g @ g.T + (CTSMTMB_JITTER * jnp.eye(n) if ctsmtmb else 0.0)) * length
+            V = jnp.where(still, jnp.eye(n), 0.5 * (V + V.T))
+            mean = jnp.where(still, x_now, mean)
+            L = jnp.linalg.cholesky(V)
+            z = jax.scipy.linalg.solve_triangular(L, x_next - mean, lower=True)
+            return -0.5 * (z @ z) - jnp.sum(jnp.log(jnp.diag(L))) - 0.5 * n * jnp.log(2 * jnp.pi)
+
+        def observed(x, row):
+            y, mask, u, t = row
+            m = h(x, u, t, theta)
+            S = variance_of(x, u, t, theta)
+            a = jnp.ones(len(families)) if shape_of is None else shape_of(x, u, t, theta)
+            return observations_log_density(families, y, mask, m, S, a)
+
+        def prior(x):
+            z = jax.scipy.linalg.solve_triangular(prior_root, x - x0, lower=True)
+            return -0.5 * (z @ z) - jnp.sum(jnp.log(jnp.diag(prior_root))) - 0.5 * n * jnp.log(2 * jnp.pi)
+
+        rows = (data.y, data.mask, data.u_cur, data.t)
+        return grid, transition, observed, prior, rows, x0
+
+    def joint(X, theta, data):
+        """J(X, θ): X (T + 1, n)."""
+        grid, transition, observed, prior, rows, _ = pieces(theta, data)
+        pairs = jnp.concatenate([X[:-1], X[1:]], axis=1)
+        at_samples = X[::s]
+        return (prior(X[0]) + jnp.sum(jax.vmap(transition)(pairs, grid))
+                + jnp.sum(jax.vmap(observed)(at_samples, rows)))
+
+    def blocks(X, theta, data):
+        """−∂²J/∂X²: its diagonal blocks (T + 1, n, n) and those below them (T, n, n)."""
+        grid, transition, observed, prior, rows, _ = pieces(theta, data)
+        pairs = jnp.concatenate([X[:-1], X[1:]], axis=1)
+        H_pairs = jax.vmap(jax.hessian(transition))(pairs, grid)  # (T, 2n, 2n)
+        H_obs = jax.vmap(jax.hessian(observed))(X[::s], rows)  # (N, n, n)
+        diagonal = jnp.zeros((X.shape[0], n, n))
+        diagonal = diagonal.at[:-1].add(H_pairs[:, :n, :n]).at[1:].add(H_pairs[:, n:, n:])
+        diagonal = diagonal.at[::s].add(H_obs).at[0].add(jax.hessian(prior)(X[0]))
+        return -diagonal, -H_pairs[:, n:, :n]
+
+    def start(theta, data):
+        """The drift's path without noise from x0 (inputs as on the grid): where Newton starts."""
+        grid, *_, x0 = pieces(theta, data)
+
+        def step(x, part):
+            start, length, u_start, _ = part
+            x = x + f(x, u_start, start, theta) * length
+            return x, x
+
+        _, path = jax.lax.scan(step, x0, grid)
+        return jnp.concatenate([x0[None], path])
+
+    def newton(theta, data):
+        gradient = jax.grad(joint)
+
+        def improve(carry):
+            X, _, count, _ = carry
+            diagonal, lower = blocks(X, theta, data)
+            factor, couplings = block_cholesky(diagonal, lower)
+            direction = block_solve(factor, couplings, gradient(X, theta, data))
+            values = jnp.stack([joint(X + a * direction, theta, data) for a in STEP_LENGTHS])
+            values = jnp.where(jnp.isfinite(values), values, -jnp.inf)
+            best = jnp.argmax(values)
+            step = jnp.asarray(STEP_LENGTHS)[best] * direction
+            size = jnp.max(jnp.abs(step)) / (1.0 + jnp.max(jnp.abs(X)))
+            return X + step, values[best], count + 1, size
+
+        def going(carry):
+            _, _, count, size = carry
+            return (count < NEWTON_STEPS) & (size > NEWTON_TOLERANCE)
+
+        X0 = start(theta, data)
+        X, *_ = jax.lax.while_loop(going, improve, (X0, joint(X0, theta, data), 0, jnp.inf))
+        # One more full step: Newton's quadratic convergence takes the mode to rounding, so that the
+        # value (whose log-determinant moves to first order with the mode) is smooth in θ.
+        diagonal, lower = blocks(X, theta, data)
+        factor, couplings = block_cholesky(diagonal, lower)
+        return X + block_solve(factor, couplings, gradient(X, theta, data))
+
+    @jax.custom_jvp
+    def mode(theta, data):
+        return newton(jax.lax.stop_gradient(theta), data)
+
+    @mode.defjvp
+    def mode_jvp(primals, tangents):
+        theta, data = primals
+        dtheta, _ = tangents
+        X = mode(theta, data)
+        # ∂J/∂X (X̂(θ), θ) = 0:  H dX̂ = −∂²J/∂X∂θ dθ, with −H = A block-tridiagonal.
+        mixed = jax.jvp(lambda th: jax.grad(joint)(X, th, data), (theta,), (dtheta,))[1]
+        diagonal, lower = blocks(X, theta, data)
+        factor, couplings = block_cholesky(diagonal, lower)
+        dX = jax.lax.custom_linear_solve(lambda v: block_matvec(diagonal, lower, v), mixed,
+                                         lambda _, b: block_solve(factor, couplings, b), symmetric=True)
+        return X, dX
+
+    def marginal(theta, data: FilterInputs):
+        """(log L(θ) by Laplace's method, the mode X̂ (T + 1, n))."""
+        X = mode(theta, data)
+        diagonal, lower = blocks(X, theta, data)
+        factor, _ = block_cholesky(diagonal, lower)
+        logdet = 2 * jnp.sum(jnp.log(jnp.diagonal(factor, axis1=1, axis2=2)))
+        d = X.size
+        return joint(X, theta, data) + 0.5 * d * jnp.log(2 * jnp.pi) - 0.5 * logdet, X
+
+    return marginal

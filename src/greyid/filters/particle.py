@@ -1,0 +1,205 @@
+"""The bootstrap particle filter: the likelihood of any model and any observation distribution, estimated.
+
+The filter carries P particles x^i with normalised log-weights (a
+[`ParticleState`][greyid.filters.particle.ParticleState]).  Row k
+
+* predicts each particle over the interval: for a time-invariant linear model by
+  sampling its exact transition (Φ x + Γ b, Λ of (4.36)–(4.39)), otherwise by
+  ``substeps`` Euler–Maruyama steps of dx = f dt + G dω;
+* weighs each particle by the observations' density p(y_k | x^i)
+  ([`distributions`][greyid.model.distributions]), the step's log-likelihood being
+  log Σ_i w^i p(y_k | x^i) (the bootstrap filter's unbiased estimate of p(y_k | y_1..k−1),
+  Gordon, Salmond & Smith 1993);
+* resamples (systematic) where the effective sample size 1/Σ w_i² falls below
+  ``resample`` · P.
+
+Random numbers are fixed by ``seed`` (common random numbers): the estimate is a
+deterministic function of θ, which an optimiser can work on.  Resampling picks
+particles by index, which has no derivative; it is taken with a stop-gradient
+(Ścibior & Wood 2021): after resampling each weight is w^a / ⊥(w^a), whose value is
+uniform and whose derivative keeps the weights' own.  The value is the ordinary
+bootstrap estimate; the gradient is the particle estimate of the score by
+Fisher's identity, consistent as P grows, without the (discontinuous) effect of
+which particles the resampling picks.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+from .. import runtime  # noqa: F401  (64-bit JAX and greyid's cache folder before any JAX work)
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.scipy.special import logsumexp
+
+from ..errors import ModelError
+from ..model.distributions import NORMAL, moments, observations_log_density
+from ..model.structure import Structure
+from . import small
+from .discretize import discretize_each
+from .gaussian import initial_state
+from .protocol import FilterInputs, FilterOptions, FilterSteps, Row, series_rows
+from .updates import DensityTerms
+
+#: Random numbers for the initial particles, the rows' predictions and their resampling are drawn
+#: from keys folded from the seed's with these tags.
+_START, _PREDICT, _RESAMPLE = 0, 1, 2
+#: The most standard normal numbers drawn before the scan (64 MB); a longer series draws each row's in its step.
+PREDRAWN = 2**23
+
+
+class ParticleState(NamedTuple):
+    """The particles (P, n), their normalised log-weights (P,) and the number of rows done."""
+
+    particles: jnp.ndarray
+    log_weights: jnp.ndarray
+    step: jnp.ndarray
+
+    def moments(self):
+        """The weighted mean and covariance of the particles."""
+        w = jnp.exp(self.log_weights)
+        mean = w @ self.particles
+        centred = self.particles - mean
+        return mean, (centred * w[:, None]).T @ centred
+
+
+class ParticleUpdate(NamedTuple):
+    """One row's update: the state carried on, the step's log-likelihood, and the outputs' predictive
+    mean and covariance (for the innovations a result shows)."""
+
+    state: ParticleState
+    terms: DensityTerms
+    innovation: jnp.ndarray
+    innovation_covariance: jnp.ndarray
+    guarded: float = 0.0
+
+
+def systematic_indices(uniform, log_weights):
+    """Systematic resampling: P indices drawn with one uniform number in [0, 1) (Kitagawa 1996)."""
+    n = log_weights.shape[0]
+    cumulative = jnp.cumsum(jnp.exp(jax.lax.stop_gradient(log_weights)))
+    # Particle i is picked once for each point (u + j)/P below its cumulative weight C_i and at or above C_{i−1}.
+    below = jnp.clip(jnp.ceil(n * cumulative / cumulative[-1] - uniform), 0, n).astype(jnp.int32)
+    offspring = jnp.diff(below, prepend=0)
+    return jnp.repeat(jnp.arange(n), offspring, total_repeat_length=n)
+
+
+def resample(uniform, state: ParticleState, threshold: float) -> ParticleState:
+    """Resample where the effective sample size is below ``threshold`` · P (see the module doc)."""
+    lw = state.log_weights
+    n = lw.shape[0]
+    ess = 1.0 / jnp.sum(jnp.exp(2 * lw))
+
+    def resampled(state):
+        index = systematic_indices(uniform, state.log_weights)
+        picked = state.log_weights[index]
+        # Value log(1/P), derivative that of the picked weights (the stop-gradient of the module doc).
+        return ParticleState(state.particles[index], picked - jax.lax.stop_gradient(picked) - jnp.log(n), state.step)
+
+    return jax.lax.cond(ess < threshold * n, resampled, lambda state: state, state)
+
+
+def check_structure(structure: Structure) -> None:
+    if structure.delays:
+        raise ModelError("the particle filter does not take delay() inputs yet; use a Gaussian filter")
+    if structure.observation_covariance is not None:
+        raise ModelError("the particle filter takes independent observation noise only (no observation covariance)")
+
+
+def prepare(structure: Structure, options: FilterOptions):
+    """``steps(theta, data, key=None) -> FilterSteps`` of the bootstrap particle filter (``method="particle"``);
+    ``key`` replaces the seed's random numbers (independent replicates)."""
+    check_structure(structure)
+    n_particles, threshold, substeps = options.particles, options.resample, options.substeps
+    n = structure.n_states
+    families = structure.distributions or (NORMAL,) * len(structure.output_names)
+    f, G, h = structure.drift, structure.diffusion, structure.observation
+    variance_of, shape_of = structure.observation_variance, structure.observation_shape
+    exact = structure.linear_dynamics is not None
+    seed = options.seed
+    zeros = np.zeros(n)
+
+    def observation_terms(x, u, t, theta):
+        """m, S and a of every output at one particle."""
+        shape = jnp.ones(len(families)) if shape_of is None else shape_of(x, u, t, theta)
+        return h(x, u, t, theta), variance_of(x, u, t, theta), shape
+
+    def steps(theta, data: FilterInputs, key=None) -> FilterSteps:
+        base = jax.random.PRNGKey(seed) if key is None else key
+        series = series_rows(structure, theta, data)
+        data = series.data
+        x0, P0 = initial_state(structure, theta, data)
+        root = small.cholesky(0.5 * (P0 + P0.T))
+        draws = jax.random.normal(jax.random.fold_in(base, _START), (n_particles, n))
+        initial = ParticleState(x0 + draws @ root.T, jnp.full(n_particles, -jnp.log(n_particles)),
+                                jnp.zeros((), jnp.int32))
+        if exact:  # one discretization per distinct interval, as the exact Kalman filter
+            A, B, c = structure.linear_dynamics(theta)
+            g = G(zeros, data.u_cur[0], data.t[0], theta)
+            cache = discretize_each(A, g @ g.T, data.unique_dt)
+            roots = jax.vmap(lambda L: small.cholesky(0.5 * (L + L.T)))(cache.noise_covariance)
+
+        # Every row's random numbers drawn at once where they fit in PREDRAWN numbers (one call of the
+        # generator costs a third less than one per row, benchmarks/particle.py); else row by row.
+        rows = data.t.shape[0]
+        per_row = (n_particles, n) if exact else (substeps, n_particles, len(structure.noise_names))
+        predrawn = rows * int(np.prod(per_row)) <= PREDRAWN
+        predict_key = jax.random.fold_in(base, _PREDICT)
+        normals = jax.random.normal(predict_key, (rows, *per_row)) if predrawn else None
+        uniforms = jax.random.uniform(jax.random.fold_in(base, _RESAMPLE), (rows,))
+
+        def normals_at(step):
+            if predrawn:
+                return normals[step]
+            return jax.random.normal(jax.random.fold_in(predict_key, step), per_row)
+
+        def predict(state: ParticleState, row: Row):
+            x = state.particles
+            if exact:
+                disc = jax.tree_util.tree_map(lambda a: a[row.dt_index], cache)
+                b_prev, b_cur = B @ row.u_prev + c, B @ row.u_cur + c
+                mean = (x @ disc.transition.T + disc.input_gain @ b_prev
+                        + data.foh * (disc.ramp_gain @ (b_cur - b_prev)))
+                moved = mean + normals_at(state.step) @ roots[row.dt_index].T
+            else:
+                moved = euler_maruyama(x, row, theta, normals_at(state.step))
+            return state._replace(particles=moved), jnp.eye(n)
+
+        def euler_maruyama(x, row: Row, theta, noise):
+            step = row.dt / substeps
+            du = (row.u_cur - row.u_prev) * data.foh
+
+            def one(j, x):
+                t = row.t_prev + j * step
+                u = row.u_prev + du * (j / substeps)
+                drift = jax.vmap(lambda xi: f(xi, u, t, theta))(x)
+                diffusion = jax.vmap(lambda xi: G(xi, u, t, theta))(x)
+                return x + drift * step + jnp.einsum("pij,pj->pi", diffusion, noise[j]) * jnp.sqrt(step)
+
+            return jax.lax.fori_loop(0, substeps, one, x)
+
+        def update(state: ParticleState, row: Row, mask=None):
+            mask = row.mask if mask is None else mask
+            m, S, a = jax.vmap(lambda xi: observation_terms(xi, row.u_cur, row.t, theta))(state.particles)
+            log_density = jax.vmap(lambda mi, si, ai: observations_log_density(families, row.y, mask, mi, si, ai))(
+                m, S, a)
+            joint = state.log_weights + log_density
+            increment = logsumexp(joint)
+            weighed = state._replace(log_weights=joint - increment)
+            carried = resample(uniforms[state.step], weighed, threshold)._replace(step=state.step + 1)
+            # The outputs' predictive mean and covariance under the predicted particles.
+            w = jnp.exp(state.log_weights)
+            mean_y, var_y = jax.vmap(lambda mi, si, ai: jnp.stack(
+                [jnp.stack(moments(fam, mi[j], si[j], ai[j])) for j, fam in enumerate(families)]))(m, S, a).transpose(
+                2, 0, 1)
+            y_pred = w @ mean_y
+            spread = mean_y - y_pred
+            R = (spread * w[:, None]).T @ spread + jnp.diag(w @ var_y)
+            innovation = jnp.where(mask > 0, row.y - y_pred, 0.0)
+            terms = DensityTerms(increment, jnp.sum(mask))
+            return ParticleUpdate(carried, terms, innovation, R), y_pred
+
+        return FilterSteps(initial, series.rows, predict, update)
+
+    return steps

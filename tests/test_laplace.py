@@ -1,0 +1,130 @@
+"""The Laplace method over the states, against independent references: the exact Kalman filter, the dense
+Gaussian likelihood of the Euler–Maruyama discretization, a point-mass filter on a grid, central differences."""
+
+import numpy as np
+import pandas as pd
+import pytest
+from scipy import stats
+
+import greyid
+from greyid.errors import ModelError
+from test_particle import grid_loglik, poisson_data, poisson_model
+
+A, MU, S, R = 0.5, 1.0, 0.4, 0.04
+PARAMS = dict(a=A, mu=MU, s=S, r=R)
+
+
+def ou_model():
+    m = greyid.Model("ou")
+    m.add_system("dx = -a*(x - mu)*dt + s*dw1")
+    m.add_observation("y = x", variance="r")
+    for name, value in PARAMS.items():
+        m.set_parameter(name, init=value, lower=1e-3, upper=10)
+    m.set_initial_state(mean={"x": 1.0}, covariance=[[0.1]])
+    return m
+
+
+def ou_data(n=40, seed=1, irregular=False):
+    rng = np.random.default_rng(seed)
+    t = np.cumsum(rng.uniform(0.5, 1.5, n)) if irregular else np.arange(float(n))
+    x, ys = 1.0, []
+    for k in range(n):
+        ys.append(x + np.sqrt(R) * rng.normal())
+        step = t[k + 1] - t[k] if k + 1 < n else 1.0
+        x = MU + (x - MU) * np.exp(-A * step) + S * np.sqrt((1 - np.exp(-2 * A * step)) / (2 * A)) * rng.normal()
+    y = np.array(ys)
+    y[[5, 17]] = np.nan  # missing values are integrated over
+    return pd.DataFrame({"t": t, "y": y})
+
+
+def euler_dense_loglik(data, substeps=1, jitter=0.0):
+    """The log-density of the observations under x_{j+1} = x_j − a(x_j − μ)Δ + N(0, (s² + jitter)Δ) on the grid of
+    ``substeps`` steps per interval, x_0 ~ N(1, 0.1), y = x + N(0, r): one joint Gaussian, written out densely."""
+    t = data["t"].to_numpy()
+    steps = np.concatenate([np.full(substeps, (t[k + 1] - t[k]) / substeps) for k in range(len(t) - 1)])
+    T = len(steps) + 1
+    mean = np.empty(T)
+    # x_j = c_j + Σ_i M_ji w_i with w_0 ~ N(0, 0.1) the initial deviation and w_i the steps' noise
+    M = np.zeros((T, T))
+    mean[0], M[0, 0] = 1.0, 1.0
+    var = np.concatenate([[0.1], (S**2 + jitter) * steps])
+    for j, d in enumerate(steps):
+        mean[j + 1] = mean[j] - A * (mean[j] - MU) * d
+        M[j + 1] = (1 - A * d) * M[j]
+        M[j + 1, j + 1] = 1.0
+    cov = (M * var) @ M.T
+    at = np.arange(0, T, substeps)
+    observed = ~np.isnan(data["y"].to_numpy())
+    rows = at[observed]
+    return stats.multivariate_normal(mean[rows], cov[np.ix_(rows, rows)] + R * np.eye(len(rows))).logpdf(
+        data["y"].to_numpy()[observed])
+
+
+def test_linear_gaussian_laplace_equals_the_kalman_filter_and_the_dense_euler_likelihood():
+    """Exact for a linear Gaussian model: with the exact transition it is the Kalman filter (regular and irregular
+    sampling, missing values, sub-steps); with Euler–Maruyama it is the dense likelihood of that discretization."""
+    m = ou_model()
+    for data in (ou_data(), ou_data(irregular=True)):
+        exact = m.loglik(PARAMS, data, method="kalman")
+        assert m.loglik(PARAMS, data, method="laplace") == pytest.approx(exact, abs=1e-9)
+        assert m.loglik(PARAMS, data, method="laplace", substeps=3) == pytest.approx(exact, abs=1e-9)
+        euler = m.loglik(PARAMS, data, method="laplace", scheme="euler")
+        assert euler == pytest.approx(euler_dense_loglik(data), abs=1e-9)
+        ctsmtmb = m.loglik(PARAMS, data, method="laplace", scheme="ctsmtmb")
+        assert ctsmtmb == pytest.approx(euler_dense_loglik(data, jitter=1e-8), abs=1e-9)
+        assert abs(euler - exact) > 1e-3  # the discretizations differ
+
+
+def test_euler_substeps_converge_to_the_exact_likelihood():
+    m, data = ou_model(), ou_data()
+    exact = m.loglik(PARAMS, data, method="kalman")
+    errors = [abs(m.loglik(PARAMS, data, method="laplace", scheme="euler", substeps=k) - exact) for k in (1, 2, 4, 8)]
+    assert all(later < 0.7 * earlier for earlier, later in zip(errors, errors[1:])), errors
+    assert errors[-1] < 0.15 * errors[0]  # first order: about halved with each doubling
+    assert m.loglik(PARAMS, data, method="laplace", scheme="euler", substeps=4) == pytest.approx(
+        euler_dense_loglik(data, substeps=4), abs=1e-9)
+
+
+def test_gradient_and_hessian_are_those_of_the_kalman_filter_for_a_linear_model():
+    m, data = ou_model(), ou_data()
+    laplace, kalman = m.likelihood(data, method="laplace"), m.likelihood(data, method="kalman")
+    x = np.array([PARAMS[n] for n in laplace.names]) * 1.1
+    value, gradient = laplace.value_and_grad(x)
+    exact_value, exact_gradient = kalman.value_and_grad(x)
+    assert value == pytest.approx(exact_value, abs=1e-9)
+    np.testing.assert_allclose(gradient, exact_gradient, rtol=1e-8, atol=1e-9)
+    np.testing.assert_allclose(laplace.hessian(x), kalman.hessian(x), rtol=1e-7, atol=1e-8)
+
+
+def test_poisson_counts_laplace_is_close_to_the_point_mass_filter_and_its_gradient_to_differences():
+    """Counts of a few per interval: the Laplace approximation is within 0.1 % of the exact log-likelihood
+    (the documented tolerance), and its gradient is the derivative of its value (central differences)."""
+    m, data = poisson_model(), poisson_data()
+    p = dict(a=0.5, mu=2.0, s=0.5)
+    reference = grid_loglik(data["n"].to_numpy())
+    value = m.loglik(p, data, method="laplace")
+    assert abs(value - reference) < 1e-3 * abs(reference), (value, reference)
+    nll = m.likelihood(data, method="laplace")
+    x = np.array([p[n] for n in nll.names])
+    _, gradient = nll.value_and_grad(x)
+    step = 1e-4
+    differences = [(nll.value(x + step * e) - nll.value(x - step * e)) / (2 * step) for e in np.eye(len(x))]
+    np.testing.assert_allclose(gradient, differences, rtol=1e-6, atol=1e-6)
+
+
+def test_a_laplace_fit_recovers_the_simulated_parameters_of_counts():
+    m, data = poisson_model(), poisson_data(300, seed=8)
+    m.set_parameter("mu", init=1.5, lower=-5, upper=10)
+    fit = m.fit(data, method="laplace")
+    assert fit.converged
+    for name, truth in dict(a=0.5, mu=2.0, s=0.5).items():
+        estimate, error = fit.values[name], fit.bse[name]
+        assert abs(estimate - truth) < 3.5 * error, (name, estimate, error)
+
+
+def test_the_laplace_method_refuses_what_it_cannot_do():
+    m, data = ou_model(), ou_data()
+    with pytest.raises(ModelError, match="gives a likelihood, not a filter"):
+        m.filter(PARAMS, data, method="laplace")
+    with pytest.raises(ModelError, match="unknown scheme 'rk4'"):
+        m.loglik(PARAMS, data, method="laplace", scheme="rk4")
