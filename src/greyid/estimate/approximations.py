@@ -5,8 +5,8 @@ A Gaussian filter's log-likelihood of a nonlinear model is an approximation whos
 error does not show from inside it.  The bootstrap particle filter
 ([`particle`][greyid.filters.particle]) estimates the likelihood itself, with an error
 that falls as 1/√P; [`compare_methods()`][greyid.estimate.approximations.compare_methods]
-puts each method's value (the Gaussian filters', the Laplace method's) beside it and flags those that differ by more than the
-particle estimate's errors allow.
+puts each method's value (the Gaussian filters', the Laplace method's) beside it
+and flags those that differ by more than the particle estimate's errors allow.
 """
 
 from __future__ import annotations
