@@ -40,7 +40,8 @@ import numpy as np
 from ..errors import ModelError
 from ..model.distributions import NORMAL, observations_log_density
 from ..model.structure import Structure
-from .discretize import discretize
+from . import small
+from .discretize import discretize_each
 from .gaussian import initial_state
 from .protocol import FilterInputs, FilterOptions, series_rows
 
@@ -60,6 +61,7 @@ class Grid(NamedTuple):
     length: jnp.ndarray  # (T,)
     u_start: jnp.ndarray  # (T, nu)
     u_end: jnp.ndarray  # (T, nu)
+    interval: jnp.ndarray  # (T,) the step's sampling interval among the data's distinct ones
 
 
 def check_structure(structure: Structure) -> None:
@@ -80,18 +82,23 @@ def fine_grid(data: FilterInputs, substeps: int, linear_inputs: bool) -> Grid:
     shape = (du.shape[0] * substeps, du.shape[-1])
     u_start = (data.u_prev[1:, None, :] + du[:, None, :] * fraction[None, :, None]).reshape(shape)
     u_end = (data.u_prev[1:, None, :] + du[:, None, :] * (fraction[None, :, None] + 1 / substeps)).reshape(shape)
-    return Grid(start, length, u_start, u_end)
+    return Grid(start, length, u_start, u_end, jnp.repeat(data.dt_index[1:], substeps))
 
 
 def block_cholesky(diagonal, lower):
     """The block Cholesky factor of a symmetric positive definite block-tridiagonal matrix with diagonal
-    blocks ``diagonal`` (T+1, n, n) and blocks ``lower`` (T, n, n) below it: L_j and W_j = C_{j−1} L_{j−1}⁻ᵀ."""
-    first = jnp.linalg.cholesky(diagonal[0])
+    blocks ``diagonal`` (T+1, n, n) and blocks ``lower`` (T, n, n) below it: L_j and W_j = C_{j−1} L_{j−1}⁻ᵀ.
+
+    The blocks are a few states wide: factorised and solved element by element
+    ([`small`][greyid.filters.small]), which inside a scan is faster than LAPACK's calls (and
+    its vectorised derivatives have hung XLA's CPU runtime on series of 8192 rows and more).
+    """
+    first = small.cholesky(diagonal[0])
 
     def step(previous, blocks):
         D, C = blocks
-        W = jax.scipy.linalg.solve_triangular(previous, C.T, lower=True).T
-        L = jnp.linalg.cholesky(D - W @ W.T)
+        W = small.solve_lower(previous, C.T).T
+        L = small.cholesky(D - small.mm(W, W.T))
         return L, (L, W)
 
     _, (rest, couplings) = jax.lax.scan(step, first, (diagonal[1:], lower))
@@ -100,20 +107,20 @@ def block_cholesky(diagonal, lower):
 
 def block_solve(factor, couplings, b):
     """x with A x = b, A = L Lᵀ from [`block_cholesky()`][greyid.filters.laplace.block_cholesky]; b (T+1, n)."""
-    first = jax.scipy.linalg.solve_triangular(factor[0], b[0], lower=True)
+    first = small.solve_lower(factor[0], b[0])
 
     def forward(previous, parts):
         L, W, bj = parts
-        z = jax.scipy.linalg.solve_triangular(L, bj - W @ previous, lower=True)
+        z = small.solve_lower(L, bj - small.mm(W, previous))
         return z, z
 
     _, rest = jax.lax.scan(forward, first, (factor[1:], couplings, b[1:]))
     z = jnp.concatenate([first[None], rest])
-    last = jax.scipy.linalg.solve_triangular(factor[-1].T, z[-1], lower=False)
+    last = small.solve_upper_transposed(factor[-1], z[-1])
 
     def backward(following, parts):
         L, W_next, zj = parts
-        x = jax.scipy.linalg.solve_triangular(L.T, zj - W_next.T @ following, lower=False)
+        x = small.solve_upper_transposed(L, zj - small.mm(W_next.T, following))
         return x, x
 
     _, earlier = jax.lax.scan(backward, last, (factor[:-1], couplings, z[:-1]), reverse=True)
@@ -143,19 +150,19 @@ def prepare(structure: Structure, options: FilterOptions):
         data = series_rows(structure, theta, data).data
         grid = fine_grid(data, s, linear_inputs=ctsmtmb)
         x0, P0 = initial_state(structure, theta, data)
-        prior_root = jnp.linalg.cholesky(0.5 * (P0 + P0.T))
-        if exact:
+        prior_root = small.cholesky(0.5 * (P0 + P0.T))
+        if exact:  # one discretization per distinct step length, as the exact Kalman filter
             A, B, c = structure.linear_dynamics(theta)
             g = G(zeros, data.u_cur[0], data.t[0], theta)
-            Q = g @ g.T
+            cache = discretize_each(A, g @ g.T, data.unique_dt / s)
 
         def transition(x, step):
             """log N(x_{j+1}; m_j(x_j), V_j); a step of length 0 (padding) is N(x_{j+1}; x_j, I)."""
             x_now, x_next = x[:n], x[n:]
-            start, length, u_start, u_end = step
+            start, length, u_start, u_end, interval = step
             still = length <= 0
             if exact:
-                disc = discretize(A, Q, length)
+                disc = jax.tree_util.tree_map(lambda a: a[interval], cache)
                 b_start, b_end = B @ u_start + c, B @ u_end + c
                 ramp = 1.0 if ctsmtmb else data.foh
                 mean = (disc.transition @ x_now + disc.input_gain @ b_start
@@ -167,8 +174,8 @@ def prepare(structure: Structure, options: FilterOptions):
                 V = (g @ g.T + (CTSMTMB_JITTER * jnp.eye(n) if ctsmtmb else 0.0)) * length
             V = jnp.where(still, jnp.eye(n), 0.5 * (V + V.T))
             mean = jnp.where(still, x_now, mean)
-            L = jnp.linalg.cholesky(V)
-            z = jax.scipy.linalg.solve_triangular(L, x_next - mean, lower=True)
+            L = small.cholesky(V)
+            z = small.solve_lower(L, x_next - mean)
             return -0.5 * (z @ z) - jnp.sum(jnp.log(jnp.diag(L))) - 0.5 * n * jnp.log(2 * jnp.pi)
 
         def observed(x, row):
@@ -179,7 +186,7 @@ def prepare(structure: Structure, options: FilterOptions):
             return observations_log_density(families, y, mask, m, S, a)
 
         def prior(x):
-            z = jax.scipy.linalg.solve_triangular(prior_root, x - x0, lower=True)
+            z = small.solve_lower(prior_root, x - x0)
             return -0.5 * (z @ z) - jnp.sum(jnp.log(jnp.diag(prior_root))) - 0.5 * n * jnp.log(2 * jnp.pi)
 
         rows = (data.y, data.mask, data.u_cur, data.t)
@@ -209,7 +216,7 @@ def prepare(structure: Structure, options: FilterOptions):
         grid, *_, x0 = pieces(theta, data)
 
         def step(x, part):
-            start, length, u_start, _ = part
+            start, length, u_start, *_ = part
             x = x + f(x, u_start, start, theta) * length
             return x, x
 
