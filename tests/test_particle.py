@@ -280,3 +280,42 @@ def grid_family_loglik(family, ys, p, points=2000):
         total += np.log(joint.sum())
         prior = joint / joint.sum()
     return total
+
+
+COUNTS_FILE = """
+[model]
+name = "counts"
+system = ["dl = -a*(l - mu)*dt + s*dw1"]
+initial_covariance = "stationary"
+
+[model.observations]
+n = { equation = "exp(l)", distribution = "poisson" }
+
+[model.initial_state]
+l = "mu"
+
+[parameters]
+a = { init = 0.5, lower = 0.001, upper = 10 }
+mu = { init = 2.0, lower = -5, upper = 10 }
+s = { init = 0.5, lower = 0.001, upper = 10 }
+
+[filter]
+method = "METHOD"
+"""
+
+
+@pytest.mark.parametrize("method, bad, message", [
+    ("ekf", None, "'n' has the poisson distribution, which the Gaussian filter 'ekf' cannot evaluate"),
+    ("particle", -2, "column 'n' has -2 at row 4"),
+])
+def test_the_command_line_refuses_counts_for_a_gaussian_filter_and_bad_counts_with_exit_2(tmp_path, method, bad,
+                                                                                           message):
+    from test_bad_input import run_cli
+
+    (tmp_path / "model.toml").write_text(COUNTS_FILE.replace("METHOD", method))
+    data = poisson_data(30)
+    if bad is not None:
+        data.loc[4, "n"] = bad
+    data.to_csv(tmp_path / "data.csv", index=False)
+    code, printed = run_cli(["fit", str(tmp_path / "model.toml"), str(tmp_path / "data.csv"), "-q"])
+    assert code == 2 and message in printed and "Traceback" not in printed, printed
