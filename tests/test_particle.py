@@ -10,7 +10,7 @@ from scipy import stats
 import greyid
 from greyid.errors import DataError, ModelError
 from greyid.estimate.approximations import compare_methods, particle_loglik
-from greyid.model.distributions import log_density, moments
+from greyid.model.distributions import cdf, log_density, moments
 
 
 def ou_gaussian():
@@ -169,6 +169,15 @@ def test_each_density_and_its_moments_match_scipy(family, shape, scipy_law):
     for y in (0.0, 1.0, 3.0, 7.0) if family not in ("normal", "student_t", "lognormal") else (0.4, 2.5, 6.0):
         ours = float(log_density(family, y, m, variance, shape))
         assert ours == pytest.approx(scipy_law(y, m, variance, shape), rel=1e-10, abs=1e-12)
+    counts = family not in ("normal", "student_t", "lognormal")
+    for y in (0.0, 1.0, 3.0, 7.0, 12.0) if counts else (-1.0, 0.4, 2.5, 6.0):
+        expected = {"normal": lambda: stats.norm.cdf(y, m, np.sqrt(variance)),
+                    "student_t": lambda: stats.t.cdf(y, shape, m, np.sqrt(variance)),
+                    "lognormal": lambda: stats.lognorm.cdf(y, np.sqrt(variance), scale=m),
+                    "poisson": lambda: stats.poisson.cdf(y, m),
+                    "negative_binomial": lambda: stats.nbinom.cdf(y, shape, shape / (shape + m)),
+                    "binomial": lambda: stats.binom.cdf(y, shape, m)}[family]()
+        assert float(cdf(family, y, m, variance, shape)) == pytest.approx(expected, rel=1e-9, abs=1e-12), y
     mean, var = (float(v) for v in moments(family, m, variance, shape))
     law = {"normal": stats.norm(m, np.sqrt(variance)), "student_t": stats.t(shape, m, np.sqrt(variance)),
            "lognormal": stats.lognorm(np.sqrt(variance), scale=m), "poisson": stats.poisson(m),
@@ -319,3 +328,46 @@ def test_the_command_line_refuses_counts_for_a_gaussian_filter_and_bad_counts_wi
     data.to_csv(tmp_path / "data.csv", index=False)
     code, printed = run_cli(["fit", str(tmp_path / "model.toml"), str(tmp_path / "data.csv"), "-q"])
     assert code == 2 and message in printed and "Traceback" not in printed, printed
+
+
+def test_the_ensemble_kalman_filter_converges_to_the_exact_likelihood_as_the_ensemble_grows():
+    """Linear Gaussian model: the stochastic EnKF's log-likelihood (fixed random numbers) approaches the Kalman
+    filter's as the ensemble grows (the mean error over seeds falls), and its filtered states approach the exact."""
+    m, data = ou_gaussian(), ou_data()
+    exact = m.loglik(PARAMS, data, method="kalman")
+    error = {size: np.mean([abs(m.loglik(PARAMS, data, method="enkf", particles=size, seed=seed) - exact)
+                            for seed in range(4)]) for size in (20, 200, 2000)}
+    assert error[200] < error[20] and error[2000] < error[200], error
+    assert error[2000] < 0.5, error
+    states = m.filter(PARAMS, data, method="enkf", particles=2000).filtered["x"]
+    assert np.max(np.abs(states - m.filter(PARAMS, data, method="kalman").filtered["x"])) < 0.03
+
+
+def test_the_ensemble_kalman_filter_refuses_counts_and_bad_settings():
+    with pytest.raises(ModelError, match="Gaussian filter 'enkf'"):
+        poisson_model().loglik(dict(a=0.5, mu=2.0, s=0.5), poisson_data(20), method="enkf")
+    with pytest.raises(ModelError, match="inflation must be a number of at least 1"):
+        ou_gaussian().loglik(PARAMS, ou_data(20), method="enkf", inflation=0.5)
+    with pytest.raises(ModelError, match="at least 2 members"):
+        ou_gaussian().loglik(PARAMS, ou_data(20), method="enkf", particles=1)
+
+
+def test_a_fit_compares_its_filter_with_the_particle_estimate_at_its_estimates():
+    m, data = ou_gaussian(), ou_data()
+    fit = m.fit(data, method="kalman")
+    table = fit.compare_methods(methods=["kalman", "ekf"], particles=2000)
+    assert table.loc["kalman", "loglik"] == pytest.approx(fit.loglik, abs=1e-6)
+    assert table["agrees"].all(), table
+
+
+def test_the_particle_filters_quantile_residuals_are_normal_where_the_model_is_right_and_not_where_it_is_wrong():
+    """Randomized probability integral transforms of counts (Dunn & Smyth 1996): under the simulating parameters
+    their normal quantiles pass a Kolmogorov–Smirnov test, under a wrong mean level they fail it; a particle
+    fit's residuals are these."""
+    m, data = poisson_model(), poisson_data(300, seed=11)
+    right = m.filter(dict(a=0.5, mu=2.0, s=0.5), data, method="particle", particles=2000).quantile_residuals["n"]
+    wrong = m.filter(dict(a=0.5, mu=1.2, s=0.5), data, method="particle", particles=2000).quantile_residuals["n"]
+    assert stats.kstest(right, "norm").pvalue > 0.01
+    assert stats.kstest(wrong, "norm").pvalue < 1e-3
+    assert right.shape == (300,) and right.notna().all()
+    assert ou_gaussian().filter(PARAMS, ou_data(20), method="kalman").quantile_residuals is None

@@ -641,6 +641,46 @@ class FitResult(Estimates):
 
         return validate(self, level=level, lags=lags, m=m)
 
+    def compare_methods(self, data=None, methods=None, particles: int = 1000, seed: int = 0,
+                        replicates: int = 8):
+        """Each method's log-likelihood at the estimates beside the particle filter's estimate: whether
+        this fit's approximation (an EKF's, a UKF's, the Laplace method's) is trustworthy.
+
+        Parameters
+        ----------
+        data : pandas.DataFrame or list of pandas.DataFrame, optional
+            The data (default: the fit's own).
+        methods : sequence of str, optional
+            The methods to compare (default: every Gaussian filter and the Laplace method, or the Laplace
+            method alone for non-Gaussian observations).
+        particles : int
+            Particles of each run of the particle filter.
+        seed : int
+            The seed its runs' random numbers are split from.
+        replicates : int
+            Its independent runs (the Monte Carlo standard error needs at least 2).
+
+        Returns
+        -------
+        pandas.DataFrame
+            One row per method: ``loglik``, ``std_error``, ``difference`` from the particle estimate and
+            ``agrees`` (within 3 standard errors, and 0.1 at least).
+
+        Raises
+        ------
+        ModelError
+            An unknown method, or a fit without data.
+
+        Examples
+        --------
+        >>> fit.compare_methods(methods=["ekf", "ukf"])  # doctest: +SKIP
+        """
+        from .estimate.approximations import compare_methods
+
+        where = {k: v for k, v in self._filter_settings().items() if k in ("time", "hold", "time_unit")}
+        return compare_methods(self.model, self.values, self._data(data), methods, particles, seed, replicates,
+                               **where)
+
     def report(self, path=None, **options) -> str:
         """The self-contained HTML report of this fit.
 

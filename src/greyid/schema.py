@@ -23,7 +23,7 @@ from .errors import ModelError
 DATA_KEYS = ("time", "hold", "time_unit", "columns", "time_format", "time_zone")
 #: Filter settings (see [`greyid.filters.api.filter_options()`][greyid.filters.api.filter_options]).
 FILTER_KEYS = ("method", "form", "substeps", "iterations", "alpha", "beta", "kappa", "steady_state", "particles",
-               "resample", "scheme")
+               "resample", "scheme", "inflation")
 #: Estimation settings of [`Model.fit()`][greyid.api.Model.fit].
 ESTIMATION_KEYS = ("criterion", "robust", "horizon", "starts", "seed", "maxiter", "prior_correlation", "cov_type",
                    "optimizer")
@@ -33,7 +33,7 @@ FILE_KEYS = ("file", "dataset", "separator", "decimal")
 ALL_KEYS = DATA_KEYS + FILE_KEYS + FILTER_KEYS + ESTIMATION_KEYS
 
 HOLDS = ("zoh", "foh")
-METHODS = ("kalman", "ekf", "iekf", "ekf2", "ukf", "truncated2", "gaussian2", "particle", "laplace")
+METHODS = ("kalman", "ekf", "iekf", "ekf2", "ukf", "truncated2", "gaussian2", "enkf", "particle", "laplace")
 FORMS = ("sqrt", "plain")
 
 
@@ -52,6 +52,8 @@ def check_options(options: Mapping) -> dict:
             raise ModelError(f"setting 'hold' must be 'zoh' or 'foh', got {value!r}")
         if key == "method" and value not in METHODS:
             raise ModelError(f"setting 'method' must be one of {list(METHODS)}, got {value!r}")
+        if key == "inflation" and not (isinstance(value, (int, float)) and not isinstance(value, bool) and value >= 1):
+            raise ModelError(f"setting 'inflation' must be a number of at least 1, got {value!r}")
         if key == "scheme" and value not in ("auto", "euler", "ctsmtmb"):
             raise ModelError(f"setting 'scheme' must be 'auto', 'euler' or 'ctsmtmb', got {value!r}")
         if key == "form" and value not in FORMS:

@@ -22,7 +22,7 @@ from ..errors import DataError, ModelError
 from ..filters.accuracy import LOGLIK_TOLERANCE, MAX_SUBSTEPS, SubstepChoice, needs_substeps
 from ..filters.api import check_at_parameters, check_equations_finite, filter_options, prepare_datasets
 from ..filters.kalman import takes_steady_state
-from ..filters.protocol import LAPLACE, PARTICLE
+from ..filters.protocol import LAPLACE, STOCHASTIC
 from ..model.delays import delay_parameters
 from ..model.options import DATA_KEYS, ESTIMATION_KEYS, FILTER_KEYS
 from ..progress import FitProgress
@@ -218,7 +218,7 @@ def new_search(problem: Problem, z0, maxiter: int, report, scoring: bool, handov
     """A [`Search`][greyid.estimate.trust_region.Search] from ``z0`` with this problem's settings (scoring if asked and
     possible)."""
     scoring = (scoring and problem.horizon == 1 and problem.robust is None
-               and problem.options.method not in (PARTICLE, LAPLACE))
+               and problem.options.method not in (*STOCHASTIC, LAPLACE))
     # On long series an exact Hessian costs dozens of scoring steps, and the
     # scoring matrix is close to it near the optimum: Newton only to finish.
     if handover is None:
@@ -423,7 +423,7 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
     parameters = free_parameters(model, init)
     names, theta0, free = parameters.names, parameters.theta0, parameters.free
     transform = parameters.transform
-    if method == PARTICLE:  # the seed fixes the particle filter's random numbers too
+    if method in STOCHASTIC:  # the seed fixes the particle and ensemble filters' random numbers too
         filter_settings = dict(filter_settings, seed=seed)
     problem = make_problem(structure, parameters, method, (robust, horizon, prior), filter_settings)
 
@@ -505,7 +505,7 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
                                  lambda z: optimize(problem, z, len(optima)))
         substep_choice = None
         if (filter_settings.get("substeps") is None and needs_substeps(structure)
-                and problem.options.method != PARTICLE and problem.options.scheme != "ctsmtmb"):
+                and problem.options.method not in STOCHASTIC and problem.options.scheme != "ctsmtmb"):
             problem, best, substep_choice = _accurate_substeps(structure, problem, best, args, datasets,
                                                                lambda p, z: optimize(p, z, len(optima)))
     call = dict(time=time, hold=hold, criterion=criterion, robust=robust, horizon=int(horizon), starts=starts,
@@ -533,6 +533,7 @@ def finish(model, frames, problem: Problem, best, optima, args, datasets, theta0
                            substep_note=None if substep_choice is None else substep_choice.describe(),
                            substeps_accurate=None if substep_choice is None else substep_choice.accurate,
                            start_labels=tuple(labels),
-                           particles=options.particles if options.method == PARTICLE else None,
-                           resample=options.resample if options.method == PARTICLE else None)
+                           particles=options.particles if options.method in STOCHASTIC else None,
+                           resample=options.resample if options.method == "particle" else None,
+                           inflation=options.inflation if options.method == "enkf" else None)
     return build_result(model, frames, theta, problem, best, optima, settings, scores)

@@ -22,7 +22,7 @@ from ..runtime.jit import jit, kept_key
 from ..filters import small
 from ..filters.api import compiled_filter
 from ..filters.driver import make_ahead, make_summed_filter
-from ..filters.protocol import KALMAN, LAPLACE, PARTICLE, FilterOptions
+from ..filters.protocol import KALMAN, LAPLACE, STOCHASTIC, FilterOptions
 from .criteria import GaussianPrior, log_criterion, scale_consistency, step_criterion
 from .transforms import Transform
 
@@ -189,7 +189,7 @@ def build(structure, problem: Problem) -> Programs:
         return kept_key(structure, (name, problem.key(), problem.prior_index, forward))
 
     scoring = None
-    if problem.horizon == 1 and problem.robust is None and problem.options.method not in (PARTICLE, LAPLACE):
+    if problem.horizon == 1 and problem.robust is None and problem.options.method not in (*STOCHASTIC, LAPLACE):
         scoring = jit(expected_information(structure, problem, kinds), key=kept("scoring"))
     value_and_grad = jit(forward_value_and_grad(negative), key=kept("value_and_grad"))
     derivatives = jit(hessian_rows(for_hessian, forward), key=kept("derivatives"))

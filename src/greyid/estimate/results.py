@@ -524,11 +524,15 @@ class Estimates:
 
     @property
     def residuals(self):
-        """The standardised one-step innovations per output (NaN where unobserved)."""
+        """The standardised one-step innovations per output (NaN where unobserved); for a particle fit its
+        quantile residuals (standard normal where the model is right, whatever the observations' distribution)."""
         if "residuals" not in self._cache:
             res = self.filter()
-            self._cache["residuals"] = ([r.standardized_innovations for r in res] if isinstance(res, list)
-                                        else res.standardized_innovations)
+
+            def residuals(r):  # the quantile residuals where the filter has them (the particle filter)
+                return r.standardized_innovations if r.quantile_residuals is None else r.quantile_residuals
+
+            self._cache["residuals"] = [residuals(r) for r in res] if isinstance(res, list) else residuals(res)
         return self._cache["residuals"]
 
     # -------------------------------------------------------------- saving

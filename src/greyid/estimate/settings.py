@@ -60,6 +60,8 @@ class FitSettings(Mapping):
         The particle filter's particles (None for the Gaussian filters).
     resample : float, optional
         The particle filter's resampling threshold (a fraction of the particles).
+    inflation : float, optional
+        The ensemble Kalman filter's inflation (None for the other filters).
 
     Examples
     --------
@@ -89,6 +91,7 @@ class FitSettings(Mapping):
     seed: int = 0
     particles: int | None = None
     resample: float | None = None
+    inflation: float | None = None
 
     # A mapping of the fields, so that code and users that read a fit's settings by key go on working.
     def __getitem__(self, key: str):
@@ -149,8 +152,9 @@ def filter_settings(settings: Mapping) -> dict:
         out["steady_state"] = True
     if settings.get("time_unit"):
         out["time_unit"] = settings["time_unit"]
-    if settings.get("particles") is not None:  # the particle filter's own random numbers
-        out.update(particles=settings["particles"], resample=settings["resample"], seed=settings.get("seed", 0))
+    if settings.get("particles") is not None:  # the particle and ensemble filters' own random numbers
+        out.update(particles=settings["particles"], seed=settings.get("seed", 0))
+        out.update({k: settings[k] for k in ("resample", "inflation") if settings.get(k) is not None})
     return out
 
 

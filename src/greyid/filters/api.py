@@ -24,7 +24,7 @@ from .accuracy import choose_substeps, needs_substeps
 from .driver import make_ahead, make_filter
 from .gaussian import initial_state
 from ..model.distributions import check_method, check_observed
-from .protocol import EKF, KALMAN, PARTICLE, FilterInputs, FilterOptions
+from .protocol import EKF, KALMAN, PARTICLE, STOCHASTIC, FilterInputs, FilterOptions
 from .delays import check_delays, delay_slots, with_delayed_inputs
 from .result import FilterResult, SmootherResult
 from .smoother import rts_smooth
@@ -113,7 +113,7 @@ def filter_inputs(series: Series, hold: str, on_device: bool = True) -> FilterIn
     return FilterInputs(**(jax.device_put(arrays) if on_device else arrays))
 
 
-#: Euler–Maruyama steps per sampling interval of the particle filter where ``substeps`` is not given
+#: Euler–Maruyama steps per sampling interval of the particle and ensemble filters where ``substeps`` is not given
 #: (a model that is not linear and time-invariant; such a model's transition is sampled exactly).
 PARTICLE_SUBSTEPS = 8
 
@@ -129,10 +129,10 @@ def filter_options(structure: Structure, method: str | None, **options) -> Filte
     if method is None:
         method = KALMAN if structure.is_linear else EKF
     unknown = set(options) - {"form", "substeps", "iterations", "alpha", "beta", "kappa", "steady_state",
-                              "particles", "seed", "resample", "scheme"}
+                              "particles", "seed", "resample", "scheme", "inflation"}
     if unknown:
         raise ModelError(f"unknown filter option '{sorted(unknown)[0]}'")
-    if method == PARTICLE and options.get("substeps") is None:
+    if method in STOCHASTIC and options.get("substeps") is None:
         options = dict(options, substeps=PARTICLE_SUBSTEPS)
     if options.get("scheme") == "ctsmtmb" and options.get("substeps") is None:  # one step per interval
         options = dict(options, substeps=1)
@@ -145,7 +145,7 @@ def accurate_options(structure: Structure, theta, prepared, method, **options):
 
     See [`accuracy`][greyid.filters.accuracy]; the choice is made on the log-likelihood at ``theta``.
     """
-    if (options.get("substeps") is not None or not needs_substeps(structure) or method == PARTICLE
+    if (options.get("substeps") is not None or not needs_substeps(structure) or method in STOCHASTIC
             or options.get("scheme") == "ctsmtmb"):
         return filter_options(structure, method, **options), None
     rest = {k: v for k, v in options.items() if k != "substeps"}
@@ -314,7 +314,18 @@ def _result(structure: Structure, method: str, series: Series, terms, outputs) -
         loglik_terms=pd.Series(loglik_terms, index=idx, name="loglik"),
         transitions=cut.transition,
         guarded=_guarded(method, series, np.asarray(cut.guarded) > 0),
+        quantile_residuals=_quantile_residuals(method, cut.pit, observed, idx, outs),
     )
+
+
+def _quantile_residuals(method: str, pit, observed, index, outputs) -> pd.DataFrame | None:
+    """Φ⁻¹ of the particle filter's probability integral transforms (None for the Gaussian filters)."""
+    if method != PARTICLE:
+        return None
+    from scipy.stats import norm
+
+    u = np.clip(np.asarray(pit), 1e-300, 1 - 1e-16)
+    return pd.DataFrame(np.where(observed, norm.ppf(u), np.nan), index=index, columns=outputs)
 
 
 def _guarded(method: str, series: Series, guarded: np.ndarray) -> pd.Series:

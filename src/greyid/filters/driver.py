@@ -23,10 +23,10 @@ from ..runtime.jit import jit
 from ..errors import ModelError
 from ..model.structure import Structure
 from ..model.distributions import check_method
-from . import extended, kalman, laplace, particle, second_order, unscented
+from . import ensemble, extended, kalman, laplace, particle, second_order, unscented
 from . import steady as steady_form
-from .protocol import (EKF, EKF2, GAUSSIAN2, IEKF, KALMAN, LAPLACE, PARTICLE, TRUNCATED2, UKF, Family,
-                       FilterInputs, FilterOptions, FilterSteps)
+from .protocol import (EKF, EKF2, ENKF, GAUSSIAN2, IEKF, KALMAN, LAPLACE, PARTICLE, STOCHASTIC, TRUNCATED2, UKF,
+                       Family, FilterInputs, FilterOptions, FilterSteps)
 from .updates import DensityTerms, GaussianState, StepTerms, to_matrix
 
 #: The module that prepares each method's steps: ``prepare(structure, options)(theta, data) -> FilterSteps``.
@@ -39,6 +39,7 @@ FAMILIES: dict[str, Family] = {
     GAUSSIAN2: second_order.prepare,
     UKF: unscented.prepare,
     PARTICLE: particle.prepare,
+    ENKF: ensemble.prepare,
 }
 #: Methods that give the log-likelihood of a series as a whole (a marginal), not row by row:
 #: ``prepare(structure, options)(theta, data) -> (log-likelihood, what the method found)``.
@@ -94,6 +95,7 @@ class StepOutput(NamedTuple):
     innovation_cov: jnp.ndarray
     transition: jnp.ndarray
     guarded: jnp.ndarray  # 1 where a moment update's covariance was guarded (see predictors.moment_update)
+    pit: jnp.ndarray  # each output's probability integral transform (the particle filter's; 0.5 for the others)
 
 
 def make_filter(structure: Structure, options: FilterOptions, keep_outputs: bool | str):
@@ -119,7 +121,8 @@ def make_filter(structure: Structure, options: FilterOptions, keep_outputs: bool
         elif keep_outputs:
             out = StepOutput(*state_moments(predicted, form), *state_moments(upd.state, form), y_pred,
                              upd.innovation, upd.innovation_covariance, transition,
-                             jnp.broadcast_to(jnp.asarray(upd.guarded, jnp.float64), upd.innovation.shape[:-1]))
+                             jnp.broadcast_to(jnp.asarray(upd.guarded, jnp.float64), upd.innovation.shape[:-1]),
+                             jnp.full(upd.innovation.shape, 0.5) if getattr(upd, "pit", None) is None else upd.pit)
         return upd.terms, out
 
     def run(theta, data: FilterInputs):
@@ -148,9 +151,10 @@ def make_summed_filter(structure: Structure, options: FilterOptions, per_step: C
 
 
 def make_replicated_filter(structure: Structure, options: FilterOptions, replicates: int):
-    """A jitted ``run(theta, data) -> (replicates,)`` log-likelihoods of a particle filter run with
-    independent random numbers (keys split from the seed's), vectorised: the spread of the estimate."""
-    if options.method != PARTICLE:
+    """A jitted ``run(theta, data) -> (replicates,)`` log-likelihoods of a particle (or ensemble Kalman)
+    filter run with independent random numbers (keys split from the seed's), vectorised: the spread of the
+    estimate."""
+    if options.method not in STOCHASTIC:
         raise ModelError(f"replicates are runs of a particle filter with other random numbers; '{options.method}' "
                          "has no random numbers")
     build = filter_steps(structure, options)
@@ -160,7 +164,7 @@ def make_replicated_filter(structure: Structure, options: FilterOptions, replica
 
         def one(key):
             return scan_rows(build(theta, data, key=key), data.t.shape[0], None,
-                             accumulate=lambda terms: terms.loglik)
+                             accumulate=lambda terms: jnp.sum(terms.loglik))
 
         return jax.vmap(one)(keys)
 

@@ -25,7 +25,7 @@ which particles the resampling picks.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 from .. import runtime  # noqa: F401  (64-bit JAX and greyid's cache folder before any JAX work)
 import jax
@@ -34,7 +34,7 @@ import numpy as np
 from jax.scipy.special import logsumexp
 
 from ..errors import ModelError
-from ..model.distributions import NORMAL, moments, observations_log_density
+from ..model.distributions import NORMAL, moments, observations_log_density, probability_integral_transform
 from ..model.structure import Structure
 from . import small
 from .discretize import discretize_each
@@ -44,7 +44,7 @@ from .updates import DensityTerms
 
 #: Random numbers for the initial particles, the rows' predictions and their resampling are drawn
 #: from keys folded from the seed's with these tags.
-_START, _PREDICT, _RESAMPLE = 0, 1, 2
+_START, _PREDICT, _RESAMPLE, _PIT = 0, 1, 2, 4
 #: The most standard normal numbers drawn before the scan (64 MB); a longer series draws each row's in its step.
 PREDRAWN = 2**23
 
@@ -73,6 +73,9 @@ class ParticleUpdate(NamedTuple):
     innovation: jnp.ndarray
     innovation_covariance: jnp.ndarray
     guarded: float = 0.0
+    #: Each output's probability integral transform under the predicted particles (randomized for counts):
+    #: uniform on (0, 1) where the model is right; 0.5 where unobserved.
+    pit: jnp.ndarray | None = None
 
 
 def systematic_indices(uniform, log_weights):
@@ -107,18 +110,79 @@ def check_structure(structure: Structure) -> None:
         raise ModelError("the particle filter takes independent observation noise only (no observation covariance)")
 
 
+class SampledDynamics(NamedTuple):
+    """Members (particles, an ensemble) moved by the model's dynamics with fixed random numbers: the
+    members at t₀, ``advance(x, row, step)`` over row ``step``'s interval, and one uniform number per row."""
+
+    initial: jnp.ndarray
+    advance: Callable
+    uniforms: jnp.ndarray
+
+
+def sampled_dynamics(structure: Structure, options: FilterOptions, theta, data: FilterInputs, base,
+                     members: int) -> SampledDynamics:
+    """x(t₀) ~ N(x0, P0) and the transitions of the module doc, for ``members`` members, random numbers
+    from the key ``base``."""
+    n, substeps = structure.n_states, options.substeps
+    f, G = structure.drift, structure.diffusion
+    exact = structure.linear_dynamics is not None
+    x0, P0 = initial_state(structure, theta, data)
+    root = small.cholesky(0.5 * (P0 + P0.T))
+    initial = x0 + jax.random.normal(jax.random.fold_in(base, _START), (members, n)) @ root.T
+    if exact:  # one discretization per distinct interval, as the exact Kalman filter
+        A, B, c = structure.linear_dynamics(theta)
+        g = G(np.zeros(n), data.u_cur[0], data.t[0], theta)
+        cache = discretize_each(A, g @ g.T, data.unique_dt)
+        roots = jax.vmap(lambda L: small.cholesky(0.5 * (L + L.T)))(cache.noise_covariance)
+
+    # Every row's random numbers drawn at once where they fit in PREDRAWN numbers (one call of the
+    # generator costs a third less than one per row, benchmarks/particle.py); else row by row.
+    rows = data.t.shape[0]
+    per_row = (members, n) if exact else (substeps, members, len(structure.noise_names))
+    predrawn = rows * int(np.prod(per_row)) <= PREDRAWN
+    predict_key = jax.random.fold_in(base, _PREDICT)
+    normals = jax.random.normal(predict_key, (rows, *per_row)) if predrawn else None
+    uniforms = jax.random.uniform(jax.random.fold_in(base, _RESAMPLE), (rows,))
+
+    def normals_at(step):
+        if predrawn:
+            return normals[step]
+        return jax.random.normal(jax.random.fold_in(predict_key, step), per_row)
+
+    def euler_maruyama(x, row: Row, noise):
+        step = row.dt / substeps
+        du = (row.u_cur - row.u_prev) * data.foh
+
+        def one(j, x):
+            t = row.t_prev + j * step
+            u = row.u_prev + du * (j / substeps)
+            drift = jax.vmap(lambda xi: f(xi, u, t, theta))(x)
+            diffusion = jax.vmap(lambda xi: G(xi, u, t, theta))(x)
+            return x + drift * step + jnp.einsum("pij,pj->pi", diffusion, noise[j]) * jnp.sqrt(step)
+
+        return jax.lax.fori_loop(0, substeps, one, x)
+
+    def advance(x, row: Row, step):
+        if not exact:
+            return euler_maruyama(x, row, normals_at(step))
+        disc = jax.tree_util.tree_map(lambda a: a[row.dt_index], cache)
+        b_prev, b_cur = B @ row.u_prev + c, B @ row.u_cur + c
+        mean = x @ disc.transition.T + disc.input_gain @ b_prev + data.foh * (disc.ramp_gain @ (b_cur - b_prev))
+        return mean + normals_at(step) @ roots[row.dt_index].T
+
+    return SampledDynamics(initial, advance, uniforms)
+
+
 def prepare(structure: Structure, options: FilterOptions):
     """``steps(theta, data, key=None) -> FilterSteps`` of the bootstrap particle filter (``method="particle"``);
     ``key`` replaces the seed's random numbers (independent replicates)."""
     check_structure(structure)
-    n_particles, threshold, substeps = options.particles, options.resample, options.substeps
+    n_particles, threshold = options.particles, options.resample
     n = structure.n_states
     families = structure.distributions or (NORMAL,) * len(structure.output_names)
-    f, G, h = structure.drift, structure.diffusion, structure.observation
+    h = structure.observation
     variance_of, shape_of = structure.observation_variance, structure.observation_shape
-    exact = structure.linear_dynamics is not None
     seed = options.seed
-    zeros = np.zeros(n)
 
     def observation_terms(x, u, t, theta):
         """m, S and a of every output at one particle."""
@@ -128,56 +192,14 @@ def prepare(structure: Structure, options: FilterOptions):
     def steps(theta, data: FilterInputs, key=None) -> FilterSteps:
         base = jax.random.PRNGKey(seed) if key is None else key
         series = series_rows(structure, theta, data)
-        data = series.data
-        x0, P0 = initial_state(structure, theta, data)
-        root = small.cholesky(0.5 * (P0 + P0.T))
-        draws = jax.random.normal(jax.random.fold_in(base, _START), (n_particles, n))
-        initial = ParticleState(x0 + draws @ root.T, jnp.full(n_particles, -jnp.log(n_particles)),
+        dynamics = sampled_dynamics(structure, options, theta, series.data, base, n_particles)
+        initial = ParticleState(dynamics.initial, jnp.full(n_particles, -jnp.log(n_particles)),
                                 jnp.zeros((), jnp.int32))
-        if exact:  # one discretization per distinct interval, as the exact Kalman filter
-            A, B, c = structure.linear_dynamics(theta)
-            g = G(zeros, data.u_cur[0], data.t[0], theta)
-            cache = discretize_each(A, g @ g.T, data.unique_dt)
-            roots = jax.vmap(lambda L: small.cholesky(0.5 * (L + L.T)))(cache.noise_covariance)
-
-        # Every row's random numbers drawn at once where they fit in PREDRAWN numbers (one call of the
-        # generator costs a third less than one per row, benchmarks/particle.py); else row by row.
-        rows = data.t.shape[0]
-        per_row = (n_particles, n) if exact else (substeps, n_particles, len(structure.noise_names))
-        predrawn = rows * int(np.prod(per_row)) <= PREDRAWN
-        predict_key = jax.random.fold_in(base, _PREDICT)
-        normals = jax.random.normal(predict_key, (rows, *per_row)) if predrawn else None
-        uniforms = jax.random.uniform(jax.random.fold_in(base, _RESAMPLE), (rows,))
-
-        def normals_at(step):
-            if predrawn:
-                return normals[step]
-            return jax.random.normal(jax.random.fold_in(predict_key, step), per_row)
+        uniforms = dynamics.uniforms
+        pit_uniforms = jax.random.uniform(jax.random.fold_in(base, _PIT), (data.t.shape[0], len(families)))
 
         def predict(state: ParticleState, row: Row):
-            x = state.particles
-            if exact:
-                disc = jax.tree_util.tree_map(lambda a: a[row.dt_index], cache)
-                b_prev, b_cur = B @ row.u_prev + c, B @ row.u_cur + c
-                mean = (x @ disc.transition.T + disc.input_gain @ b_prev
-                        + data.foh * (disc.ramp_gain @ (b_cur - b_prev)))
-                moved = mean + normals_at(state.step) @ roots[row.dt_index].T
-            else:
-                moved = euler_maruyama(x, row, theta, normals_at(state.step))
-            return state._replace(particles=moved), jnp.eye(n)
-
-        def euler_maruyama(x, row: Row, theta, noise):
-            step = row.dt / substeps
-            du = (row.u_cur - row.u_prev) * data.foh
-
-            def one(j, x):
-                t = row.t_prev + j * step
-                u = row.u_prev + du * (j / substeps)
-                drift = jax.vmap(lambda xi: f(xi, u, t, theta))(x)
-                diffusion = jax.vmap(lambda xi: G(xi, u, t, theta))(x)
-                return x + drift * step + jnp.einsum("pij,pj->pi", diffusion, noise[j]) * jnp.sqrt(step)
-
-            return jax.lax.fori_loop(0, substeps, one, x)
+            return state._replace(particles=dynamics.advance(state.particles, row, state.step)), jnp.eye(n)
 
         def update(state: ParticleState, row: Row, mask=None):
             mask = row.mask if mask is None else mask
@@ -198,7 +220,12 @@ def prepare(structure: Structure, options: FilterOptions):
             R = (spread * w[:, None]).T @ spread + jnp.diag(w @ var_y)
             innovation = jnp.where(mask > 0, row.y - y_pred, 0.0)
             terms = DensityTerms(increment, jnp.sum(mask))
-            return ParticleUpdate(carried, terms, innovation, R), y_pred
+            transformed = jnp.stack([
+                w @ probability_integral_transform(fam, row.y[j], m[:, j], S[:, j], a[:, j],
+                                                   pit_uniforms[state.step, j])
+                for j, fam in enumerate(families)])
+            pit = jnp.where(mask > 0, transformed, 0.5)
+            return ParticleUpdate(carried, terms, innovation, R, pit=pit), y_pred
 
         return FilterSteps(initial, series.rows, predict, update)
 

@@ -38,10 +38,14 @@ TRUNCATED2, GAUSSIAN2 = "truncated2", "gaussian2"
 SECOND_ORDER = (TRUNCATED2, GAUSSIAN2)
 #: The bootstrap particle filter ([`particle`][greyid.filters.particle]).
 PARTICLE = "particle"
+#: The stochastic ensemble Kalman filter ([`ensemble`][greyid.filters.ensemble]).
+ENKF = "enkf"
 #: The Laplace method over the states on a time grid ([`laplace`][greyid.filters.laplace]).
 LAPLACE = "laplace"
 GAUSSIAN_METHODS = (KALMAN, EKF, IEKF, UKF, EKF2, TRUNCATED2, GAUSSIAN2)
-METHODS = (*GAUSSIAN_METHODS, PARTICLE, LAPLACE)
+METHODS = (*GAUSSIAN_METHODS, ENKF, PARTICLE, LAPLACE)
+#: Methods whose random numbers ``seed`` fixes.
+STOCHASTIC = (ENKF, PARTICLE)
 #: The Laplace method's transitions: "auto" (exact for linear time-invariant dynamics, else Euler–Maruyama),
 #: "euler" (Euler–Maruyama always) or "ctsmtmb" (ctsmTMB's: Euler–Maruyama with G Gᵀ + 10⁻⁸ I, inputs
 #: interpolated linearly, one step per interval unless given).
@@ -68,11 +72,13 @@ class FilterOptions:
     #: over series or parameter vectors (fleets, populations, a fit's starts) would run both forms
     #: for every member and do not take it.
     steady_state: bool = False
-    #: The particle filter's number of particles, the seed of its random numbers, and the fraction of the
-    #: particles below which the effective sample size makes it resample.
+    #: The particle filter's number of particles (the ensemble Kalman filter's members), the seed of
+    #: their random numbers, the fraction of the particles below which the effective sample size
+    #: makes the particle filter resample, and the ensemble's inflation of its predicted spread.
     particles: int = 1000
     seed: int = 0
     resample: float = 0.5
+    inflation: float = 1.0
     scheme: str = "auto"
 
     def __post_init__(self):
@@ -90,6 +96,8 @@ class FilterOptions:
             raise ModelError(f"seed must be a non-negative integer, got {self.seed!r}")
         if not (isinstance(self.resample, (int, float)) and 0 < self.resample <= 1):
             raise ModelError(f"resample must be a fraction in (0, 1] of the particles, got {self.resample!r}")
+        if not (isinstance(self.inflation, (int, float)) and self.inflation >= 1):
+            raise ModelError(f"inflation must be a number of at least 1, got {self.inflation!r}")
         if self.scheme not in SCHEMES:
             raise ModelError(f"unknown scheme '{self.scheme}'; use one of {list(SCHEMES)}")
         if not isinstance(self.steady_state, (bool, np.bool_)):

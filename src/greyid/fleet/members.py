@@ -192,7 +192,7 @@ def _result(model, structure, problem, args, member, best, optima, labels, s, ro
             best = estimation.search_delays(structure, member["parameters"], member["prepared"], best, optima,
                                             labels, lambda z: optimize(problem, z))
         if (filter_settings.get("substeps") is None and needs_substeps(structure)
-                and problem.options.method != "particle" and problem.options.scheme != "ctsmtmb"):
+                and problem.options.method not in ("particle", "enkf") and problem.options.scheme != "ctsmtmb"):
             problem, best, substep_choice = estimation._accurate_substeps(structure, problem, best, args, datasets,
                                                                           optimize)
     call = dict(time=s["time"], hold=s["hold"], criterion=s["criterion"], robust=robust, horizon=int(s["horizon"]),

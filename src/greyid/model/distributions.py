@@ -235,6 +235,45 @@ def sample(family: str, key, m, variance, shape):
     raise ModelError(f"unknown observation distribution '{family}'")
 
 
+def cdf(family: str, y, m, variance, shape):
+    """P(Y ≤ y | m, S, a) of one output (for counts, of the whole number y; 0 below 0)."""
+    from jax.scipy.special import betainc, gammaincc
+    from jax.scipy.stats import norm
+
+    if family == NORMAL:
+        return norm.cdf((y - m) / jnp.sqrt(variance))
+    if family == STUDENT_T:
+        nu = _positive(shape)
+        t = (y - m) / jnp.sqrt(variance)
+        tail = 0.5 * betainc(nu / 2, 0.5, nu / (nu + t**2))
+        return jnp.where(t > 0, 1 - tail, tail)
+    if family == LOGNORMAL:
+        return jnp.where(y > 0, norm.cdf((jnp.log(_positive(y)) - jnp.log(_positive(m))) / jnp.sqrt(variance)), 0.0)
+    k = jnp.floor(y)
+    safe_k = jnp.maximum(k, 0.0)
+    if family == POISSON:
+        value = gammaincc(safe_k + 1, _positive(m))
+        return jnp.where(k < 0, 0.0, jnp.where(m > 0, value, 1.0))
+    if family == NEGATIVE_BINOMIAL:
+        r = _positive(shape)
+        return jnp.where(k < 0, 0.0, betainc(r, safe_k + 1, r / (r + _positive(m))))
+    if family == BINOMIAL:
+        n = shape
+        p = jnp.clip(m, 0.0, 1.0)
+        inside = betainc(jnp.maximum(n - safe_k, 1e-300), safe_k + 1, 1 - p)
+        return jnp.where(k < 0, 0.0, jnp.where(k >= n, 1.0, inside))
+    raise ModelError(f"unknown observation distribution '{family}'")
+
+
+def probability_integral_transform(family: str, y, m, variance, shape, uniform):
+    """u = P(Y < y) + V·P(Y = y) (V the ``uniform`` number) for counts, P(Y ≤ y) otherwise: uniform on (0, 1)
+    when y comes from the distribution (randomized for counts, Dunn & Smyth 1996)."""
+    upper = cdf(family, y, m, variance, shape)
+    if family not in COUNTS:
+        return upper
+    return cdf(family, y - 1, m, variance, shape) * (1 - uniform) + upper * uniform
+
+
 def observations_log_density(families, y, mask, m, variance, shape):
     """Σ_i mask_i · log p(y_i | m_i, S_i, a_i) over one row's outputs (unobserved ones add nothing)."""
     total = 0.0
@@ -244,5 +283,6 @@ def observations_log_density(families, y, mask, m, variance, shape):
     return total
 
 
-__all__ = ["Distribution", "distribution_of", "log_density", "moments", "sample", "check_method", "check_observed",
+__all__ = ["Distribution", "distribution_of", "log_density", "moments", "sample", "cdf",
+           "probability_integral_transform", "check_method", "check_observed",
            "observations_log_density", "SHAPES", "NON_GAUSSIAN_METHODS"]
