@@ -128,3 +128,15 @@ def test_the_laplace_method_refuses_what_it_cannot_do():
         m.filter(PARAMS, data, method="laplace")
     with pytest.raises(ModelError, match="unknown scheme 'rk4'"):
         m.loglik(PARAMS, data, method="laplace", scheme="rk4")
+
+
+def test_a_fleet_of_count_series_fits_by_the_laplace_method_as_each_alone():
+    m = poisson_model()
+    data = [poisson_data(150, seed=seed) for seed in range(3)]
+    fleet = greyid.fit_many(m, data, method="laplace")
+    assert fleet.table["converged"].all()
+    for name, frame in zip(fleet.table.index, data):
+        alone = m.fit(frame, method="laplace")
+        assert fleet.table.loc[name, "loglik"] == pytest.approx(alone.loglik, abs=1e-6)
+        for p in ("a", "mu", "s"):
+            assert fleet.table.loc[name, p] == pytest.approx(alone.values[p], rel=1e-4)

@@ -50,8 +50,10 @@ NEWTON_STEPS = 50
 NEWTON_TOLERANCE = 1e-10
 #: ctsmTMB's jitter of G Gᵀ in its Laplace method.
 CTSMTMB_JITTER = 1e-8
-#: Step lengths tried along each Newton direction; the best is taken (a damped Newton method).
-STEP_LENGTHS = (1.0, 0.5, 0.25, 0.125, 0.0625)
+#: The shortest step along a Newton direction tried before the search stops, and the smallest curvature
+#: a gradient step is scaled by.
+MIN_STEP_LENGTH = 2.0**-20
+MIN_CURVATURE = 1e-12
 
 
 class Grid(NamedTuple):
@@ -227,16 +229,31 @@ def prepare(structure: Structure, options: FilterOptions):
         gradient = jax.grad(joint)
 
         def improve(carry):
-            X, _, count, _ = carry
+            X, value, count, _ = carry
+            g = gradient(X, theta, data)
             diagonal, lower = blocks(X, theta, data)
             factor, couplings = block_cholesky(diagonal, lower)
-            direction = block_solve(factor, couplings, gradient(X, theta, data))
-            values = jnp.stack([joint(X + a * direction, theta, data) for a in STEP_LENGTHS])
-            values = jnp.where(jnp.isfinite(values), values, -jnp.inf)
-            best = jnp.argmax(values)
-            step = jnp.asarray(STEP_LENGTHS)[best] * direction
+            newton_direction = block_solve(factor, couplings, g)
+            # Far from the mode of a density that is not log-concave (a diffusion that depends on the
+            # state), −H may not be positive definite and its factor fails: a gradient step scaled by
+            # the diagonal's size instead.
+            scale = jnp.maximum(jnp.abs(jnp.diagonal(diagonal, axis1=1, axis2=2)), MIN_CURVATURE)
+            direction = jnp.where(jnp.all(jnp.isfinite(newton_direction)), newton_direction, g / scale)
+
+            def shorter(search):
+                length, _ = search
+                return length / 2, joint(X + (length / 2) * direction, theta, data)
+
+            def worse(search):
+                length, trial = search
+                return ~(trial > value) & (length > MIN_STEP_LENGTH)
+
+            # The longest of 1, 1/2, 1/4, ... that increases J (a damped Newton method).
+            length, trial = jax.lax.while_loop(worse, shorter, (1.0, joint(X + direction, theta, data)))
+            taken = trial > value
+            step = jnp.where(taken, length, 0.0) * direction
             size = jnp.max(jnp.abs(step)) / (1.0 + jnp.max(jnp.abs(X)))
-            return X + step, values[best], count + 1, size
+            return X + step, jnp.where(taken, trial, value), count + 1, size
 
         def going(carry):
             _, _, count, size = carry
@@ -248,7 +265,8 @@ def prepare(structure: Structure, options: FilterOptions):
         # value (whose log-determinant moves to first order with the mode) is smooth in θ.
         diagonal, lower = blocks(X, theta, data)
         factor, couplings = block_cholesky(diagonal, lower)
-        return X + block_solve(factor, couplings, gradient(X, theta, data))
+        last = X + block_solve(factor, couplings, gradient(X, theta, data))
+        return jnp.where(jnp.all(jnp.isfinite(last)), last, X)
 
     @jax.custom_jvp
     def mode(theta, data):
