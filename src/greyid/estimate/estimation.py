@@ -19,10 +19,10 @@ import numpy as np
 
 from ..data.prepare import as_frames
 from ..errors import DataError, ModelError
-from ..filters.accuracy import LOGLIK_TOLERANCE, MAX_SUBSTEPS, SubstepChoice, needs_substeps
+from ..filters.accuracy import LOGLIK_TOLERANCE, MAX_SUBSTEPS, SubstepChoice, chooses_substeps
 from ..filters.api import check_at_parameters, check_equations_finite, filter_options, prepare_datasets
 from ..filters.kalman import takes_steady_state
-from ..filters.protocol import LAPLACE, STOCHASTIC
+from ..filters.protocol import ENKF, PARTICLE, STOCHASTIC
 from ..model.delays import delay_parameters
 from ..model.options import DATA_KEYS, ESTIMATION_KEYS, FILTER_KEYS
 from ..progress import FitProgress
@@ -217,8 +217,7 @@ def uses_quasi_start(optimizer: str, scoring: bool) -> bool:
 def new_search(problem: Problem, z0, maxiter: int, report, scoring: bool, handover: float | None = None) -> Search:
     """A [`Search`][greyid.estimate.trust_region.Search] from ``z0`` with this problem's settings (scoring if asked and
     possible)."""
-    scoring = (scoring and problem.horizon == 1 and problem.robust is None
-               and problem.options.method not in (*STOCHASTIC, LAPLACE))
+    scoring = scoring and objective.takes_scoring(problem)
     # On long series an exact Hessian costs dozens of scoring steps, and the
     # scoring matrix is close to it near the optimum: Newton only to finish.
     if handover is None:
@@ -504,8 +503,8 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
             best = search_delays(structure, parameters, prepared, best, optima, labels,
                                  lambda z: optimize(problem, z, len(optima)))
         substep_choice = None
-        if (filter_settings.get("substeps") is None and needs_substeps(structure)
-                and problem.options.method not in STOCHASTIC and problem.options.scheme != "ctsmtmb"):
+        if filter_settings.get("substeps") is None and chooses_substeps(structure, problem.options.method,
+                                                                        problem.options.scheme):
             problem, best, substep_choice = _accurate_substeps(structure, problem, best, args, datasets,
                                                                lambda p, z: optimize(p, z, len(optima)))
     call = dict(time=time, hold=hold, criterion=criterion, robust=robust, horizon=int(horizon), starts=starts,
@@ -534,6 +533,6 @@ def finish(model, frames, problem: Problem, best, optima, args, datasets, theta0
                            substeps_accurate=None if substep_choice is None else substep_choice.accurate,
                            start_labels=tuple(labels),
                            particles=options.particles if options.method in STOCHASTIC else None,
-                           resample=options.resample if options.method == "particle" else None,
-                           inflation=options.inflation if options.method == "enkf" else None)
+                           resample=options.resample if options.method == PARTICLE else None,
+                           inflation=options.inflation if options.method == ENKF else None)
     return build_result(model, frames, theta, problem, best, optima, settings, scores)

@@ -189,7 +189,7 @@ def build(structure, problem: Problem) -> Programs:
         return kept_key(structure, (name, problem.key(), problem.prior_index, forward))
 
     scoring = None
-    if problem.horizon == 1 and problem.robust is None and problem.options.method not in (*STOCHASTIC, LAPLACE):
+    if takes_scoring(problem):
         scoring = jit(expected_information(structure, problem, kinds), key=kept("scoring"))
     value_and_grad = jit(forward_value_and_grad(negative), key=kept("value_and_grad"))
     derivatives = jit(hessian_rows(for_hessian, forward), key=kept("derivatives"))
@@ -269,6 +269,13 @@ def expected_information(structure, problem: Problem, kinds):
         return value, slopes, jnp.concatenate(whitened, axis=1), prior
 
     return scoring
+
+
+def takes_scoring(problem: Problem) -> bool:
+    """Whether Fisher scoring applies: the one-step Gaussian likelihood (ML or MAP) of a deterministic
+    filter's innovations (not a robust or k-step criterion, not the particle or ensemble filters' random
+    numbers, not the Laplace method's marginal)."""
+    return problem.horizon == 1 and problem.robust is None and problem.options.method not in (*STOCHASTIC, LAPLACE)
 
 
 def forward_hessian(method: str, n_parameters: int) -> bool:

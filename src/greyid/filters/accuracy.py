@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 from ..model.structure import LTI
+from .protocol import STOCHASTIC
 
 #: Largest number of sub-steps the automatic choice tries.
 MAX_SUBSTEPS = 64
@@ -30,6 +31,14 @@ LOGLIK_TOLERANCE = 0.01
 def needs_substeps(structure) -> bool:
     """Whether sub-steps change the filter at all (everything but time-invariant linear models)."""
     return structure.kind != LTI
+
+
+def chooses_substeps(structure, method: str | None, scheme: str | None = None) -> bool:
+    """Whether step doubling chooses the sub-steps where none are given: wherever they change the filter,
+    except for the particle and ensemble filters (whose Monte Carlo noise would swamp the comparison; they
+    take a fixed number, ``filters.api.PARTICLE_SUBSTEPS``) and ctsmTMB's Laplace convention (one step
+    per interval)."""
+    return needs_substeps(structure) and method not in STOCHASTIC and scheme != "ctsmtmb"
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ from ..runtime.jit import structure_program
 from ..data.prepare import Series, as_frames, prepare_series
 from ..errors import DataError, FilterWarning, ModelError, warn
 from ..model.structure import Structure
-from .accuracy import choose_substeps, needs_substeps
+from .accuracy import choose_substeps, chooses_substeps
 from .driver import make_ahead, make_filter
 from .gaussian import initial_state
 from ..model.distributions import check_method, check_observed
@@ -145,8 +145,7 @@ def accurate_options(structure: Structure, theta, prepared, method, **options):
 
     See [`accuracy`][greyid.filters.accuracy]; the choice is made on the log-likelihood at ``theta``.
     """
-    if (options.get("substeps") is not None or not needs_substeps(structure) or method in STOCHASTIC
-            or options.get("scheme") == "ctsmtmb"):
+    if options.get("substeps") is not None or not chooses_substeps(structure, method, options.get("scheme")):
         return filter_options(structure, method, **options), None
     rest = {k: v for k, v in options.items() if k != "substeps"}
     theta = jnp.asarray(theta)

@@ -164,7 +164,7 @@ def make_replicated_filter(structure: Structure, options: FilterOptions, replica
 
         def one(key):
             return scan_rows(build(theta, data, key=key), data.t.shape[0], None,
-                             accumulate=lambda terms: jnp.sum(terms.loglik))
+                             accumulate=lambda terms: terms.loglik)
 
         return jax.vmap(one)(keys)
 

@@ -29,7 +29,7 @@ from ..errors import ModelError
 from ..model.structure import Structure
 from . import small
 from .particle import sampled_dynamics
-from .protocol import FilterInputs, FilterOptions, FilterSteps, Row, series_rows
+from .protocol import FilterInputs, FilterOptions, FilterSteps, Row, refuse_unsupported, series_rows
 from .updates import StepTerms
 
 #: The observations' perturbations are drawn from the seed's key folded with this tag and the row's number.
@@ -59,17 +59,9 @@ class EnsembleUpdate(NamedTuple):
     guarded: float = 0.0
 
 
-def check_structure(structure: Structure) -> None:
-    if structure.delays:
-        raise ModelError("the ensemble Kalman filter does not take delay() inputs yet; use another filter")
-    if structure.observation_covariance is not None:
-        raise ModelError("the ensemble Kalman filter takes independent observation noise only "
-                         "(no observation covariance)")
-
-
 def prepare(structure: Structure, options: FilterOptions):
     """``steps(theta, data, key=None) -> FilterSteps`` of the stochastic ensemble Kalman filter."""
-    check_structure(structure)
+    refuse_unsupported(structure, "the ensemble Kalman filter")
     size, inflation, seed = options.particles, options.inflation, options.seed
     if size < 2:
         raise ModelError(f"an ensemble needs at least 2 members, got particles={size}")

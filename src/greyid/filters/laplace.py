@@ -30,20 +30,19 @@ samples.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 from .. import runtime  # noqa: F401  (64-bit JAX and greyid's cache folder before any JAX work)
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import ModelError
-from ..model.distributions import NORMAL, observations_log_density
+from ..model.distributions import observations_log_density
 from ..model.structure import Structure
 from . import small
 from .discretize import discretize_each
 from .gaussian import initial_state
-from .protocol import FilterInputs, FilterOptions, series_rows
+from .protocol import FilterInputs, FilterOptions, refuse_unsupported, series_rows
 
 #: Newton steps at most, and the largest step (relative to the states' size) that ends the search.
 NEWTON_STEPS = 50
@@ -66,11 +65,17 @@ class Grid(NamedTuple):
     interval: jnp.ndarray  # (T,) the step's sampling interval among the data's distinct ones
 
 
-def check_structure(structure: Structure) -> None:
-    if structure.delays:
-        raise ModelError("the Laplace method does not take delay() inputs yet; use a Gaussian filter")
-    if structure.observation_covariance is not None:
-        raise ModelError("the Laplace method takes independent observation noise only (no observation covariance)")
+class Terms(NamedTuple):
+    """The joint log-density's pieces at one θ: the grid, the transition's, observations' and initial
+    state's log-densities, the rows they read, x0 and the drift (where Newton starts)."""
+
+    grid: Grid
+    transition: Callable
+    observed: Callable
+    prior: Callable
+    rows: tuple
+    x0: jnp.ndarray
+    drift: Callable
 
 
 def fine_grid(data: FilterInputs, substeps: int, linear_inputs: bool) -> Grid:
@@ -138,17 +143,22 @@ def block_matvec(diagonal, lower, x):
 
 def prepare(structure: Structure, options: FilterOptions):
     """``marginal(theta, data) -> (log-likelihood, mode)`` of the Laplace method (see the module doc)."""
-    check_structure(structure)
+    refuse_unsupported(structure, "the Laplace method")
     n, s = structure.n_states, options.substeps
-    families = structure.distributions or (NORMAL,) * len(structure.output_names)
-    f, G, h = structure.drift, structure.diffusion, structure.observation
-    variance_of, shape_of = structure.observation_variance, structure.observation_shape
+    families = structure.output_families
+    f, G = structure.drift, structure.diffusion
     ctsmtmb = options.scheme == "ctsmtmb"
     exact = structure.linear_dynamics is not None and options.scheme == "auto"
     zeros = np.zeros(n)
 
-    def pieces(theta, data: FilterInputs):
-        """The functions of the joint log-density's terms at θ, and the grid."""
+    def gaussian(root, residual):
+        """log N(residual; 0, root rootᵀ)."""
+        z = small.solve_lower(root, residual)
+        return -0.5 * (z @ z) - jnp.sum(jnp.log(jnp.diag(root))) - 0.5 * n * jnp.log(2 * jnp.pi)
+
+    def pieces(theta, data: FilterInputs) -> Terms:
+        """The joint log-density's terms at θ, on the grid of ``data``: computed once per θ, outside the
+        Newton loop that evaluates them many times."""
         data = series_rows(structure, theta, data).data
         grid = fine_grid(data, s, linear_inputs=ctsmtmb)
         x0, P0 = initial_state(structure, theta, data)
@@ -166,9 +176,8 @@ def prepare(structure: Structure, options: FilterOptions):
             if exact:
                 disc = jax.tree_util.tree_map(lambda a: a[interval], cache)
                 b_start, b_end = B @ u_start + c, B @ u_end + c
-                ramp = 1.0 if ctsmtmb else data.foh
                 mean = (disc.transition @ x_now + disc.input_gain @ b_start
-                        + ramp * disc.ramp_gain @ (b_end - b_start))
+                        + data.foh * disc.ramp_gain @ (b_end - b_start))
                 V = disc.noise_covariance
             else:
                 g = G(x_now, u_start, start, theta)
@@ -176,62 +185,54 @@ def prepare(structure: Structure, options: FilterOptions):
                 V = (g @ g.T + (CTSMTMB_JITTER * jnp.eye(n) if ctsmtmb else 0.0)) * length
             V = jnp.where(still, jnp.eye(n), 0.5 * (V + V.T))
             mean = jnp.where(still, x_now, mean)
-            L = small.cholesky(V)
-            z = small.solve_lower(L, x_next - mean)
-            return -0.5 * (z @ z) - jnp.sum(jnp.log(jnp.diag(L))) - 0.5 * n * jnp.log(2 * jnp.pi)
+            return gaussian(small.cholesky(V), x_next - mean)
 
         def observed(x, row):
             y, mask, u, t = row
-            m = h(x, u, t, theta)
-            S = variance_of(x, u, t, theta)
-            a = jnp.ones(len(families)) if shape_of is None else shape_of(x, u, t, theta)
-            return observations_log_density(families, y, mask, m, S, a)
+            return observations_log_density(families, y, mask, *structure.observation_law(x, u, t, theta))
 
-        def prior(x):
-            z = small.solve_lower(prior_root, x - x0)
-            return -0.5 * (z @ z) - jnp.sum(jnp.log(jnp.diag(prior_root))) - 0.5 * n * jnp.log(2 * jnp.pi)
+        def drift(x, u, t):
+            return f(x, u, t, theta)
 
-        rows = (data.y, data.mask, data.u_cur, data.t)
-        return grid, transition, observed, prior, rows, x0
+        return Terms(grid, transition, observed, lambda x: gaussian(prior_root, x - x0),
+                     (data.y, data.mask, data.u_cur, data.t), x0, drift)
 
-    def joint(X, theta, data):
-        """J(X, θ): X (T + 1, n)."""
-        grid, transition, observed, prior, rows, _ = pieces(theta, data)
+    def joint(terms: Terms, X):
+        """J(X, θ) of the terms at θ: X (T + 1, n)."""
         pairs = jnp.concatenate([X[:-1], X[1:]], axis=1)
-        at_samples = X[::s]
-        return (prior(X[0]) + jnp.sum(jax.vmap(transition)(pairs, grid))
-                + jnp.sum(jax.vmap(observed)(at_samples, rows)))
+        return (terms.prior(X[0]) + jnp.sum(jax.vmap(terms.transition)(pairs, terms.grid))
+                + jnp.sum(jax.vmap(terms.observed)(X[::s], terms.rows)))
 
-    def blocks(X, theta, data):
+    def blocks(terms: Terms, X):
         """−∂²J/∂X²: its diagonal blocks (T + 1, n, n) and those below them (T, n, n)."""
-        grid, transition, observed, prior, rows, _ = pieces(theta, data)
         pairs = jnp.concatenate([X[:-1], X[1:]], axis=1)
-        H_pairs = jax.vmap(jax.hessian(transition))(pairs, grid)  # (T, 2n, 2n)
-        H_obs = jax.vmap(jax.hessian(observed))(X[::s], rows)  # (N, n, n)
+        H_pairs = jax.vmap(jax.hessian(terms.transition))(pairs, terms.grid)  # (T, 2n, 2n)
+        H_obs = jax.vmap(jax.hessian(terms.observed))(X[::s], terms.rows)  # (N, n, n)
         diagonal = jnp.zeros((X.shape[0], n, n))
         diagonal = diagonal.at[:-1].add(H_pairs[:, :n, :n]).at[1:].add(H_pairs[:, n:, n:])
-        diagonal = diagonal.at[::s].add(H_obs).at[0].add(jax.hessian(prior)(X[0]))
+        diagonal = diagonal.at[::s].add(H_obs).at[0].add(jax.hessian(terms.prior)(X[0]))
         return -diagonal, -H_pairs[:, n:, :n]
 
-    def start(theta, data):
+    def start(terms: Terms):
         """The drift's path without noise from x0 (inputs as on the grid): where Newton starts."""
-        grid, *_, x0 = pieces(theta, data)
-
         def step(x, part):
             start, length, u_start, *_ = part
-            x = x + f(x, u_start, start, theta) * length
+            x = x + terms.drift(x, u_start, start) * length
             return x, x
 
-        _, path = jax.lax.scan(step, x0, grid)
-        return jnp.concatenate([x0[None], path])
+        _, path = jax.lax.scan(step, terms.x0, terms.grid)
+        return jnp.concatenate([terms.x0[None], path])
 
     def newton(theta, data):
-        gradient = jax.grad(joint)
+        terms = pieces(theta, data)
+
+        def gradient(X):
+            return jax.grad(joint, argnums=1)(terms, X)
 
         def improve(carry):
             X, value, count, _ = carry
-            g = gradient(X, theta, data)
-            diagonal, lower = blocks(X, theta, data)
+            g = gradient(X)
+            diagonal, lower = blocks(terms, X)
             factor, couplings = block_cholesky(diagonal, lower)
             newton_direction = block_solve(factor, couplings, g)
             # Far from the mode of a density that is not log-concave (a diffusion that depends on the
@@ -242,14 +243,14 @@ def prepare(structure: Structure, options: FilterOptions):
 
             def shorter(search):
                 length, _ = search
-                return length / 2, joint(X + (length / 2) * direction, theta, data)
+                return length / 2, joint(terms, X + (length / 2) * direction)
 
             def worse(search):
                 length, trial = search
                 return ~(trial > value) & (length > MIN_STEP_LENGTH)
 
             # The longest of 1, 1/2, 1/4, ... that increases J (a damped Newton method).
-            length, trial = jax.lax.while_loop(worse, shorter, (1.0, joint(X + direction, theta, data)))
+            length, trial = jax.lax.while_loop(worse, shorter, (1.0, joint(terms, X + direction)))
             taken = trial > value
             step = jnp.where(taken, length, 0.0) * direction
             size = jnp.max(jnp.abs(step)) / (1.0 + jnp.max(jnp.abs(X)))
@@ -259,13 +260,12 @@ def prepare(structure: Structure, options: FilterOptions):
             _, _, count, size = carry
             return (count < NEWTON_STEPS) & (size > NEWTON_TOLERANCE)
 
-        X0 = start(theta, data)
-        X, *_ = jax.lax.while_loop(going, improve, (X0, joint(X0, theta, data), 0, jnp.inf))
+        X0 = start(terms)
+        X, *_ = jax.lax.while_loop(going, improve, (X0, joint(terms, X0), 0, jnp.inf))
         # One more full step: Newton's quadratic convergence takes the mode to rounding, so that the
         # value (whose log-determinant moves to first order with the mode) is smooth in θ.
-        diagonal, lower = blocks(X, theta, data)
-        factor, couplings = block_cholesky(diagonal, lower)
-        last = X + block_solve(factor, couplings, gradient(X, theta, data))
+        factor, couplings = block_cholesky(*blocks(terms, X))
+        last = X + block_solve(factor, couplings, gradient(X))
         return jnp.where(jnp.all(jnp.isfinite(last)), last, X)
 
     @jax.custom_jvp
@@ -278,8 +278,8 @@ def prepare(structure: Structure, options: FilterOptions):
         dtheta, _ = tangents
         X = mode(theta, data)
         # ∂J/∂X (X̂(θ), θ) = 0:  H dX̂ = −∂²J/∂X∂θ dθ, with −H = A block-tridiagonal.
-        mixed = jax.jvp(lambda th: jax.grad(joint)(X, th, data), (theta,), (dtheta,))[1]
-        diagonal, lower = blocks(X, theta, data)
+        mixed = jax.jvp(lambda th: jax.grad(joint, argnums=1)(pieces(th, data), X), (theta,), (dtheta,))[1]
+        diagonal, lower = blocks(pieces(theta, data), X)
         factor, couplings = block_cholesky(diagonal, lower)
         dX = jax.lax.custom_linear_solve(lambda v: block_matvec(diagonal, lower, v), mixed,
                                          lambda _, b: block_solve(factor, couplings, b), symmetric=True)
@@ -288,10 +288,9 @@ def prepare(structure: Structure, options: FilterOptions):
     def marginal(theta, data: FilterInputs):
         """(log L(θ) by Laplace's method, the mode X̂ (T + 1, n))."""
         X = mode(theta, data)
-        diagonal, lower = blocks(X, theta, data)
-        factor, _ = block_cholesky(diagonal, lower)
+        terms = pieces(theta, data)
+        factor, _ = block_cholesky(*blocks(terms, X))
         logdet = 2 * jnp.sum(jnp.log(jnp.diagonal(factor, axis1=1, axis2=2)))
-        d = X.size
-        return joint(X, theta, data) + 0.5 * d * jnp.log(2 * jnp.pi) - 0.5 * logdet, X
+        return joint(terms, X) + 0.5 * X.size * jnp.log(2 * jnp.pi) - 0.5 * logdet, X
 
     return marginal

@@ -33,13 +33,12 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import logsumexp
 
-from ..errors import ModelError
-from ..model.distributions import NORMAL, moments, observations_log_density, probability_integral_transform
+from ..model.distributions import moments, observations_log_density, probability_integral_transform
 from ..model.structure import Structure
 from . import small
 from .discretize import discretize_each
 from .gaussian import initial_state
-from .protocol import FilterInputs, FilterOptions, FilterSteps, Row, series_rows
+from .protocol import FilterInputs, FilterOptions, FilterSteps, Row, refuse_unsupported, series_rows
 from .updates import DensityTerms
 
 #: Random numbers for the initial particles, the rows' predictions and their resampling are drawn
@@ -101,13 +100,6 @@ def resample(uniform, state: ParticleState, threshold: float) -> ParticleState:
         return ParticleState(state.particles[index], picked - jax.lax.stop_gradient(picked) - jnp.log(n), state.step)
 
     return jax.lax.cond(ess < threshold * n, resampled, lambda state: state, state)
-
-
-def check_structure(structure: Structure) -> None:
-    if structure.delays:
-        raise ModelError("the particle filter does not take delay() inputs yet; use a Gaussian filter")
-    if structure.observation_covariance is not None:
-        raise ModelError("the particle filter takes independent observation noise only (no observation covariance)")
 
 
 class SampledDynamics(NamedTuple):
@@ -176,18 +168,11 @@ def sampled_dynamics(structure: Structure, options: FilterOptions, theta, data: 
 def prepare(structure: Structure, options: FilterOptions):
     """``steps(theta, data, key=None) -> FilterSteps`` of the bootstrap particle filter (``method="particle"``);
     ``key`` replaces the seed's random numbers (independent replicates)."""
-    check_structure(structure)
+    refuse_unsupported(structure, "the particle filter")
     n_particles, threshold = options.particles, options.resample
     n = structure.n_states
-    families = structure.distributions or (NORMAL,) * len(structure.output_names)
-    h = structure.observation
-    variance_of, shape_of = structure.observation_variance, structure.observation_shape
+    families = structure.output_families
     seed = options.seed
-
-    def observation_terms(x, u, t, theta):
-        """m, S and a of every output at one particle."""
-        shape = jnp.ones(len(families)) if shape_of is None else shape_of(x, u, t, theta)
-        return h(x, u, t, theta), variance_of(x, u, t, theta), shape
 
     def steps(theta, data: FilterInputs, key=None) -> FilterSteps:
         base = jax.random.PRNGKey(seed) if key is None else key
@@ -203,7 +188,7 @@ def prepare(structure: Structure, options: FilterOptions):
 
         def update(state: ParticleState, row: Row, mask=None):
             mask = row.mask if mask is None else mask
-            m, S, a = jax.vmap(lambda xi: observation_terms(xi, row.u_cur, row.t, theta))(state.particles)
+            m, S, a = jax.vmap(lambda xi: structure.observation_law(xi, row.u_cur, row.t, theta))(state.particles)
             log_density = jax.vmap(lambda mi, si, ai: observations_log_density(families, row.y, mask, mi, si, ai))(
                 m, S, a)
             joint = state.log_weights + log_density

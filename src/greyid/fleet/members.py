@@ -14,7 +14,7 @@ import numpy as np
 from ..data.files import read_source
 from ..data.prepare import as_frames
 from ..errors import DataError, ModelError
-from ..filters.accuracy import needs_substeps
+from ..filters.accuracy import chooses_substeps
 from ..filters.api import prepare_datasets
 from ..api import FitResult
 from ..estimate import estimation, objective
@@ -191,8 +191,8 @@ def _result(model, structure, problem, args, member, best, optima, labels, s, ro
             optima, labels = list(optima), list(labels)
             best = estimation.search_delays(structure, member["parameters"], member["prepared"], best, optima,
                                             labels, lambda z: optimize(problem, z))
-        if (filter_settings.get("substeps") is None and needs_substeps(structure)
-                and problem.options.method not in ("particle", "enkf") and problem.options.scheme != "ctsmtmb"):
+        if filter_settings.get("substeps") is None and chooses_substeps(structure, problem.options.method,
+                                                                        problem.options.scheme):
             problem, best, substep_choice = estimation._accurate_substeps(structure, problem, best, args, datasets,
                                                                           optimize)
     call = dict(time=s["time"], hold=s["hold"], criterion=s["criterion"], robust=robust, horizon=int(s["horizon"]),

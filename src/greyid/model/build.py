@@ -125,8 +125,10 @@ def build_structure(model) -> Structure:
     f_mat, g_mat = sp.Matrix(drift), sp.Matrix(diffusion) if noise_names else sp.zeros(len(states), 0)
     h_mat, s_mat = sp.Matrix(observation), sp.Matrix(variance)
     kind = classify(f_mat, g_mat, h_mat, s_mat, state_syms, input_syms)
-    # Whether the dynamics alone are linear and time-invariant (the observations may not be).
-    dynamics = classify(f_mat, g_mat, sp.Matrix(state_syms[:1]), sp.Matrix([0]), state_syms, input_syms)
+    # The dynamics alone may be linear and time-invariant where the observations are not.
+    dynamics = kind if kind == LTI else classify(f_mat, g_mat, sp.Matrix(state_syms[:1]), sp.Matrix([0]),
+                                                 state_syms, input_syms)
+    linear_dynamics = linear_drift_function(f_mat, state_syms, input_syms, param_syms) if dynamics == LTI else None
     # The outputs' noise covariances where they are correlated, delays replaced as above.
     covariances = [] if correlation is None else [e.xreplace(replace) for row in correlation for e in row]
     n, m, s = len(states), len(noise_names), len(outputs)
@@ -159,10 +161,9 @@ def build_structure(model) -> Structure:
         observation_covariance=None if correlation is None else lambdify_model(covariances, *args, (s, s)),
         delays=delayed,
         constant_observation=observation_is_constant(h_mat, [*variance, *covariances], state_syms, input_syms),
-        linear_drift=linear_drift_function(f_mat, state_syms, input_syms, param_syms) if kind == LTI else None,
+        linear_drift=linear_dynamics if kind == LTI else None,
         fingerprint=fingerprint,
-        linear_dynamics=(linear_drift_function(f_mat, state_syms, input_syms, param_syms) if dynamics == LTI
-                         else None),
+        linear_dynamics=linear_dynamics,
         distributions=families if any(f != NORMAL for f in families) else (),
         observation_shape=None if all(f == NORMAL for f in families) else lambdify_model(shapes, *args, (s,)),
     )

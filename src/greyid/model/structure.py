@@ -103,6 +103,17 @@ class Structure:
     def is_linear(self) -> bool:
         return self.kind in (LTI, LTV)
 
+    @property
+    def output_families(self) -> tuple[str, ...]:
+        """Each output's distribution family ("normal" where none was declared)."""
+        return self.distributions or ("normal",) * self.n_outputs
+
+    def observation_law(self, x, u, t, theta) -> tuple:
+        """(m, S, a): each output's location h(x, u, t, θ), variance and shape parameter (1 where its family
+        has none), as the [`distributions`][greyid.model.distributions] functions take them."""
+        shape = jnp.ones(self.n_outputs) if self.observation_shape is None else self.observation_shape(x, u, t, theta)
+        return self.observation(x, u, t, theta), self.observation_variance(x, u, t, theta), shape
+
 
 def _vector_function(exprs: list[sp.Expr], args: list, shape: tuple[int, ...]) -> ModelFunction:
     """Lambdify a list of expressions into a JAX function returning ``shape``.

@@ -264,13 +264,16 @@ def _no_diffusion(m: int):
     return diffusion
 
 
+def _along_paths(fn, theta, states, u, t):
+    """``fn(x, u, t, θ)`` at every path's state of every row (paths, N, ...)."""
+    return jax.vmap(jax.vmap(lambda x, uu, tt: fn(x, uu, tt, theta)), in_axes=(0, None, None))(states, u, t)
+
+
 def _make_observe(structure):
     """Means and variances of the observations along paths (paths, N, outputs)."""
     def observe(theta, states, u, t):
-        def at(fn):
-            return jax.vmap(jax.vmap(lambda x, uu, tt: fn(x, uu, tt, theta)), in_axes=(0, None, None))(states, u, t)
-
-        return at(structure.observation), at(structure.observation_variance)
+        return (_along_paths(structure.observation, theta, states, u, t),
+                _along_paths(structure.observation_variance, theta, states, u, t))
 
     return observe
 
@@ -278,15 +281,10 @@ def _make_observe(structure):
 def _make_draw(structure, noise: bool):
     """Observations drawn from their distributions along paths (paths, N, outputs), or without
     ``noise`` their means ([`distributions`][greyid.model.distributions])."""
-    families = structure.distributions
-
     def draw(theta, states, u, t, key):
-        def at(fn):
-            return jax.vmap(jax.vmap(lambda x, uu, tt: fn(x, uu, tt, theta)), in_axes=(0, None, None))(states, u, t)
-
-        m, S, a = at(structure.observation), at(structure.observation_variance), at(structure.observation_shape)
+        m, S, a = _along_paths(structure.observation_law, theta, states, u, t)
         columns = []
-        for j, family in enumerate(families):
+        for j, family in enumerate(structure.output_families):
             if noise:
                 columns.append(sample(family, jax.random.fold_in(key, j), m[..., j], S[..., j], a[..., j]))
             else:
