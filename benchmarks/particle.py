@@ -1,10 +1,12 @@
 """The particle filter's cost per evaluation (issue "strongly nonlinear and non-Gaussian models").
 
-    python benchmarks/particle.py [--particles 1000] [--rows 1000] [--calls 10]
+    python benchmarks/particle.py [--particles 1000] [--rows 1000] [--calls 10] [--proposals bootstrap,ekf,ukf]
 
-Three one-state models over ``--rows`` samples, ``--particles`` particles, one
-evaluation of ``model.likelihood(data, method="particle").value(x)`` (the public
-call, compiled once) and of its value and gradient:
+Three one-state models over ``--rows`` samples, ``--particles`` particles, each proposal
+of ``--proposals``: one evaluation of ``model.likelihood(data, method="particle").value(x)``
+(the public call, compiled once) and of its value and gradient, and the spread (standard
+deviation) of the log-likelihood over 8 runs with independent random numbers
+(``particle_loglik``), the figure a proposal is there to reduce:
 
 * ``ou``: an Ornstein–Uhlenbeck state observed with Gaussian noise (its exact
   transition sampled);
@@ -67,21 +69,26 @@ def main():
     parser.add_argument("--particles", type=int, default=1000)
     parser.add_argument("--rows", type=int, default=1000)
     parser.add_argument("--calls", type=int, default=10)
+    parser.add_argument("--proposals", default="bootstrap")
     args = parser.parse_args()
+    from greyid.estimate.approximations import particle_loglik
+
     print(f"{args.particles} particles, {args.rows} rows; fastest of {args.calls} calls after the first")
     for name, model, data, params in models(args.rows):
         for p, value in params.items():
             model.set_parameter(p, init=value)
-        nll = model.likelihood(data, method="particle", particles=args.particles)
-        x = np.array([params[n] for n in nll.names])
-        start = time.perf_counter()
-        nll.value(x)
-        first = time.perf_counter() - start
-        value, _ = durations(lambda: nll.value(x), args.calls)
-        nll.value_and_grad(x)
-        both, _ = durations(lambda: nll.value_and_grad(x), args.calls)
-        print(f"{name:9s} value {1e3 * min(value):8.1f} ms   value and gradient {1e3 * min(both):8.1f} ms   "
-              f"first call {first:5.2f} s")
+        for proposal in args.proposals.split(","):
+            nll = model.likelihood(data, method="particle", particles=args.particles, proposal=proposal)
+            x = np.array([params[n] for n in nll.names])
+            start = time.perf_counter()
+            nll.value(x)
+            first = time.perf_counter() - start
+            value, _ = durations(lambda: nll.value(x), args.calls)
+            nll.value_and_grad(x)
+            both, _ = durations(lambda: nll.value_and_grad(x), args.calls)
+            spread = particle_loglik(model, params, data, particles=args.particles, proposal=proposal).spread
+            print(f"{name:9s} {proposal:9s} value {1e3 * min(value):8.1f} ms   value and gradient "
+                  f"{1e3 * min(both):8.1f} ms   first call {first:5.2f} s   spread over 8 runs {spread:7.3f}")
 
 
 if __name__ == "__main__":

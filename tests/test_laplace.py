@@ -140,3 +140,16 @@ def test_a_fleet_of_count_series_fits_by_the_laplace_method_as_each_alone():
         assert fleet.table.loc[name, "loglik"] == pytest.approx(alone.loglik, abs=1e-6)
         for p in ("a", "mu", "s"):
             assert fleet.table.loc[name, p] == pytest.approx(alone.values[p], rel=1e-4)
+
+
+@pytest.mark.filterwarnings("ignore:.*at a bound")  # one Euler step per unit interval leaves r little to explain
+def test_a_laplace_fit_keeps_its_scheme_and_its_profile_reruns_it():
+    """ctsmTMB's convention travels with the fit: its settings name it, and a profile at the estimate gives the
+    fit's own value (not the default scheme's)."""
+    m, data = ou_model(), ou_data(150, seed=2)
+    fit = m.fit(data, method="laplace", scheme="ctsmtmb")
+    assert fit.settings["scheme"] == "ctsmtmb" and fit.settings["substeps"] == 1
+    assert fit.loglik == pytest.approx(m.loglik(fit.values, data, **fit.settings.filter_kwargs()), abs=1e-9)
+    assert abs(fit.loglik - m.loglik(fit.values, data, method="laplace")) > 1e-3
+    profile = fit.profile("mu", values=[fit.values["mu"]])
+    assert profile["loglik"].iloc[0] == pytest.approx(fit.loglik, abs=1e-6)

@@ -11,6 +11,7 @@ import greyid
 from greyid.errors import DataError, ModelError
 from greyid.estimate.approximations import compare_methods, particle_loglik
 from greyid.model.distributions import cdf, log_density, moments
+from greyid.schema import check_options
 
 
 def ou_gaussian():
@@ -370,4 +371,113 @@ def test_the_particle_filters_quantile_residuals_are_normal_where_the_model_is_r
     assert stats.kstest(right, "norm").pvalue > 0.01
     assert stats.kstest(wrong, "norm").pvalue < 1e-3
     assert right.shape == (300,) and right.notna().all()
-    assert ou_gaussian().filter(PARAMS, ou_data(20), method="kalman").quantile_residuals is None
+
+
+def test_every_filter_gives_quantile_residuals():
+    """A Gaussian filter's (and the ensemble's) predictive law of y_k is N(ŷ, R_k): Φ⁻¹ of its transform is the
+    standardized innovation, NaN where unobserved; on a linear Gaussian model the particle filter's agree with
+    them up to Monte Carlo error."""
+    m, data = ou_gaussian(), ou_data(200, seed=4)
+    data.loc[[7, 30], "y"] = np.nan
+    exact = m.filter(PARAMS, data, method="kalman")
+    pd.testing.assert_frame_equal(exact.quantile_residuals, exact.standardized_innovations)
+    assert exact.quantile_residuals["y"].isna().sum() == 2
+    ensemble = m.filter(PARAMS, data, method="enkf", particles=500)
+    pd.testing.assert_frame_equal(ensemble.quantile_residuals, ensemble.standardized_innovations)
+    particles = m.filter(PARAMS, data, method="particle", particles=4000).quantile_residuals["y"]
+    # (the particle filter's transforms are of its weighted predicted particles, Monte Carlo error ~ 1/√P)
+    assert np.nanmax(np.abs(particles - exact.quantile_residuals["y"])) < 0.1
+    assert stats.kstest(exact.quantile_residuals["y"].dropna(), "norm").pvalue > 0.01
+
+
+@pytest.mark.parametrize("proposal", ["ekf", "ukf"])
+def test_a_guided_proposal_keeps_the_exact_likelihood_with_a_fraction_of_the_bootstraps_error(proposal):
+    """A sharp observation (r = 4·10⁻⁴) of a linear Gaussian model: the bootstrap's weights degenerate, a
+    Gaussian-filter proposal's do not; both estimate the Kalman filter's value."""
+    m, data = ou_gaussian(), ou_data()
+    sharp = dict(PARAMS, r=4e-4)
+    exact = m.loglik(sharp, data, method="kalman")
+    bootstrap = particle_loglik(m, sharp, data, particles=200, seed=0, replicates=8)
+    for seed in (0, 1):
+        guided = particle_loglik(m, sharp, data, particles=200, seed=seed, replicates=8, proposal=proposal)
+        assert abs(guided.loglik - exact) < 3 * guided.std_error + 1e-3, (seed, guided, exact)
+        assert guided.spread < bootstrap.spread / 10, (guided.spread, bootstrap.spread)
+
+
+def state_dependent_noise():
+    """dx = −a x dt + s √(1 + x²) dω, y = x + e: a diffusion that depends on the state."""
+    m = greyid.Model("state-dependent noise")
+    m.add_system("dx = -a*x*dt + s*sqrt(1 + x^2)*dw1")
+    m.add_observation("y = x", variance="r")
+    params = dict(a=0.5, s=0.5, r=0.01)
+    for name, value in params.items():
+        m.set_parameter(name, init=value)
+    m.set_initial_state(mean={"x": 0.5}, covariance=[[0.1]])
+    rng = np.random.default_rng(2)
+    x, ys = 0.5, []
+    for _ in range(40):
+        ys.append(x + 0.1 * rng.normal())
+        for _ in range(50):
+            x += -0.5 * x * 0.02 + 0.5 * np.sqrt(1 + x * x) * np.sqrt(0.02) * rng.normal()
+    return m, params, pd.DataFrame({"t": np.arange(40.0), "y": ys})
+
+
+def euler_grid_loglik(ys, substeps, a=0.5, s=0.5, r=0.01, points=4001):
+    """The point-mass filter of the Euler–Maruyama chain with ``substeps`` steps per unit interval."""
+    grid = np.linspace(-8, 8, points)
+    h = 1 / substeps
+    spread = s * np.sqrt(1 + grid**2) * np.sqrt(h)
+    step = stats.norm.pdf(grid[None, :], (grid - a * grid * h)[:, None], spread[:, None])
+    transition = np.linalg.matrix_power(step * (grid[1] - grid[0]), substeps)
+    prior = stats.norm.pdf(grid, 0.5, np.sqrt(0.1)) * (grid[1] - grid[0])
+    total = 0.0
+    for k, y in enumerate(ys):
+        if k > 0:
+            prior = prior @ transition
+        joint = prior * stats.norm.pdf(y, grid, np.sqrt(r))
+        total += np.log(joint.sum())
+        prior = joint / joint.sum()
+    return total
+
+
+def test_a_guided_proposal_through_euler_sub_steps_matches_a_grid_filter():
+    """Every sub-step guided (a modified diffusion bridge) with a state-dependent diffusion: within its errors
+    of the grid filter of the same Euler–Maruyama chain, at a sixth of the bootstrap's spread or less."""
+    m, params, data = state_dependent_noise()
+    reference = euler_grid_loglik(data["y"].to_numpy(), substeps=4)
+    guided = particle_loglik(m, params, data, particles=2000, seed=5, replicates=8, proposal="ekf", substeps=4)
+    bootstrap = particle_loglik(m, params, data, particles=2000, seed=5, replicates=8, substeps=4)
+    assert abs(guided.loglik - reference) < 3 * guided.std_error + 2e-3, (guided, reference)
+    assert guided.spread < bootstrap.spread / 3, (guided.spread, bootstrap.spread)
+
+
+def test_guided_proposals_on_counts_match_the_point_mass_filter():
+    """Poisson counts (the EKF proposal linearises the conditional mean e^l, the UKF's regresses on
+    cubature points): both within their errors of the grid filter, with less spread than the bootstrap."""
+    m, data = poisson_model(), poisson_data()
+    reference = grid_loglik(data["n"].to_numpy())
+    params = dict(a=0.5, mu=2.0, s=0.5)
+    bootstrap = particle_loglik(m, params, data, particles=500, seed=0, replicates=8)
+    for proposal in ("ekf", "ukf"):
+        guided = particle_loglik(m, params, data, particles=500, seed=0, replicates=8, proposal=proposal)
+        assert abs(guided.loglik - reference) < 3 * guided.std_error + 1e-3, (proposal, guided, reference)
+        assert guided.spread < bootstrap.spread, (proposal, guided.spread, bootstrap.spread)
+
+
+@pytest.mark.filterwarnings("ignore:.*did not converge")
+def test_a_proposal_is_a_particle_filter_setting_and_travels_with_a_fit():
+    m, data = ou_gaussian(), ou_data(40)
+    with pytest.raises(ModelError, match="unknown proposal 'optimal'"):
+        m.loglik(PARAMS, data, method="particle", proposal="optimal")
+    with pytest.raises(ModelError, match="proposal='ekf' is a setting of the particle filter"):
+        m.loglik(PARAMS, data, method="ukf", proposal="ekf")
+    with pytest.raises(ModelError, match="setting 'proposal' must be 'bootstrap', 'ekf' or 'ukf', got 'optimal'"):
+        check_options({"proposal": "optimal"})  # a model file's [settings] or the command line's
+    assert check_options({"proposal": "ekf", "method": "particle"})["proposal"] == "ekf"
+    fit = m.fit(data, method="particle", particles=300, proposal="ukf", seed=4)
+    assert fit.settings["proposal"] == "ukf" and fit.settings["seed"] == 4
+    again = m.loglik(fit.values, data, method="particle", particles=300, proposal="ukf", seed=4)
+    assert fit.loglik == pytest.approx(again, abs=1e-9)
+    # A profile reruns the fit's own filter (its particles, seed and proposal): at the estimate, the fit's value.
+    profile = fit.profile("mu", values=[fit.values["mu"]])
+    assert profile["loglik"].iloc[0] == pytest.approx(fit.loglik, abs=1e-6)

@@ -562,8 +562,10 @@ class FitResult(Estimates):
         return profile(self, name, values=values, n=n, span=span, expression=expression)
 
     def sample(self, draws: int = 1000, chains: int = 4, seed: int = 0, warmup: int = 500,
-               target_accept: float = 0.8):
-        """NUTS draws from the posterior of the fit's criterion (BlackJAX).
+               target_accept: float = 0.8, sampler: str = "auto", particles: int | None = None,
+               proposal: str | None = None):
+        """Draws from the posterior of the fit's criterion: NUTS (BlackJAX) on an exact likelihood, particle
+        marginal Metropolis–Hastings on a particle filter's estimate.
 
         Parameters
         ----------
@@ -576,20 +578,41 @@ class FitResult(Estimates):
         warmup : int
             Adaptation steps before the kept draws.
         target_accept : float
-            The step-size adaptation's target acceptance rate.
+            NUTS: the step-size adaptation's target acceptance rate.
+        sampler : str
+            ``"nuts"``, ``"pmmh"`` or ``"auto"`` (PMMH for a particle fit, NUTS otherwise).
+        particles : int, optional
+            PMMH: the particle filter's particles (default: the fit's, or 1000).
+        proposal : str, optional
+            PMMH: the particle filter's proposal (default: the fit's, or ``"bootstrap"``).
 
         Returns
         -------
         Posterior
-            Draws, R-hat, effective sample sizes and divergences; ArviZ's
-            ``InferenceData`` through ``to_inference_data()``.  See
-            [`greyid.uncertainty.sample()`][greyid.uncertainty.sampling.sample].
+            Draws, R-hat, effective sample sizes, the acceptance rate, and divergences (NUTS) or the
+            log-likelihood estimate's spread (PMMH); ArviZ's ``InferenceData`` through
+            ``to_inference_data()``.  See [`greyid.uncertainty.sample()`][greyid.uncertainty.sampling.sample]
+            and [`sample_pmmh()`][greyid.uncertainty.pmmh.sample_pmmh].
 
         Raises
         ------
         ModelError
-            BlackJAX or ArviZ is not installed (``pip install "greyid[sampling]"``).
+            An unknown sampler, NUTS asked for a particle fit, PMMH settings for NUTS, or BlackJAX or
+            ArviZ not installed (``pip install "greyid[sampling]"``).
         """
+        if sampler not in ("auto", "nuts", "pmmh"):
+            raise ModelError(f"unknown sampler '{sampler}'; use 'auto', 'nuts' or 'pmmh'")
+        particle_fit = self.settings["method"] == "particle"
+        if sampler == "pmmh" or (sampler == "auto" and particle_fit):
+            from .uncertainty.pmmh import sample_pmmh
+
+            return sample_pmmh(self, draws=draws, chains=chains, seed=seed, warmup=warmup, particles=particles,
+                               proposal=proposal)
+        if particle_fit:
+            raise ModelError("NUTS needs an exact gradient; a particle fit's is a Monte Carlo estimate: use "
+                             "sampler='pmmh'")
+        if particles is not None or proposal is not None:
+            raise ModelError("particles and proposal are settings of sampler='pmmh'")
         from .uncertainty.sampling import sample
 
         return sample(self, draws=draws, chains=chains, seed=seed, warmup=warmup, target_accept=target_accept)

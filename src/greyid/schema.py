@@ -23,7 +23,7 @@ from .errors import ModelError
 DATA_KEYS = ("time", "hold", "time_unit", "columns", "time_format", "time_zone")
 #: Filter settings (see [`greyid.filters.api.filter_options()`][greyid.filters.api.filter_options]).
 FILTER_KEYS = ("method", "form", "substeps", "iterations", "alpha", "beta", "kappa", "steady_state", "particles",
-               "resample", "scheme", "inflation")
+               "resample", "scheme", "inflation", "proposal")
 #: Estimation settings of [`Model.fit()`][greyid.api.Model.fit].
 ESTIMATION_KEYS = ("criterion", "robust", "horizon", "starts", "seed", "maxiter", "prior_correlation", "cov_type",
                    "optimizer")
@@ -56,6 +56,8 @@ def check_options(options: Mapping) -> dict:
             raise ModelError(f"setting 'inflation' must be a number of at least 1, got {value!r}")
         if key == "scheme" and value not in ("auto", "euler", "ctsmtmb"):
             raise ModelError(f"setting 'scheme' must be 'auto', 'euler' or 'ctsmtmb', got {value!r}")
+        if key == "proposal" and value not in ("bootstrap", "ekf", "ukf"):
+            raise ModelError(f"setting 'proposal' must be 'bootstrap', 'ekf' or 'ukf', got {value!r}")
         if key == "form" and value not in FORMS:
             raise ModelError(f"setting 'form' must be 'sqrt' or 'plain', got {value!r}")
         if key == "criterion" and value not in ("ml", "map"):

@@ -64,7 +64,7 @@ def particle_loglik(model, params, data, particles: int = 1000, seed: int = 0, r
     replicates : int
         Independent runs (at least 2 for an error), vectorised in one program.
     **settings
-        ``time``, ``hold``, ``time_unit``, ``substeps``, ``resample`` as for ``model.loglik``.
+        ``time``, ``hold``, ``time_unit``, ``substeps``, ``resample``, ``proposal`` as for ``model.loglik``.
 
     Returns
     -------
@@ -117,7 +117,8 @@ def compare_methods(model, params, data, methods=None, particles: int = 1000, se
     particles, seed, replicates : int
         The particle filter's reference (see [`particle_loglik()`][greyid.estimate.approximations.particle_loglik]).
     **settings
-        ``time``, ``hold``, ``time_unit``, ``substeps`` as for ``model.loglik``.
+        ``time``, ``hold``, ``time_unit``, ``substeps`` as for ``model.loglik``; ``resample`` and ``proposal``
+        for the particle filter's runs.
 
     Returns
     -------
@@ -140,7 +141,7 @@ def compare_methods(model, params, data, methods=None, particles: int = 1000, se
         if method not in known:
             raise ModelError(f"unknown method {method!r} to compare; use some of {list(known)}")
         rows[method] = (loglik(model, params, data, method=method,
-                               **{k: v for k, v in settings.items() if k not in ("resample",)}), 0.0)
+                               **{k: v for k, v in settings.items() if k not in ("resample", "proposal")}), 0.0)
     rows[PARTICLE] = (reference.loglik, reference.std_error)
     table = pd.DataFrame.from_dict(rows, orient="index", columns=["loglik", "std_error"])
     table.index.name = "method"

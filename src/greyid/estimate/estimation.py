@@ -22,7 +22,7 @@ from ..errors import DataError, ModelError
 from ..filters.accuracy import LOGLIK_TOLERANCE, MAX_SUBSTEPS, SubstepChoice, chooses_substeps
 from ..filters.api import check_at_parameters, check_equations_finite, filter_options, prepare_datasets
 from ..filters.kalman import takes_steady_state
-from ..filters.protocol import ENKF, PARTICLE, STOCHASTIC
+from ..filters.protocol import ENKF, LAPLACE, PARTICLE, STOCHASTIC
 from ..model.delays import delay_parameters
 from ..model.options import DATA_KEYS, ESTIMATION_KEYS, FILTER_KEYS
 from ..progress import FitProgress
@@ -534,5 +534,7 @@ def finish(model, frames, problem: Problem, best, optima, args, datasets, theta0
                            start_labels=tuple(labels),
                            particles=options.particles if options.method in STOCHASTIC else None,
                            resample=options.resample if options.method == PARTICLE else None,
-                           inflation=options.inflation if options.method == ENKF else None)
+                           inflation=options.inflation if options.method == ENKF else None,
+                           proposal=options.proposal if options.method == PARTICLE else None,
+                           scheme=options.scheme if options.method == LAPLACE else None)
     return build_result(model, frames, theta, problem, best, optima, settings, scores)

@@ -97,7 +97,8 @@ def forward_value_and_grad(fun):
     return value_and_grad
 
 
-def _log_prior(theta, index, mean, chol):
+def log_prior(theta, index, mean, chol):
+    """log N(θ[index]; mean, chol cholᵀ), the Gaussian prior of a MAP criterion (3.46)."""
     x = jnp.stack([theta[i] for i in index]) - mean
     z = jax.scipy.linalg.solve_triangular(chol, x, lower=True)
     return -0.5 * (z @ z + 2 * jnp.sum(jnp.log(jnp.diag(chol))) + len(index) * jnp.log(2 * jnp.pi))
@@ -135,7 +136,7 @@ def criterion_functions(structure, problem: Problem, forward_only: bool = False)
     def negative(theta, prior_mean, prior_chol, datasets):
         total = sum(criterion(theta, d) for d in datasets)
         if problem.prior is not None:
-            total = total + _log_prior(theta, problem.prior_index, prior_mean, prior_chol)
+            total = total + log_prior(theta, problem.prior_index, prior_mean, prior_chol)
         return -total
 
     return terms, negative
@@ -255,7 +256,7 @@ def expected_information(structure, problem: Problem, kinds):
     def prior_term(z, base, lower, upper, prior_mean, prior_chol):
         if problem.prior is None:
             return jnp.zeros(())
-        return -_log_prior(theta_of(z, base, lower, upper), problem.prior_index, prior_mean, prior_chol)
+        return -log_prior(theta_of(z, base, lower, upper), problem.prior_index, prior_mean, prior_chol)
 
     def scoring(z, rows, base, lower, upper, prior_mean, prior_chol, datasets):
         def along(u):

@@ -20,6 +20,7 @@ from . import objective
 from .estimation import FreeParameters, make_problem, new_search, single_programs, uses_scoring
 from .objective import compiled
 from .optimize import EXACT, GRADIENT, VALUE, Optimum, run_alone
+from .settings import filter_settings
 from .transforms import Transform
 
 #: Quasi-Newton steps a refit takes before exact Newton steps take over (see Refit.optimum).
@@ -60,9 +61,10 @@ class Refit:
         self.parameters = FreeParameters(tuple(self.names), self.theta_hat, tuple(free), tuple(lower), tuple(upper),
                                          transform)
         s = fit.settings
-        filter_settings = {k: s.get(k) for k in ("form", "substeps", "iterations", "steady_state")}
+        # Every setting of the fit's filter (a particle fit's particles and seed too), less where the data lie.
+        rerun = {k: v for k, v in filter_settings(s).items() if k not in ("time", "hold", "time_unit", "method")}
         self.problem = make_problem(self.structure, self.parameters, s["method"],
-                                    (s.get("robust"), s.get("horizon", 1), s.get("prior")), filter_settings)
+                                    (s.get("robust"), s.get("horizon", 1), s.get("prior")), rerun)
         prepared = prepare_datasets(self.structure, self.theta_hat, fit_data(fit), s["time"], s["hold"],
                                     s.get("time_unit"), check=False)
         self.datasets = [inputs for _, inputs in prepared]

@@ -524,12 +524,13 @@ class Estimates:
 
     @property
     def residuals(self):
-        """The standardised one-step innovations per output (NaN where unobserved); for a particle fit its
-        quantile residuals (standard normal where the model is right, whatever the observations' distribution)."""
+        """The one-step-ahead quantile residuals per output (NaN where unobserved): standard normal where the
+        model is right, whatever the observations' distribution; a Gaussian filter's are its standardized
+        innovations."""
         if "residuals" not in self._cache:
             res = self.filter()
 
-            def residuals(r):  # the quantile residuals where the filter has them (the particle filter)
+            def residuals(r):  # (a result built elsewhere may lack them: its standardized innovations)
                 return r.standardized_innovations if r.quantile_residuals is None else r.quantile_residuals
 
             self._cache["residuals"] = [residuals(r) for r in res] if isinstance(res, list) else residuals(res)

@@ -62,6 +62,10 @@ class FitSettings(Mapping):
         The particle filter's resampling threshold (a fraction of the particles).
     inflation : float, optional
         The ensemble Kalman filter's inflation (None for the other filters).
+    proposal : str, optional
+        The particle filter's proposal, ``"bootstrap"``, ``"ekf"`` or ``"ukf"`` (None for the other filters).
+    scheme : str, optional
+        The Laplace method's transitions, ``"auto"``, ``"euler"`` or ``"ctsmtmb"`` (None for the other methods).
 
     Examples
     --------
@@ -92,6 +96,8 @@ class FitSettings(Mapping):
     particles: int | None = None
     resample: float | None = None
     inflation: float | None = None
+    proposal: str | None = None
+    scheme: str | None = None
 
     # A mapping of the fields, so that code and users that read a fit's settings by key go on working.
     def __getitem__(self, key: str):
@@ -154,7 +160,9 @@ def filter_settings(settings: Mapping) -> dict:
         out["time_unit"] = settings["time_unit"]
     if settings.get("particles") is not None:  # the particle and ensemble filters' own random numbers
         out.update(particles=settings["particles"], seed=settings.get("seed", 0))
-        out.update({k: settings[k] for k in ("resample", "inflation") if settings.get(k) is not None})
+        out.update({k: settings[k] for k in ("resample", "inflation", "proposal") if settings.get(k) is not None})
+    if settings.get("scheme") is not None:
+        out["scheme"] = settings["scheme"]
     return out
 
 

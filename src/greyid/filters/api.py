@@ -129,7 +129,8 @@ def filter_options(structure: Structure, method: str | None, **options) -> Filte
     if method is None:
         method = KALMAN if structure.is_linear else EKF
     unknown = set(options) - {"form", "substeps", "iterations", "alpha", "beta", "kappa", "steady_state",
-                              "particles", "seed", "resample", "scheme", "inflation"}
+                              "particles", "seed", "resample", "scheme", "inflation",
+                              "proposal"}
     if unknown:
         raise ModelError(f"unknown filter option '{sorted(unknown)[0]}'")
     if method in STOCHASTIC and options.get("substeps") is None:
@@ -313,14 +314,19 @@ def _result(structure: Structure, method: str, series: Series, terms, outputs) -
         loglik_terms=pd.Series(loglik_terms, index=idx, name="loglik"),
         transitions=cut.transition,
         guarded=_guarded(method, series, np.asarray(cut.guarded) > 0),
-        quantile_residuals=_quantile_residuals(method, cut.pit, observed, idx, outs),
+        quantile_residuals=_quantile_residuals(method, cut.pit, innovations, R, idx, outs),
     )
 
 
-def _quantile_residuals(method: str, pit, observed, index, outputs) -> pd.DataFrame | None:
-    """Φ⁻¹ of the particle filter's probability integral transforms (None for the Gaussian filters)."""
+def _quantile_residuals(method: str, pit, innovations, R, index, outputs) -> pd.DataFrame:
+    """Each output's one-step-ahead quantile residual Φ⁻¹(u_k): from the particle filter's probability integral
+    transforms; for the Gaussian filters and the ensemble Kalman filter, whose predictive law of y_k is
+    N(ŷ, R_k), Φ⁻¹(Φ(ε_k,i / √R_k,ii)) = the standardized innovation itself."""
+    observed = ~np.isnan(innovations)
     if method != PARTICLE:
-        return None
+        sd = np.sqrt(np.diagonal(R, axis1=1, axis2=2))
+        return pd.DataFrame(np.where(observed, innovations / np.where(observed, sd, 1.0), np.nan), index=index,
+                            columns=outputs)
     from scipy.stats import norm
 
     u = np.clip(np.asarray(pit), 1e-300, 1 - 1e-16)

@@ -38,6 +38,7 @@ from ..model.structure import Structure
 from . import small
 from .discretize import discretize_each
 from .gaussian import initial_state
+from .proposals import BOOTSTRAP, guided_draw, linearise
 from .protocol import FilterInputs, FilterOptions, FilterSteps, Row, refuse_unsupported, series_rows
 from .updates import DensityTerms
 
@@ -49,11 +50,13 @@ PREDRAWN = 2**23
 
 
 class ParticleState(NamedTuple):
-    """The particles (P, n), their normalised log-weights (P,) and the number of rows done."""
+    """The particles (P, n), their normalised log-weights (P,) and the number of rows done; with a guided
+    proposal, the particles before the row's prediction, which the update moves again with an eye on y_k."""
 
     particles: jnp.ndarray
     log_weights: jnp.ndarray
     step: jnp.ndarray
+    previous: jnp.ndarray | None = None
 
     def moments(self):
         """The weighted mean and covariance of the particles."""
@@ -97,24 +100,35 @@ def resample(uniform, state: ParticleState, threshold: float) -> ParticleState:
         index = systematic_indices(uniform, state.log_weights)
         picked = state.log_weights[index]
         # Value log(1/P), derivative that of the picked weights (the stop-gradient of the module doc).
-        return ParticleState(state.particles[index], picked - jax.lax.stop_gradient(picked) - jnp.log(n), state.step)
+        return state._replace(particles=state.particles[index],
+                              log_weights=picked - jax.lax.stop_gradient(picked) - jnp.log(n))
 
     return jax.lax.cond(ess < threshold * n, resampled, lambda state: state, state)
 
 
 class SampledDynamics(NamedTuple):
     """Members (particles, an ensemble) moved by the model's dynamics with fixed random numbers: the
-    members at t₀, ``advance(x, row, step)`` over row ``step``'s interval, and one uniform number per row."""
+    members at t₀, ``advance(x, row, step)`` over row ``step``'s interval, ``guided(x, row, step, draw)``
+    the same moves drawn by a proposal (see [`guided_dynamics()`][greyid.filters.particle.sampled_dynamics]),
+    and one uniform number per row."""
 
     initial: jnp.ndarray
     advance: Callable
+    guided: Callable
     uniforms: jnp.ndarray
 
 
 def sampled_dynamics(structure: Structure, options: FilterOptions, theta, data: FilterInputs, base,
                      members: int) -> SampledDynamics:
     """x(t₀) ~ N(x0, P0) and the transitions of the module doc, for ``members`` members, random numbers
-    from the key ``base``."""
+    from the key ``base``.
+
+    ``guided(x, row, step, draw) -> (x_k, log_corrections)`` moves each member by the same steps, each
+    step's standard normals w drawn by ``draw(end, scale, rest, e) -> (w, log_correction)`` from the
+    row's fixed normals e instead of taking w = e: the step is x → m + scale · w, and the member would
+    reach ``end`` + scale · w + rest · v (v ~ N(0, I), the later sub-steps' noise) at t_k
+    ([`proposals`][greyid.filters.proposals]).
+    """
     n, substeps = structure.n_states, options.substeps
     f, G = structure.drift, structure.diffusion
     exact = structure.linear_dynamics is not None
@@ -141,38 +155,59 @@ def sampled_dynamics(structure: Structure, options: FilterOptions, theta, data: 
             return normals[step]
         return jax.random.normal(jax.random.fold_in(predict_key, step), per_row)
 
-    def euler_maruyama(x, row: Row, noise):
+    def euler_maruyama(x, row: Row, noise, draw=None):
         step = row.dt / substeps
         du = (row.u_cur - row.u_prev) * data.foh
 
-        def one(j, x):
+        def one(j, carry):
+            x, correction = carry
             t = row.t_prev + j * step
             u = row.u_prev + du * (j / substeps)
             drift = jax.vmap(lambda xi: f(xi, u, t, theta))(x)
             diffusion = jax.vmap(lambda xi: G(xi, u, t, theta))(x)
-            return x + drift * step + jnp.einsum("pij,pj->pi", diffusion, noise[j]) * jnp.sqrt(step)
+            if draw is None:
+                return x + drift * step + jnp.einsum("pij,pj->pi", diffusion, noise[j]) * jnp.sqrt(step), correction
+            # The drift held to t_k, the noise of this step and of the steps left (Golightly & Wilkinson's
+            # modified diffusion bridge in the proposal's linearisation).
+            remaining = row.dt - j * step
+            rest = jnp.sqrt(jnp.maximum(remaining - step, 0.0))
+            w, log_correction = jax.vmap(lambda xi, fi, gi, e: draw(xi + fi * remaining, gi * jnp.sqrt(step),
+                                                                    gi * rest, e))(x, drift, diffusion, noise[j])
+            moved = x + drift * step + jnp.einsum("pij,pj->pi", diffusion, w) * jnp.sqrt(step)
+            return moved, correction + log_correction
 
-        return jax.lax.fori_loop(0, substeps, one, x)
+        return jax.lax.fori_loop(0, substeps, one, (x, jnp.zeros(x.shape[0])))
+
+    def exact_mean(x, row: Row):
+        disc = jax.tree_util.tree_map(lambda a: a[row.dt_index], cache)
+        b_prev, b_cur = B @ row.u_prev + c, B @ row.u_cur + c
+        return x @ disc.transition.T + disc.input_gain @ b_prev + data.foh * (disc.ramp_gain @ (b_cur - b_prev))
 
     def advance(x, row: Row, step):
         if not exact:
-            return euler_maruyama(x, row, normals_at(step))
-        disc = jax.tree_util.tree_map(lambda a: a[row.dt_index], cache)
-        b_prev, b_cur = B @ row.u_prev + c, B @ row.u_cur + c
-        mean = x @ disc.transition.T + disc.input_gain @ b_prev + data.foh * (disc.ramp_gain @ (b_cur - b_prev))
-        return mean + normals_at(step) @ roots[row.dt_index].T
+            return euler_maruyama(x, row, normals_at(step))[0]
+        return exact_mean(x, row) + normals_at(step) @ roots[row.dt_index].T
 
-    return SampledDynamics(initial, advance, uniforms)
+    def guided(x, row: Row, step, draw):
+        if not exact:
+            return euler_maruyama(x, row, normals_at(step), draw)
+        mean, scale = exact_mean(x, row), roots[row.dt_index]
+        w, log_correction = jax.vmap(lambda m, e: draw(m, scale, None, e))(mean, normals_at(step))
+        return mean + w @ scale.T, log_correction
+
+    return SampledDynamics(initial, advance, guided, uniforms)
 
 
 def prepare(structure: Structure, options: FilterOptions):
-    """``steps(theta, data, key=None) -> FilterSteps`` of the bootstrap particle filter (``method="particle"``);
-    ``key`` replaces the seed's random numbers (independent replicates)."""
+    """``steps(theta, data, key=None) -> FilterSteps`` of the particle filter (``method="particle"``), bootstrap or
+    with a Gaussian-filter proposal (``proposal``, see [`proposals`][greyid.filters.proposals]); ``key``
+    replaces the seed's random numbers (independent replicates)."""
     refuse_unsupported(structure, "the particle filter")
     n_particles, threshold = options.particles, options.resample
     n = structure.n_states
     families = structure.output_families
-    seed = options.seed
+    seed, proposal = options.seed, options.proposal
+    guided = proposal != BOOTSTRAP
 
     def steps(theta, data: FilterInputs, key=None) -> FilterSteps:
         base = jax.random.PRNGKey(seed) if key is None else key
@@ -180,22 +215,50 @@ def prepare(structure: Structure, options: FilterOptions):
         dynamics = sampled_dynamics(structure, options, theta, series.data, base, n_particles)
         initial = ParticleState(dynamics.initial, jnp.full(n_particles, -jnp.log(n_particles)),
                                 jnp.zeros((), jnp.int32))
+        if guided:
+            initial = initial._replace(previous=dynamics.initial)
         uniforms = dynamics.uniforms
         pit_uniforms = jax.random.uniform(jax.random.fold_in(base, _PIT), (data.t.shape[0], len(families)))
 
+        def law(x, row: Row):
+            return jax.vmap(lambda xi: structure.observation_law(xi, row.u_cur, row.t, theta))(x)
+
+        def log_densities(row: Row, mask, m, S, a):
+            return jax.vmap(lambda mi, si, ai: observations_log_density(families, row.y, mask, mi, si, ai))(m, S, a)
+
         def predict(state: ParticleState, row: Row):
-            return state._replace(particles=dynamics.advance(state.particles, row, state.step)), jnp.eye(n)
+            moved = state._replace(particles=dynamics.advance(state.particles, row, state.step))
+            return (moved._replace(previous=state.particles) if guided else moved), jnp.eye(n)
+
+        def guided_weights(state: ParticleState, row: Row, mask):
+            """The particles moved again over the row's interval by the proposal, and their log-weights'
+            corrections."""
+
+            def conditional(x):
+                m, S, a = structure.observation_law(x, row.u_cur, row.t, theta)
+                both = [moments(fam, m[j], S[j], a[j]) for j, fam in enumerate(families)]
+                return jnp.stack([b[0] for b in both]), jnp.stack([b[1] for b in both])
+
+            def draw(end, scale, rest, normals):
+                return guided_draw(linearise(proposal, conditional, end, scale, rest), row.y, mask, normals)
+
+            return dynamics.guided(state.previous, row, state.step, draw)
 
         def update(state: ParticleState, row: Row, mask=None):
             mask = row.mask if mask is None else mask
-            m, S, a = jax.vmap(lambda xi: structure.observation_law(xi, row.u_cur, row.t, theta))(state.particles)
-            log_density = jax.vmap(lambda mi, si, ai: observations_log_density(families, row.y, mask, mi, si, ai))(
-                m, S, a)
-            joint = state.log_weights + log_density
+            m, S, a = law(state.particles, row)
+            if guided:
+                particles, correction = guided_weights(state, row, mask)
+                joint = state.log_weights + correction + log_densities(row, mask, *law(particles, row))
+                weighed = state._replace(particles=particles)
+            else:
+                joint = state.log_weights + log_densities(row, mask, m, S, a)
+                weighed = state
             increment = logsumexp(joint)
-            weighed = state._replace(log_weights=joint - increment)
+            weighed = weighed._replace(log_weights=joint - increment)
             carried = resample(uniforms[state.step], weighed, threshold)._replace(step=state.step + 1)
-            # The outputs' predictive mean and covariance under the predicted particles.
+            # The outputs' predictive mean and covariance, and the transforms, under the predicted particles
+            # (the dynamics' own moves, whatever the proposal).
             w = jnp.exp(state.log_weights)
             mean_y, var_y = jax.vmap(lambda mi, si, ai: jnp.stack(
                 [jnp.stack(moments(fam, mi[j], si[j], ai[j])) for j, fam in enumerate(families)]))(m, S, a).transpose(

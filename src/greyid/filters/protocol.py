@@ -30,6 +30,7 @@ import numpy as np
 from ..errors import ModelError
 from ..model.structure import Structure
 from .delays import Delays, Pieces, delays_at, interval_pieces, regular_offsets, with_delayed_inputs
+from .proposals import PROPOSALS
 from .updates import FORMS
 
 KALMAN, EKF, IEKF, UKF, EKF2 = "kalman", "ekf", "iekf", "ukf", "ekf2"
@@ -80,6 +81,9 @@ class FilterOptions:
     resample: float = 0.5
     inflation: float = 1.0
     scheme: str = "auto"
+    #: The particle filter's proposal: "bootstrap" (the dynamics alone), "ekf" or "ukf" (guided by a Gaussian
+    #: filter's update, [`proposals`][greyid.filters.proposals]).
+    proposal: str = "bootstrap"
 
     def __post_init__(self):
         if self.method not in METHODS:
@@ -98,6 +102,11 @@ class FilterOptions:
             raise ModelError(f"resample must be a fraction in (0, 1] of the particles, got {self.resample!r}")
         if not (isinstance(self.inflation, (int, float)) and self.inflation >= 1):
             raise ModelError(f"inflation must be a number of at least 1, got {self.inflation!r}")
+        if self.proposal not in PROPOSALS:
+            raise ModelError(f"unknown proposal '{self.proposal}'; use one of {list(PROPOSALS)}")
+        if self.proposal != "bootstrap" and self.method != PARTICLE:
+            raise ModelError(f"proposal='{self.proposal}' is a setting of the particle filter (method='particle'), "
+                             f"not of method='{self.method}'")
         if self.scheme not in SCHEMES:
             raise ModelError(f"unknown scheme '{self.scheme}'; use one of {list(SCHEMES)}")
         if not isinstance(self.steady_state, (bool, np.bool_)):

@@ -31,10 +31,11 @@ class FilterResult:
     #: Rows whose measurement update gave a covariance that was not positive semi-definite and was
     #: replaced by the guarded (Joseph) form (UKF and second-order filters; see ``filters.predictors``).
     guarded: pd.Series | None = None
-    #: The particle filter's one-step-ahead quantile residuals Φ⁻¹(u_k), u_k the probability integral
-    #: transform of y_k under the predicted particles (randomized for counts): standard normal where the
-    #: model is right, whatever the observations' distribution (NaN where unobserved); None for the
-    #: Gaussian filters, whose standardized innovations are their quantile residuals.
+    #: One-step-ahead quantile residuals Φ⁻¹(u_k), u_k the probability integral transform of y_k under the
+    #: filter's predictive law (randomized for counts): standard normal where the model is right, whatever the
+    #: observations' distribution (NaN where unobserved).  The particle filter's come from its predicted
+    #: particles; a Gaussian filter's (and the ensemble Kalman filter's) are the standardized innovations,
+    #: its predictive law being N(ŷ, R_k).
     quantile_residuals: pd.DataFrame | None = None
 
     @property

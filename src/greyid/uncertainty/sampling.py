@@ -44,11 +44,15 @@ class Posterior:
     draws: pd.DataFrame  # one column per free parameter (natural units), index (chain, draw)
     r_hat: pd.Series  # rank-normalised split R-hat per parameter (ArviZ)
     ess: pd.Series  # bulk effective sample size per parameter (ArviZ)
-    divergences: int  # divergent transitions after warm-up, all chains
-    step_size: np.ndarray  # adapted step size per chain
+    divergences: int | None  # NUTS: divergent transitions after warm-up, all chains (None for PMMH)
+    step_size: np.ndarray | None  # NUTS: adapted step size per chain (None for PMMH)
     acceptance: float  # mean acceptance rate after warm-up
     criterion: str  # "log-likelihood (flat prior)" or "log-posterior"
     _idata: object = field(default=None, repr=False)
+    sampler: str = "nuts"  # "nuts" or "pmmh" (particle marginal Metropolis–Hastings)
+    #: PMMH: the standard deviation of the particle filter's log-likelihood at the estimates (chains stick
+    #: where it is well above 1.5).
+    loglik_spread: float | None = None
 
     @property
     def chains(self) -> int:
@@ -217,7 +221,16 @@ def sample(fit, draws: int = 1000, chains: int = 4, seed: int = 0, warmup: int =
 
     positions, divergent, accepted, step_size = jax.jit(jax.vmap(chain))(
         jax.random.split(key_chains, chains), jnp.asarray(start))
-    z = np.asarray(positions).reshape(chains * draws, -1)
+    label = "log-posterior" if fit.settings.get("prior") is not None else "log-likelihood (flat prior)"
+    return posterior_of(refit, np.asarray(positions), criterion=label, divergences=int(np.asarray(divergent).sum()),
+                        step_size=np.asarray(step_size), acceptance=float(np.asarray(accepted).mean()))
+
+
+def posterior_of(refit: Refit, positions: np.ndarray, **diagnostics) -> Posterior:
+    """The [`Posterior`][greyid.uncertainty.sampling.Posterior] of draws in z (chains, draws, free parameters):
+    the draws in natural units, R-hat and effective sample sizes (ArviZ), and the sampler's ``diagnostics``."""
+    chains, draws = positions.shape[:2]
+    z = positions.reshape(chains * draws, -1)
     theta = np.asarray(refit.parameters.transform.to_theta(z, np))
     free_names = [refit.names[i] for i in refit.parameters.free]
     index = pd.MultiIndex.from_product([range(chains), range(draws)], names=["chain", "draw"])
@@ -226,10 +239,7 @@ def sample(fit, draws: int = 1000, chains: int = 4, seed: int = 0, warmup: int =
     arviz = _arviz()
     r_hat = arviz.rhat(idata) if chains > 1 else None
     ess = arviz.ess(idata)
-    label = "log-posterior" if fit.settings.get("prior") is not None else "log-likelihood (flat prior)"
     return Posterior(
         draws=table,
         r_hat=pd.Series({n: float(r_hat[n]) if r_hat is not None else np.nan for n in free_names}, name="r_hat"),
-        ess=pd.Series({n: float(ess[n]) for n in free_names}, name="ess"),
-        divergences=int(np.asarray(divergent).sum()), step_size=np.asarray(step_size),
-        acceptance=float(np.asarray(accepted).mean()), criterion=label, _idata=idata)
+        ess=pd.Series({n: float(ess[n]) for n in free_names}, name="ess"), _idata=idata, **diagnostics)
