@@ -77,15 +77,20 @@ def poisson_data(n=40, seed=3, a=0.5, mu=2.0, s=0.5):
     return pd.DataFrame({"t": np.arange(float(n)), "n": counts})
 
 
-def grid_loglik(counts, a=0.5, mu=2.0, s=0.5, points=3000):
-    """The point-mass filter: the log-rate on a fine grid, its exact Gaussian transition, Poisson weights."""
+def point_mass_grid(a=0.5, mu=2.0, s=0.5, points=3000):
+    """The log-rate's grid, its exact Gaussian transition between grid points and its stationary law on them."""
     sd = s / np.sqrt(2 * a)
     grid = np.linspace(mu - 8 * sd, mu + 8 * sd, points)
     step_sd = sd * np.sqrt(1 - np.exp(-2 * a))
     transition = stats.norm.pdf(grid[None, :], mu + (grid[:, None] - mu) * np.exp(-a), step_sd)
     transition /= transition.sum(axis=1, keepdims=True)
     prior = stats.norm.pdf(grid, mu, sd)
-    prior /= prior.sum()
+    return grid, transition, prior / prior.sum()
+
+
+def grid_loglik(counts, a=0.5, mu=2.0, s=0.5, points=3000):
+    """The point-mass filter: the log-rate on a fine grid, its exact Gaussian transition, Poisson weights."""
+    grid, transition, prior = point_mass_grid(a, mu, s, points)
     total = 0.0
     for k, y in enumerate(counts):
         if k > 0:

@@ -10,7 +10,7 @@ validation, design, studies) use these functions.
 
 from __future__ import annotations
 
-from ..filters.api import filter_data, predict_data, smooth_data
+from ..filters.api import filter_data, laplace_residuals, predict_data, smooth_data
 from ..model.options import DATA_KEYS, FILTER_KEYS
 from ..simulate.simulate import simulate
 from .criteria import loglik
@@ -23,6 +23,13 @@ def filter_at(model, params, data, **given):
     """[`Model.filter()`][greyid.api.Model.filter]: the filter through ``data`` at ``params``."""
     data, settings = model.call_settings(data, given, DATA_KEYS + FILTER_KEYS)
     return filter_data(model, params, data, **settings)
+
+
+def laplace_residuals_at(model, params, data, **given):
+    """The Laplace method's one-step-ahead quantile residuals at ``params``
+    ([`laplace_residuals()`][greyid.filters.api.laplace_residuals])."""
+    data, settings = model.call_settings(data, given, DATA_KEYS + FILTER_KEYS)
+    return laplace_residuals(model, params, data, **settings)
 
 
 def smooth_at(model, params, data, **given):

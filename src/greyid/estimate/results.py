@@ -28,7 +28,7 @@ from ..model.parameters import tests_against_zero
 from ..model.units import derived_unit, pretty
 from ..outputs import complete_generation, write_atomic
 from ..schema import FIT_FORMAT, check_fit_document
-from .calls import filter_at, predict_at, simulate_at, smooth_at
+from .calls import filter_at, laplace_residuals_at, predict_at, simulate_at, smooth_at
 from .settings import FitSettings, filter_settings
 
 
@@ -526,7 +526,11 @@ class Estimates:
     def residuals(self):
         """The one-step-ahead quantile residuals per output (NaN where unobserved): standard normal where the
         model is right, whatever the observations' distribution; a Gaussian filter's are its standardized
-        innovations."""
+        innovations, a Laplace fit's those of ctsmTMB's one-step-ahead residuals
+        ([`laplace_residuals()`][greyid.filters.api.laplace_residuals])."""
+        if "residuals" not in self._cache and self.settings["method"] == "laplace":
+            self._cache["residuals"] = laplace_residuals_at(self.model, self.values, self._data(None),
+                                                            **self._filter_settings())
         if "residuals" not in self._cache:
             res = self.filter()
 

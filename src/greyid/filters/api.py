@@ -24,7 +24,8 @@ from .accuracy import choose_substeps, chooses_substeps
 from .driver import make_ahead, make_filter
 from .gaussian import initial_state
 from ..model.distributions import check_method, check_observed
-from .protocol import EKF, KALMAN, PARTICLE, STOCHASTIC, FilterInputs, FilterOptions
+from . import laplace
+from .protocol import EKF, KALMAN, LAPLACE, PARTICLE, STOCHASTIC, FilterInputs, FilterOptions
 from .delays import check_delays, delay_slots, with_delayed_inputs
 from .result import FilterResult, SmootherResult
 from .smoother import rts_smooth
@@ -351,6 +352,60 @@ def filter_data(model, params, data, time="t", hold="zoh", method=None, time_uni
     run = compiled_filter(structure, opts, keep_outputs=True)
     results = [_result(structure, opts.method, series, *run(jnp.asarray(theta), inputs)) for series, inputs in prepared]
     return results[0] if isinstance(data, pd.DataFrame) else results
+
+
+def laplace_residuals(model, params, data, time="t", hold="zoh", time_unit=None, seed=0, **options):
+    """The Laplace method's one-step-ahead quantile residuals Φ⁻¹(u_k) per output, as ctsmTMB's.
+
+    See ``greyid.filters.laplace.one_step_transforms``: u_k is the probability integral transform of y_k given
+    the data before it, both of its tails by Laplace's method (TMB's ``oneStepPredict``, method "cdf").
+
+    Parameters
+    ----------
+    model : greyid.Model
+        The model.
+    params : dict or array
+        The parameters' values.
+    data : pandas.DataFrame or list of pandas.DataFrame
+        The data.
+    time, hold, time_unit : str
+        The time column, the inputs' hold (``"zoh"`` or ``"foh"``) and the unit of datetime times.
+    seed : int
+        Counts' transforms are randomized with ``numpy.random.default_rng([seed, i]).uniform(size=(rows,
+        outputs))`` for data set i.
+    **options
+        The Laplace method's ``substeps`` and ``scheme`` (``method`` is ignored).
+
+    Returns
+    -------
+    pandas.DataFrame or list of pandas.DataFrame
+        One column per output, NaN where unobserved; standard normal where the model is right.
+
+    Raises
+    ------
+    ModelError, DataError
+        Settings the Laplace method does not take, or data that do not fit the model.
+
+    Examples
+    --------
+    >>> from greyid.filters.api import laplace_residuals
+    >>> residuals = laplace_residuals(model, fit.values, data)   # doctest: +SKIP
+    """
+    from scipy.stats import norm
+
+    structure, theta, prepared = _prepare(model, params, data, time, hold, time_unit)
+    options.pop("method", None)
+    opts = accurate_options(structure, theta, prepared, LAPLACE, **options)[0]
+    program = structure_program(structure, ("one-step", opts), lambda: laplace.one_step_transforms(structure, opts))
+    out = []
+    for i, (series, inputs) in enumerate(prepared):
+        uniforms = np.zeros(inputs.y.shape)
+        uniforms[:series.n_rows] = np.random.default_rng([seed, i]).uniform(size=series.outputs.shape)
+        u = np.asarray(program(jnp.asarray(theta), inputs, jnp.asarray(uniforms)))[:series.n_rows]
+        observed = ~np.isnan(series.outputs)
+        residuals = np.where(observed, norm.ppf(np.clip(u, 1e-300, 1 - 1e-16)), np.nan)
+        out.append(pd.DataFrame(residuals, index=series.index, columns=list(structure.output_names)))
+    return out[0] if isinstance(data, pd.DataFrame) else out
 
 
 def smooth_data(model, params, data, time="t", hold="zoh", method=None, time_unit=None, **options):

@@ -36,8 +36,9 @@ from .. import runtime  # noqa: F401  (64-bit JAX and greyid's cache folder befo
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.scipy.special import log_ndtr
 
-from ..model.distributions import observations_log_density
+from ..model.distributions import COUNTS, NORMAL, cdf, observations_log_density
 from ..model.structure import Structure
 from . import small
 from .discretize import discretize_each
@@ -141,8 +142,16 @@ def block_matvec(diagonal, lower, x):
     return out.at[:-1].add(jnp.einsum("jba,jb->ja", lower, x[1:]))
 
 
-def prepare(structure: Structure, options: FilterOptions):
-    """``marginal(theta, data) -> (log-likelihood, mode)`` of the Laplace method (see the module doc)."""
+class Laplace(NamedTuple):
+    """The Laplace method's functions of (θ, data): ``marginal`` (the value with exact derivatives in θ, and
+    the mode) and ``value(theta, data, cdf=None)`` (the value alone, optionally with CDF terms)."""
+
+    marginal: Callable
+    value: Callable
+
+
+def build(structure: Structure, options: FilterOptions) -> Laplace:
+    """The [`Laplace`][greyid.filters.laplace.Laplace] functions of the method (see the module doc)."""
     refuse_unsupported(structure, "the Laplace method")
     n, s = structure.n_states, options.substeps
     families = structure.output_families
@@ -156,9 +165,11 @@ def prepare(structure: Structure, options: FilterOptions):
         z = small.solve_lower(root, residual)
         return -0.5 * (z @ z) - jnp.sum(jnp.log(jnp.diag(root))) - 0.5 * n * jnp.log(2 * jnp.pi)
 
-    def pieces(theta, data: FilterInputs) -> Terms:
+    def pieces(theta, data: FilterInputs, cdf=None) -> Terms:
         """The joint log-density's terms at θ, on the grid of ``data``: computed once per θ, outside the
-        Newton loop that evaluates them many times."""
+        Newton loop that evaluates them many times.  ``cdf = (on, shift, upper)`` (N, outputs) adds, where
+        ``on``, log P(Y ≤ y − shift | x) of each output, or log P(Y > y | x) where ``upper`` (the one-step
+        transforms')."""
         data = series_rows(structure, theta, data).data
         grid = fine_grid(data, s, linear_inputs=ctsmtmb)
         x0, P0 = initial_state(structure, theta, data)
@@ -188,14 +199,24 @@ def prepare(structure: Structure, options: FilterOptions):
             return gaussian(small.cholesky(V), x_next - mean)
 
         def observed(x, row):
-            y, mask, u, t = row
-            return observations_log_density(families, y, mask, *structure.observation_law(x, u, t, theta))
+            y, mask, u, t = row[:4]
+            law = structure.observation_law(x, u, t, theta)
+            value = observations_log_density(families, y, mask, *law)
+            if cdf is None:
+                return value
+            on, shift, upper = row[4:]
+            for i, family in enumerate(families):
+                # (y itself where off: a finite value whose derivatives are finite, which the where discards)
+                at = jnp.where(on[i] > 0, y[i] - shift[i], y[i])
+                term = log_tail(family, at, law[0][i], law[1][i], law[2][i], upper[i] > 0)
+                value = value + jnp.where(on[i] > 0, term, 0.0)
+            return value
 
         def drift(x, u, t):
             return f(x, u, t, theta)
 
-        return Terms(grid, transition, observed, lambda x: gaussian(prior_root, x - x0),
-                     (data.y, data.mask, data.u_cur, data.t), x0, drift)
+        rows = (data.y, data.mask, data.u_cur, data.t) + (() if cdf is None else tuple(cdf))
+        return Terms(grid, transition, observed, lambda x: gaussian(prior_root, x - x0), rows, x0, drift)
 
     def joint(terms: Terms, X):
         """J(X, θ) of the terms at θ: X (T + 1, n)."""
@@ -223,8 +244,8 @@ def prepare(structure: Structure, options: FilterOptions):
         _, path = jax.lax.scan(step, terms.x0, terms.grid)
         return jnp.concatenate([terms.x0[None], path])
 
-    def newton(theta, data):
-        terms = pieces(theta, data)
+    def newton(theta, data, cdf=None):
+        terms = pieces(theta, data, cdf)
 
         def gradient(X):
             return jax.grad(joint, argnums=1)(terms, X)
@@ -285,12 +306,92 @@ def prepare(structure: Structure, options: FilterOptions):
                                          lambda _, b: block_solve(factor, couplings, b), symmetric=True)
         return X, dX
 
+    def value_at(terms: Terms, X):
+        """J(X̂) + (d/2) log 2π − ½ log det(−H) at the mode X̂."""
+        factor, _ = block_cholesky(*blocks(terms, X))
+        logdet = 2 * jnp.sum(jnp.log(jnp.diagonal(factor, axis1=1, axis2=2)))
+        return joint(terms, X) + 0.5 * X.size * jnp.log(2 * jnp.pi) - 0.5 * logdet
+
     def marginal(theta, data: FilterInputs):
         """(log L(θ) by Laplace's method, the mode X̂ (T + 1, n))."""
         X = mode(theta, data)
-        terms = pieces(theta, data)
-        factor, _ = block_cholesky(*blocks(terms, X))
-        logdet = 2 * jnp.sum(jnp.log(jnp.diagonal(factor, axis1=1, axis2=2)))
-        return joint(terms, X) + 0.5 * X.size * jnp.log(2 * jnp.pi) - 0.5 * logdet, X
+        return value_at(pieces(theta, data), X), X
 
-    return marginal
+    def value(theta, data: FilterInputs, cdf=None):
+        """The Laplace value alone (no derivatives in θ), with the ``cdf`` terms of ``pieces``."""
+        return value_at(pieces(theta, data, cdf), newton(theta, data, cdf))
+
+    return Laplace(marginal, value)
+
+
+def prepare(structure: Structure, options: FilterOptions):
+    """``marginal(theta, data) -> (log-likelihood, mode)`` of the Laplace method (see the module doc)."""
+    return build(structure, options).marginal
+
+
+def log_tail(family: str, y, m, variance, shape, upper):
+    """log P(Y ≤ y | m, S, a), or log P(Y > y | m, S, a) where ``upper``; the normal's by log Φ, accurate far in
+    either tail."""
+    if family == NORMAL:
+        z = (y - m) / jnp.sqrt(variance)
+        return log_ndtr(jnp.where(upper, -z, z))
+    below = cdf(family, y, m, variance, shape)
+    return jnp.log(jnp.maximum(jnp.where(upper, 1 - below, below), 1e-300))
+
+
+#: One-step transforms are computed for this many rows at a time (vectorised).
+ONE_STEP_BATCH = 16
+
+
+def one_step_transforms(structure: Structure, options: FilterOptions):
+    """``transforms(theta, data, uniforms) -> (N, outputs)``: each observation's one-step-ahead probability integral
+    transform under the Laplace method, as ctsmTMB's one-step-ahead residuals (TMB's ``oneStepPredict``,
+    method "cdf"; Thygesen et al. 2017).
+
+    For row k and output i, with D the data before it (rows before k, and outputs before i of row k),
+    the probabilities of y_ki's two tails given D,
+
+        P(Y_ki ≤ y_ki, D) = ∫ F(y_ki | x_k) p(D, X) dX,   P(Y_ki > y_ki, D) = ∫ (1 − F(y_ki | x_k)) p(D, X) dX,
+
+    are each approximated by Laplace's method (log F or log(1 − F) a term of the joint density), and the
+    transform is the first over their sum, as TMB does: each tail's approximation keeps its relative
+    accuracy where the transform is close to 0 or 1.  For counts the three parts P(Y < y), P(Y = y)
+    and P(Y > y) are approximated so, and the transform randomized between them by ``uniforms``
+    (Dunn & Smyth 1996); 0.5 where y_ki is unobserved.  Rows after k are left out (their intervals set
+    to length 0, whose steps integrate to one exactly).  Cost: two Laplace evaluations (three for
+    counts) per observation over the series up to it, so quadratic in the series' length.
+    """
+    laplace = build(structure, options)
+    families = structure.output_families
+    n_out = len(families)
+
+    def transforms(theta, data: FilterInputs, uniforms):
+        n_rows = data.t.shape[0]
+        rows, outputs = jnp.arange(n_rows), jnp.arange(n_out)
+        zero = jnp.zeros((n_rows, n_out))
+
+        def at(k):
+            truncated = data._replace(dt=jnp.where(rows > k, 0.0, data.dt))
+            before = jnp.where((rows < k)[:, None], data.mask, 0.0)
+            out = []
+            for i, family in enumerate(families):
+                observed = data.mask[k, i] > 0
+                mask = before.at[k].set(data.mask[k] * (outputs < i))
+                on = zero.at[k, i].set(1.0)
+                counts = family in COUNTS
+                # Y ≤ y (< y for counts) and Y > y; for counts Y = y too (the density observed): one vectorised
+                # Laplace evaluation of the two or three (mask, on, shift, upper).
+                parts = [(mask, on, on if counts else zero, zero), (mask, on, zero, on)]
+                if counts:
+                    parts.append((mask.at[k, i].set(1.0), zero, zero, zero))
+                stacked = [jnp.stack(a) for a in zip(*parts)]
+                parts = jax.vmap(lambda mask, *cdf: laplace.value(theta, truncated._replace(mask=mask), cdf))(
+                    *stacked)
+                p = jnp.exp(parts - jnp.max(parts))
+                u = (p[0] + (uniforms[k, i] * p[2] if counts else 0.0)) / jnp.sum(p)
+                out.append(jnp.where(observed, u, 0.5))
+            return jnp.stack(out)
+
+        return jax.lax.map(at, rows, batch_size=ONE_STEP_BATCH)
+
+    return transforms
