@@ -8,7 +8,9 @@ from scipy import stats
 
 import greyid
 from greyid.errors import ModelError
+from greyid.estimate.approximations import particle_loglik
 from greyid.filters.api import laplace_residuals
+from greyid.report.html import _approximation_section, html_report
 from test_particle import grid_loglik, point_mass_grid, poisson_data, poisson_model
 
 A, MU, S, R = 0.5, 1.0, 0.4, 0.04
@@ -200,3 +202,34 @@ def test_a_laplace_fit_validates_on_its_one_step_residuals():
     tests = validation.tests.set_index("test")
     assert set(tests["output"]) == {"n"}
     assert not tests.loc["ks_normality", "reject"] and not tests.loc["ljung_box", "reject"]
+    # The Laplace method has no filter: its fit filters and predicts with the particle filter (named).
+    assert fit.filter().method == "particle"
+    pd.testing.assert_frame_equal(fit.predict(steps=2),
+                                  m.predict(fit.values, data, steps=2, method="particle", particles=1000, seed=0))
+    report = html_report(fit, profile=False)
+    approximation = report[report.index('<section id="approximation">'):report.index('<section id="parameters">')]
+    assert "laplace (the fit&#x27;s)" in approximation and 'class="ok"' in approximation
+
+
+@pytest.mark.filterwarnings("ignore:.*at a bound")  # the EKF takes the observation noise to its bound here
+def test_the_report_flags_an_ekf_fit_whose_likelihood_the_particle_filter_contradicts():
+    """A double well (bimodal predictive densities): at the EKF fit's estimates its log-likelihood lies far from the
+    particle filter's, and the report's approximation section says so."""
+    m = greyid.Model("double well")
+    m.add_system("dx = (x - x^3)*dt + sigma*dw1")
+    m.add_observation("y = x", variance="e^2")
+    m.set_initial_state(mean={"x": 1.0}, covariance=[[0.01]])
+    rng = np.random.default_rng(1)
+    x, ys = 1.0, []
+    for _ in range(120):
+        ys.append(x + 0.1 * rng.normal())
+        for _ in range(100):
+            x += (x - x**3) * 0.01 + 0.7 * 0.1 * rng.normal()
+    data = pd.DataFrame({"t": np.arange(120.0), "y": ys})
+    m.set_parameter("sigma", init=0.7, lower=0.01, upper=5)
+    m.set_parameter("e", init=0.1, lower=1e-3, upper=5)
+    fit = m.fit(data, method="ekf")
+    section = _approximation_section(fit)
+    reference = particle_loglik(m, fit.values, data, seed=0, proposal="ekf")
+    assert abs(fit.loglik - reference.loglik) > 5 > 10 * reference.std_error  # the EKF's bias, far beyond the error
+    assert 'class="warning"' in section and "more than its errors allow" in section

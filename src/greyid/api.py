@@ -450,8 +450,9 @@ class FitResult(Estimates):
                 parameter_uncertainty: bool = False, draws: int = 200, seed: int = 0, posterior=None):
         """Output (and state) predictions ``steps`` samples ahead, with standard deviations.
 
-        As [`Model.predict()`][greyid.api.Model.predict] at the estimates;
-        append rows of future inputs with missing outputs to ``data`` to forecast past its end.
+        As [`Model.predict()`][greyid.api.Model.predict] at the estimates (for a Laplace fit by the particle
+        filter, as ``filter()``); append rows of future inputs with missing outputs to ``data`` to forecast past
+        its end.
 
         Parameters
         ----------

@@ -32,6 +32,10 @@ from .calls import filter_at, laplace_residuals_at, predict_at, simulate_at, smo
 from .settings import FitSettings, filter_settings
 
 
+#: A Laplace fit's filter() and predict() run the particle filter with this many particles.
+LAPLACE_FILTER_PARTICLES = 1000
+
+
 class FitWarning(UserWarning):
     """A fit finished with something to look at: an active bound, an ill-determined
     direction, no convergence.  The message is also in ``fit.warnings``."""
@@ -434,8 +438,18 @@ class Estimates:
     def _filter_settings(self):
         return filter_settings(self.settings)
 
+    def _filtering_settings(self):
+        """The settings of the filter behind ``filter()`` and ``predict()``: the fit's own; for a Laplace fit,
+        whose method has no filter, the particle filter's (LAPLACE_FILTER_PARTICLES particles, the fit's seed)."""
+        settings = self._filter_settings()
+        if settings["method"] != "laplace":
+            return settings
+        settings = {k: v for k, v in settings.items() if k not in ("scheme", "substeps")}
+        return dict(settings, method="particle", particles=LAPLACE_FILTER_PARTICLES, seed=self.settings["seed"])
+
     def filter(self, data=None):
-        """The filter run at the estimates.
+        """The filter run at the estimates (for a Laplace fit, the particle filter: the Laplace method has no
+        filter).
 
         Parameters
         ----------
@@ -445,9 +459,9 @@ class Estimates:
         Returns
         -------
         FilterResult or list of FilterResult
-            One per data set.
+            One per data set; its ``method`` names the filter.
         """
-        return filter_at(self.model, self.values, self._data(data), **self._filter_settings())
+        return filter_at(self.model, self.values, self._data(data), **self._filtering_settings())
 
     def smooth(self, data=None):
         """Rauch–Tung–Striebel smoothed states at the estimates.
@@ -465,7 +479,8 @@ class Estimates:
         return smooth_at(self.model, self.values, self._data(data), **self._filter_settings())
 
     def predict(self, data=None, steps: int = 1, states: bool = False, interval: float | None = None):
-        """Output (and state) predictions ``steps`` samples ahead at the estimates, with standard deviations.
+        """Output (and state) predictions ``steps`` samples ahead at the estimates, with standard deviations (for
+        a Laplace fit, the particle filter's, as ``filter()``).
 
         Parameters
         ----------
@@ -484,7 +499,7 @@ class Estimates:
             The time column, each output and ``<output>_sd`` (and the interval's columns).
         """
         out = predict_at(self.model, self.values, self._data(data), steps=steps, states=states,
-                         **self._filter_settings())
+                         **self._filtering_settings())
         if interval is None:
             return out
         check_level(interval)

@@ -1,7 +1,9 @@
 """A self-contained HTML report of a fit: one file, figures embedded, no scripts.
 
 Sections: model (equations rendered from SymPy as MathML), data, estimation
-(criterion, log-likelihood, information criteria, warnings), parameters with
+(criterion, log-likelihood, information criteria, warnings), the check of the
+filter's approximation against the particle filter (nonlinear or non-Gaussian
+models), parameters with
 standard errors and 95 % Wald and profile-likelihood intervals, correlation matrix, derived
 quantities, the residual tests of
 chapter 5 with their verdicts, the residual dashboard and coherency of each
@@ -26,8 +28,10 @@ from ..validation.validate import validate
 from .equations import inline_formula, model_equations
 from .figures import data_figure, embedded_png
 
+#: A particle reference whose runs spread by more than this (log-likelihood units) is flagged as uncertain.
+RELIABLE_SPREAD = 3.0
 #: Section ids, in order; a complete report has every one of them.
-SECTIONS = ("model", "data", "estimation", "parameters", "correlation", "derived", "identifiability",
+SECTIONS = ("model", "data", "estimation", "approximation", "parameters", "correlation", "derived", "identifiability",
             "validation", "residuals", "simulation", "prediction")
 
 _CSS = """
@@ -185,6 +189,43 @@ def _estimation_section(fit) -> str:
         body.append('<div class="warning">The optimiser did not converge.</div>')
     body += [f'<div class="warning">{_esc(w)}</div>' for w in fit.warnings]
     return _section("estimation", "Estimation", "\n".join(body))
+
+
+def _approximation_section(fit) -> str:
+    """The fit's log-likelihood at its estimates beside the particle filter's estimate of it (8 runs of 1000
+    particles with the EKF proposal, whose estimate stays sharp where the observations are, see
+    [`particle_loglik()`][greyid.estimate.approximations.particle_loglik]): is the approximation trustworthy?"""
+    from ..estimate.approximations import particle_loglik
+
+    structure, method = fit.model.structure, fit.settings["method"]
+    if structure.is_linear and not structure.distributions:
+        return _section("approximation", "Approximation", "<p>The model is linear with Gaussian observations: "
+                        "the Kalman filter's likelihood is exact, there is no approximation to check.</p>")
+    where = {k: v for k, v in fit._filter_settings().items() if k in ("time", "hold", "time_unit")}
+    reference = particle_loglik(fit.model, fit.values, fit._data(None), seed=fit.settings["seed"], proposal="ekf",
+                                **where)
+    facts = [("particle filter", f"{reference.loglik:.4f} (standard error {reference.std_error:.3g}; 8 runs of "
+                                 f"1000 particles, EKF proposal, the spread of one run {reference.spread:.3g})")]
+    unreliable = [] if reference.spread <= RELIABLE_SPREAD else [
+        f'<div class="warning">The particle runs spread by {reference.spread:.3g} (more than {RELIABLE_SPREAD}): '
+        "their estimate is itself uncertain here; compare with more particles "
+        "(greyid.estimate.approximations.particle_loglik).</div>"]
+    if method == "particle":
+        body = [_facts(facts), "<p>The fit's own likelihood is a particle estimate: the runs above show its "
+                               "Monte Carlo error at the estimates.</p>", *unreliable]
+        return _section("approximation", "Approximation", "\n".join(body))
+    difference = fit.loglik - reference.loglik
+    allowed = max(3 * reference.std_error, 0.1)
+    facts = [(f"{method} (the fit's)", f"{fit.loglik:.4f}"), *facts, ("difference", f"{difference:+.4f}")]
+    verdict = (f'<div class="ok">The {method} likelihood agrees with the particle filter\'s within its errors '
+               f"(|difference| ≤ {allowed:.3g}).</div>" if abs(difference) <= allowed else
+               f'<div class="warning">The {method} likelihood differs from the particle filter\'s by '
+               f"{difference:+.3g}, more than its errors allow ({allowed:.3g}): the approximation is biased "
+               "here; compare methods with fit.compare_methods() and consider method='laplace' or "
+               "method='particle'.</div>")
+    note = ("<p>The particle filter moves its particles by Euler–Maruyama sub-steps (8 per interval) where the "
+            "dynamics are nonlinear: a difference also holds their discretization error.</p>")
+    return _section("approximation", "Approximation", "\n".join([_facts(facts), verdict, *unreliable, note]))
 
 
 def _profile_intervals(fit):
@@ -355,6 +396,7 @@ def html_report(fit, level: float = 0.05, steps: int = 4, n_paths: int = 100, se
                  _derived_section(fit), _identifiability_section(fit),
                  *_validation_sections(fit, validation, steps, n_paths, seed)]
         sections = [_model_section(fit), _data_section(fit, fit.data), _estimation_section(fit),
+                    _approximation_section(fit),
                     _parameters_section(fit, None if intervals is None else intervals.result()), *later]
     return page(title, SECTIONS, sections)
 

@@ -134,7 +134,7 @@ def predict(fit, data=None, steps: int = 1, interval: float = 0.95, draws: int =
     names = list(model.parameter_names)
     at_estimate = fit.params.loc[names, "estimate"].to_numpy(dtype=np.float64)
     series, means, covs = predict_draws(model, np.vstack([at_estimate, thetas]), frame, steps=steps,
-                                        **fit._filter_settings())
+                                        **fit._filtering_settings())
     sds = np.sqrt(np.clip(np.diagonal(covs, axis1=2, axis2=3), 0.0, None))  # (1 + draws, N, outputs)
     tail = (1 - interval) / 2
     columns = {series.time_name: frame[series.time_name].to_numpy()}
