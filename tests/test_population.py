@@ -535,3 +535,23 @@ def test_a_lost_worker_loses_no_chunk(gain_problem):
         _, values, gradients, _ = evaluator(phi, u0, "gradient")
     np.testing.assert_allclose(values, laplace.laplace_values(expected[0]), rtol=1e-12)
     np.testing.assert_allclose(gradients, expected[2], rtol=1e-10)
+
+
+@pytest.mark.slow
+def test_a_population_by_the_ensemble_kalman_filter_approaches_the_exact_one_and_particles_are_refused():
+    """The EnKF's fixed random numbers make each member's likelihood smooth in θ, so the random effects integrate by
+    Laplace's method as with the exact filter: on a linear Gaussian population the two fits agree to the ensemble's
+    error. The particle filter's estimate is not smooth (resampling): refused, naming what to use."""
+    from test_particle import ou_data, ou_gaussian
+
+    m = ou_gaussian()
+    data = {f"m{i}": ou_data(60, seed=20 + i) for i in range(5)}
+    exact = greyid.fit_population(m, data, random={"mu": "normal"}, method="kalman")
+    ensemble = greyid.fit_population(m, data, random={"mu": "normal"}, method="enkf", particles=1000)
+    assert ensemble.converged
+    assert ensemble.loglik == pytest.approx(exact.loglik, abs=1.0)
+    for name in ("a", "mu", "s", "r"):
+        estimate, error = exact.params.loc[name, "estimate"], exact.params.loc[name, "std_error"]
+        assert abs(ensemble.params.loc[name, "estimate"] - estimate) < 0.5 * error, name
+    with pytest.raises(greyid.ModelError, match="particle filter's estimate has none.*'laplace', 'enkf'"):
+        greyid.fit_population(m, data, random={"mu": "normal"}, method="particle")

@@ -27,6 +27,7 @@ from ..errors import DataError, ModelError
 from ..estimate.objective import worker_count
 from ..estimate.optimize import EXACT, GRADIENT, VALUE, NotFiniteError, run_alone
 from ..estimate.trust_region import Search
+from ..filters.protocol import PARTICLE
 from ..data.files import named_datasets, read_covariates, read_source
 from ..model.options import rename_columns
 from . import laplace
@@ -304,6 +305,11 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
     time = time or settings.get("time") or "t"
     hold = hold or settings.get("hold") or "zoh"
     method = method or settings.get("method")
+    if method == PARTICLE:
+        raise ModelError("fit_population integrates the random effects by Laplace's method, which needs smooth "
+                         "second and third derivatives of each member's likelihood; the particle filter's estimate "
+                         "has none (its resampling is discontinuous): use method='laplace', 'enkf' or a Gaussian "
+                         "filter")
     columns = columns or settings.get("columns")
     make_spec(model, random, covariates, effects, omega, names, init, omega_init)  # bad input named first
     if start == "pooled":
