@@ -486,3 +486,19 @@ def test_a_proposal_is_a_particle_filter_setting_and_travels_with_a_fit():
     # A profile reruns the fit's own filter (its particles, seed and proposal): at the estimate, the fit's value.
     profile = fit.profile("mu", values=[fit.values["mu"]])
     assert profile["loglik"].iloc[0] == pytest.approx(fit.loglik, abs=1e-6)
+
+
+@pytest.mark.filterwarnings("ignore:.*did not converge", "ignore:.*at a bound")
+@pytest.mark.parametrize("method, settings", [("enkf", dict(particles=300)),
+                                              ("particle", dict(particles=300, proposal="ekf"))])
+def test_a_fleet_by_the_stochastic_filters_fits_each_member_as_alone(method, settings):
+    """fit_many runs the members' programs together; the random numbers come from the seed alone, not from a
+    member's place in the fleet, so each member's fit is the one it gets alone."""
+    m = ou_gaussian()
+    data = [ou_data(60, seed=30 + i) for i in range(2)]
+    fleet = greyid.fit_many(m, data, method=method, **settings)
+    for name, frame in zip(fleet.table.index, data):
+        alone = m.fit(frame, method=method, **settings)
+        assert fleet.table.loc[name, "loglik"] == pytest.approx(alone.loglik, abs=1e-6)
+        for p in ("a", "mu", "s", "r"):
+            assert fleet.table.loc[name, p] == pytest.approx(alone.values[p], rel=1e-4, abs=1e-9)
