@@ -12,6 +12,13 @@ Two one-state models simulated finely (Euler–Maruyama, 100 steps per sampling 
 At the simulating parameters, ``compare_methods`` gives each Gaussian filter's and the Laplace
 method's log-likelihood beside the particle filter's estimate (8 runs of ``--particles``
 particles, its Monte Carlo standard error): the difference is each approximation's bias.
+
+    python benchmarks/approximations.py --coverage 200 [--rows 200]
+
+instead fits ``--coverage`` series of Poisson counts of a latent Ornstein–Uhlenbeck log-rate
+((a, μ, s) = (0.5, 2, 0.5), ``--rows`` samples each) by the Laplace method (``fit_many``) and
+prints each parameter's mean estimate, the estimates' spread beside the mean standard error,
+and how often the 95 % Wald interval covers the simulated value.
 """
 
 from __future__ import annotations
@@ -53,11 +60,44 @@ def models(rows):
     yield logistic, params, data
 
 
+def coverage(replications: int, rows: int):
+    import warnings
+
+    import greyid
+
+    m = greyid.Model("counts")
+    m.add_system("dl = -a*(l - mu)*dt + s*dw1")
+    m.add_observation("n = exp(l)", distribution="poisson")
+    for name, value, lower in (("a", 0.5, 1e-3), ("mu", 2.0, -5), ("s", 0.5, 1e-3)):
+        m.set_parameter(name, init=value, lower=lower, upper=10)
+    m.set_initial_state(mean={"l": "mu"}, covariance="stationary")
+    series = []
+    for i in range(replications):
+        rng = np.random.default_rng(1000 + i)
+        level, counts = 2.0, []
+        for _ in range(rows):
+            counts.append(rng.poisson(np.exp(level)))
+            level = 2.0 + (level - 2.0) * np.exp(-0.5) + 0.5 * np.sqrt(1 - np.exp(-1.0)) * rng.normal()
+        series.append(pd.DataFrame({"t": np.arange(float(rows)), "n": counts}))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        table = greyid.fit_many(m, series, method="laplace").table
+    print(f"Laplace fits of {replications} series of {rows} Poisson counts; converged: {table['converged'].sum()}")
+    for name, truth in dict(a=0.5, mu=2.0, s=0.5).items():
+        estimate, error = table[name], table[f"{name}_se"]
+        covered = ((estimate - 1.96 * error <= truth) & (truth <= estimate + 1.96 * error)).mean()
+        print(f"{name:3s} simulated {truth:5.2f}  mean {estimate.mean():7.4f}  spread {estimate.std(ddof=1):7.4f}  "
+              f"mean standard error {error.mean():7.4f}  95 % coverage {covered:6.1%}")
+
+
 def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--rows", type=int, default=200)
     parser.add_argument("--particles", type=int, default=20000)
+    parser.add_argument("--coverage", type=int, default=0)
     args = parser.parse_args()
+    if args.coverage:
+        return coverage(args.coverage, args.rows)
     from greyid.estimate.approximations import compare_methods
 
     pd.set_option("display.width", 120)
