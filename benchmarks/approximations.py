@@ -11,7 +11,8 @@ Two one-state models simulated finely (Euler–Maruyama, 100 steps per sampling 
 
 At the simulating parameters, ``compare_methods`` gives each Gaussian filter's and the Laplace
 method's log-likelihood beside the particle filter's estimate (8 runs of ``--particles``
-particles, its Monte Carlo standard error): the difference is each approximation's bias.
+particles with the ``--proposal`` proposal, default ``ekf``, and its Monte Carlo standard
+error): the difference is each approximation's bias.
 
     python benchmarks/approximations.py --coverage 200 [--rows 200]
 
@@ -95,6 +96,7 @@ def main():
     parser.add_argument("--rows", type=int, default=200)
     parser.add_argument("--particles", type=int, default=20000)
     parser.add_argument("--coverage", type=int, default=0)
+    parser.add_argument("--proposal", default="ekf")
     args = parser.parse_args()
     if args.coverage:
         return coverage(args.coverage, args.rows)
@@ -105,8 +107,9 @@ def main():
         for name, value in params.items():
             model.set_parameter(name, init=value)
         table = compare_methods(model, params, data, methods=["ekf", "ukf", "gaussian2", "laplace"],
-                                particles=args.particles)
-        print(f"\n{model.name}, {args.rows} rows, particle reference {args.particles} particles × 8 runs")
+                                particles=args.particles, proposal=args.proposal)
+        print(f"\n{model.name}, {args.rows} rows, particle reference {args.particles} particles × 8 runs, "
+              f"{args.proposal} proposal")
         print(table.to_string(float_format=lambda v: f"{v:.3f}"))
 
 
