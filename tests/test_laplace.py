@@ -254,3 +254,33 @@ def test_laplace_intervals_cover_the_simulated_parameters_over_replications():
         assert stats.f.ppf(0.005, 39, 1e9) < spread**2 / np.mean(error**2) < stats.f.ppf(0.995, 39, 1e9), name
         if name != "a":
             assert abs(estimate.mean() - truth) / (spread / np.sqrt(40)) < stats.t.ppf(0.995, 39), name
+
+
+def test_the_laplace_smoother_is_the_rauch_tung_striebel_smoother_of_a_linear_gaussian_model():
+    """The mode of the states and the diagonal blocks of the inverse Hessian (selected inversion of its block
+    Cholesky factor) equal the RTS smoother's means and covariances for a linear Gaussian model (missing values,
+    irregular sampling); for counts the mode tracks the grid filter's smoothed log-rate."""
+    m = ou_model()
+    for data in (ou_data(), ou_data(irregular=True)):
+        laplace = m.smooth(PARAMS, data, method="laplace")
+        exact = m.smooth(PARAMS, data, method="kalman")
+        assert laplace.filter_result is None
+        np.testing.assert_allclose(laplace.smoothed["x"], exact.smoothed["x"], atol=1e-9)
+        np.testing.assert_allclose(laplace.smoothed_cov, exact.smoothed_cov, atol=1e-9)
+    counts_model, counts = poisson_model(), poisson_data(120, seed=11)
+    grid, transition, prior = point_mass_grid()
+    likelihood = stats.poisson.pmf(counts["n"].to_numpy()[:, None], np.exp(grid)[None, :])
+    forward = []
+    for k in range(len(counts)):
+        prior = (prior @ transition if k else prior) * likelihood[k]
+        prior /= prior.sum()
+        forward.append(prior)
+    backward, mean = np.ones_like(grid), []
+    for k in reversed(range(len(counts))):
+        posterior = forward[k] * backward
+        mean.append(posterior @ grid / posterior.sum())
+        backward = transition @ (likelihood[k] * backward)
+        backward /= backward.sum()
+    mean = np.array(mean[::-1])
+    mode = counts_model.smooth(dict(a=0.5, mu=2.0, s=0.5), counts, method="laplace").smoothed["l"].to_numpy()
+    assert np.max(np.abs(mode - mean)) < 0.05, np.max(np.abs(mode - mean))

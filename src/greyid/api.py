@@ -299,7 +299,8 @@ class Model(ModelSpec):
 
     def smooth(self, params, data, time: str | None = None, hold: str | None = None, method: str | None = None,
                **options):
-        """Rauch–Tung–Striebel smoothed states (linear models and the EKF).
+        """Smoothed states: Rauch–Tung–Striebel after a Gaussian filter; with ``method="laplace"`` the mode of the
+        states given all the data and the Laplace approximation's marginal covariances.
 
         Parameters
         ----------
@@ -312,7 +313,7 @@ class Model(ModelSpec):
         hold : {"zoh", "foh"}, optional
             How inputs are held between samples.
         method : str, optional
-            The filter.
+            The filter, or ``"laplace"``.
         **options
             Other data and filter settings.
 

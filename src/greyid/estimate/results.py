@@ -464,7 +464,8 @@ class Estimates:
         return filter_at(self.model, self.values, self._data(data), **self._filtering_settings())
 
     def smooth(self, data=None):
-        """Rauch–Tung–Striebel smoothed states at the estimates.
+        """Smoothed states at the estimates: Rauch–Tung–Striebel after the fit's filter; for a Laplace fit, the
+        mode of the states with the Laplace approximation's marginal covariances.
 
         Parameters
         ----------

@@ -408,10 +408,29 @@ def laplace_residuals(model, params, data, time="t", hold="zoh", time_unit=None,
     return out[0] if isinstance(data, pd.DataFrame) else out
 
 
+def _laplace_smoothed(model, params, data, time, hold, time_unit, **options):
+    """The Laplace method's smoothed states: the mode at the sample times, the marginals' covariances."""
+    structure, theta, prepared = _prepare(model, params, data, time, hold, time_unit)
+    opts = accurate_options(structure, theta, prepared, LAPLACE, **options)[0]
+    program = structure_program(structure, ("laplace-smoothed", opts), lambda: laplace.build(structure, opts).smoothed)
+    out = []
+    for series, inputs in prepared:
+        X, P = program(jnp.asarray(theta), inputs)
+        n = series.n_rows
+        out.append(SmootherResult(pd.Series(series.times, index=series.index, name=series.time_name),
+                                  pd.DataFrame(np.asarray(X)[:n], index=series.index,
+                                               columns=list(structure.state_names)),
+                                  np.asarray(P)[:n], None))
+    return out[0] if isinstance(data, pd.DataFrame) else out
+
+
 def smooth_data(model, params, data, time="t", hold="zoh", method=None, time_unit=None, **options):
-    """Rauch–Tung–Striebel smoothing after any of the filters (see [`smoother`][greyid.filters.smoother])."""
+    """Rauch–Tung–Striebel smoothing after any of the filters (see [`smoother`][greyid.filters.smoother]); with
+    ``method="laplace"`` the Laplace method's mode and marginal covariances (its ``smoothed``)."""
     structure = model.structure
     chosen = method or (KALMAN if structure.is_linear else EKF)
+    if chosen == LAPLACE:
+        return _laplace_smoothed(model, params, data, time, hold, time_unit, **options)
     results = filter_data(model, params, data, time, hold, chosen, time_unit, **options)
     single = isinstance(results, FilterResult)
     out = []

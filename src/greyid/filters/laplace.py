@@ -135,6 +135,33 @@ def block_solve(factor, couplings, b):
     return jnp.concatenate([earlier, last[None]])
 
 
+def block_inverse_diagonal(factor, couplings):
+    """The diagonal blocks of A⁻¹ from A's block Cholesky factor (L_j, W_j) (Takahashi's selected inversion).
+
+    Lᵀ Σ = L⁻¹ is block lower triangular with diagonal blocks L_j⁻¹, so from the last block back,
+    Σ_{j,j+1} = −L_j⁻ᵀ W_{j+1}ᵀ Σ_{j+1,j+1} and Σ_jj = L_j⁻ᵀ (L_j⁻¹ − W_{j+1}ᵀ Σ_{j+1,j}): the covariances
+    of the Laplace approximation's marginals, in the same linear cost as the factorisation.
+    """
+    n = factor.shape[-1]
+    eye = jnp.eye(n)
+
+    def inverse_of(L):
+        return small.solve_upper_transposed(L, small.solve_lower(L, eye))
+
+    last = inverse_of(factor[-1])
+
+    def backward(following, parts):
+        L, W_next = parts
+        cross = -small.solve_upper_transposed(L, small.mm(W_next.T, following))  # Σ_{j,j+1}
+        inverse_L = small.solve_lower(L, eye)
+        block = small.solve_upper_transposed(L, inverse_L - small.mm(W_next.T, cross.T))
+        block = 0.5 * (block + block.T)
+        return block, block
+
+    _, earlier = jax.lax.scan(backward, last, (factor[:-1], couplings), reverse=True)
+    return jnp.concatenate([earlier, last[None]])
+
+
 def block_matvec(diagonal, lower, x):
     """A x for the block-tridiagonal A (see [`block_cholesky()`][greyid.filters.laplace.block_cholesky])."""
     out = jnp.einsum("jab,jb->ja", diagonal, x)
@@ -144,10 +171,12 @@ def block_matvec(diagonal, lower, x):
 
 class Laplace(NamedTuple):
     """The Laplace method's functions of (θ, data): ``marginal`` (the value with exact derivatives in θ, and
-    the mode) and ``value(theta, data, cdf=None)`` (the value alone, optionally with CDF terms)."""
+    the mode), ``value(theta, data, cdf=None)`` (the value alone, optionally with CDF terms) and
+    ``smoothed(theta, data)`` (the mode at the sample times with its marginal covariances)."""
 
     marginal: Callable
     value: Callable
+    smoothed: Callable
 
 
 def build(structure: Structure, options: FilterOptions) -> Laplace:
@@ -321,7 +350,15 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
         """The Laplace value alone (no derivatives in θ), with the ``cdf`` terms of ``pieces``."""
         return value_at(pieces(theta, data, cdf), newton(theta, data, cdf))
 
-    return Laplace(marginal, value)
+    def smoothed(theta, data: FilterInputs):
+        """The mode's states at the sample times (N, n) and their covariances (N, n, n): the diagonal blocks of
+        (−∂²J/∂X²)⁻¹ at the mode, the Laplace approximation's marginals (for a linear Gaussian model the
+        Rauch–Tung–Striebel smoother's)."""
+        X = newton(theta, data)
+        factor, couplings = block_cholesky(*blocks(pieces(theta, data), X))
+        return X[::s], block_inverse_diagonal(factor, couplings)[::s]
+
+    return Laplace(marginal, value, smoothed)
 
 
 def prepare(structure: Structure, options: FilterOptions):

@@ -67,12 +67,13 @@ class FilterResult:
 
 @dataclass(frozen=True)
 class SmootherResult:
-    """Rauch–Tung–Striebel smoothed states x_{k|N}, P_{k|N}."""
+    """Smoothed states x_{k|N}, P_{k|N}: Rauch–Tung–Striebel after a filter, or the Laplace method's mode and its
+    marginal covariances (``filter_result`` None)."""
 
     times: pd.Series
     smoothed: pd.DataFrame
     smoothed_cov: np.ndarray
-    filter_result: FilterResult
+    filter_result: FilterResult | None
 
     @property
     def smoothed_std(self) -> pd.DataFrame:
