@@ -189,25 +189,28 @@ def sample_pmmh(fit, draws: int = 1000, chains: int = 4, seed: int = 0, warmup: 
     log_start, _ = jax.jit(jax.vmap(lambda z, k: target(z, k, *arguments)))(jnp.asarray(start), start_keys)
     states = ChainState(jnp.asarray(start), log_start)
     run_block = chain_blocks(target)
-    block_keys = iter(jax.random.split(key_chains, 10**6 // BLOCK))
 
-    def run(states, root, steps):
+    def run(states, root, steps, first_block):
+        """``steps`` steps of every chain in blocks numbered from ``first_block`` (whose keys fold in the number)."""
         positions, accepted = [], []
-        for _ in range(-(-steps // BLOCK)):
-            states, p, a = run_block(states, jnp.asarray(root), jax.random.split(next(block_keys), chains), *arguments)
+        blocks = -(-steps // BLOCK)
+        for number in range(first_block, first_block + blocks):
+            keys = jax.random.split(jax.random.fold_in(key_chains, number), chains)
+            states, p, a = run_block(states, jnp.asarray(root), keys, *arguments)
             positions.append(np.asarray(p))
             accepted.append(np.asarray(a))
-        return states, np.concatenate(positions, axis=1)[:, :steps], np.concatenate(accepted, axis=1)[:, :steps]
+        return (states, np.concatenate(positions, axis=1)[:, :steps], np.concatenate(accepted, axis=1)[:, :steps],
+                first_block + blocks)
 
     # Warm-up: the Laplace covariance, then the first half's draws' covariance (where the chains moved).
     root = random_walk_root(covariance)
     half = warmup // 2
-    states, first, _ = run(states, root, half)
+    states, first, _, block = run(states, root, half, 0)
     learnt = np.cov(first[:, half // 2:].reshape(-1, d), rowvar=False).reshape(d, d)
     if np.all(np.isfinite(learnt)) and np.all(np.linalg.eigvalsh(0.5 * (learnt + learnt.T)) > 0):
         root = random_walk_root(learnt)
-    states, _, _ = run(states, root, warmup - half)
-    states, positions, accepted = run(states, root, draws)
+    states, _, _, block = run(states, root, warmup - half, block)
+    states, positions, accepted, _ = run(states, root, draws, block)
     label = "log-posterior" if fit.settings.get("prior") is not None else "log-likelihood (flat prior)"
     return posterior_of(refit, positions, criterion=label, divergences=None, step_size=None,
                         acceptance=float(np.mean(accepted)), sampler="pmmh", loglik_spread=spread)
