@@ -393,10 +393,9 @@ def laplace_residuals(model, params, data, time="t", hold="zoh", time_unit=None,
     """
     from scipy.stats import norm
 
-    structure, theta, prepared = _prepare(model, params, data, time, hold, time_unit)
     options.pop("method", None)
-    opts = accurate_options(structure, theta, prepared, LAPLACE, **options)[0]
-    program = structure_program(structure, ("one-step", opts), lambda: laplace.one_step_transforms(structure, opts))
+    structure, theta, prepared, program = _laplace_program(
+        model, params, data, time, hold, time_unit, "one-step", laplace.one_step_transforms, options)
     out = []
     for i, (series, inputs) in enumerate(prepared):
         uniforms = np.zeros(inputs.y.shape)
@@ -408,11 +407,19 @@ def laplace_residuals(model, params, data, time="t", hold="zoh", time_unit=None,
     return out[0] if isinstance(data, pd.DataFrame) else out
 
 
-def _laplace_smoothed(model, params, data, time, hold, time_unit, **options):
-    """The Laplace method's smoothed states: the mode at the sample times, the marginals' covariances."""
+def _laplace_program(model, params, data, time, hold, time_unit, name: str, make, options):
+    """``(structure, θ, prepared data, program)``: the data prepared and ``make(structure, options)`` compiled
+    once per structure and Laplace settings (sub-steps chosen as a Laplace fit chooses them)."""
     structure, theta, prepared = _prepare(model, params, data, time, hold, time_unit)
     opts = accurate_options(structure, theta, prepared, LAPLACE, **options)[0]
-    program = structure_program(structure, ("laplace-smoothed", opts), lambda: laplace.build(structure, opts).smoothed)
+    return structure, theta, prepared, structure_program(structure, (name, opts), lambda: make(structure, opts))
+
+
+def _laplace_smoothed(model, params, data, time, hold, time_unit, **options):
+    """The Laplace method's smoothed states: the mode at the sample times, the marginals' covariances."""
+    structure, theta, prepared, program = _laplace_program(
+        model, params, data, time, hold, time_unit, "laplace-smoothed",
+        lambda structure, opts: laplace.build(structure, opts).smoothed, options)
     out = []
     for series, inputs in prepared:
         X, P = program(jnp.asarray(theta), inputs)

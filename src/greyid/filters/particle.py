@@ -109,7 +109,7 @@ def resample(uniform, state: ParticleState, threshold: float) -> ParticleState:
 class SampledDynamics(NamedTuple):
     """Members (particles, an ensemble) moved by the model's dynamics with fixed random numbers: the
     members at t₀, ``advance(x, row, step)`` over row ``step``'s interval, ``guided(x, row, step, draw)``
-    the same moves drawn by a proposal (see [`guided_dynamics()`][greyid.filters.particle.sampled_dynamics]),
+    the same moves drawn by a proposal (see [`sampled_dynamics()`][greyid.filters.particle.sampled_dynamics]),
     and one uniform number per row."""
 
     initial: jnp.ndarray
