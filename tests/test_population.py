@@ -555,3 +555,27 @@ def test_a_population_by_the_ensemble_kalman_filter_approaches_the_exact_one_and
         assert abs(ensemble.params.loc[name, "estimate"] - estimate) < 0.5 * error, name
     with pytest.raises(greyid.ModelError, match="particle filter's estimate has none.*'laplace', 'enkf'"):
         greyid.fit_population(m, data, random={"mu": "normal"}, method="particle")
+
+
+@pytest.mark.slow
+def test_a_population_by_the_laplace_method_over_the_states_equals_the_kalman_filters():
+    """Laplace's method over the states (exact transitions of a linear Gaussian model) gives each member the
+    Kalman filter's likelihood exactly, so the nested Laplace over the random effects must reproduce the
+    Kalman population fit: log-likelihood to 1e-6, estimates and standard errors to 1e-4 relative."""
+    from test_particle import ou_data, ou_gaussian
+
+    m = ou_gaussian()
+    m.set_initial_state(mean={"x": 1.0}, covariance=[[4.0]])  # the members start near their own levels
+    data = {}
+    for i, level in enumerate((-0.8, 0.0, 0.9)):
+        frame = ou_data(60, seed=30 + i)
+        data[f"m{i}"] = frame.assign(y=frame["y"] + level)
+    exact = greyid.fit_population(m, data, random={"mu": "normal"}, method="kalman")
+    marginal = greyid.fit_population(m, data, random={"mu": "normal"}, method="laplace")
+    assert exact.converged and marginal.converged
+    assert exact.params.loc["omega_mu", "estimate"] > 0.1  # a real random effect, not one at its bound
+    assert marginal.loglik == pytest.approx(exact.loglik, abs=1e-6)
+    for column in ("estimate", "std_error"):
+        np.testing.assert_allclose(marginal.params[column], exact.params[column], rtol=1e-4)
+    np.testing.assert_allclose(marginal.random_effects.to_numpy(float), exact.random_effects.to_numpy(float),
+                               rtol=1e-4, atol=1e-8)
