@@ -7,7 +7,9 @@ Two one-state models simulated finely (Euler–Maruyama, 100 steps per sampling 
 
 * ``double well``: dx = (x − x³)dt + σ dω, y = x + e, σ = 0.7, e ~ N(0, 0.1²): the state
   hops between two wells, its predictive density is bimodal;
-* ``logistic``: dx = r x (1 − x/K)dt + s x dω, y = x + e (multiplicative noise).
+* ``logistic``: dx = r x (1 − x/K)dt + s x dω, y = x + e (multiplicative noise);
+* ``logistic, log x``: the same model and data, the state worked as log x
+  (``transform_state("x", "log")``, a Lamperti transform: its noise is additive).
 
 At the simulating parameters, ``compare_methods`` gives each Gaussian filter's and the Laplace
 method's log-likelihood beside the particle filter's estimate (8 runs of ``--particles``
@@ -60,6 +62,11 @@ def models(rows):
     data = simulate(lambda x: 0.3 * x * (1 - x / 100), lambda x: 0.3 * x, 10.0, rows, 2.0, 2)
     yield logistic, params, data
 
+    # The same model and data with x worked as log x (a Lamperti transform): its noise is additive there.
+    transformed = greyid.Model.from_dict(dict(logistic.to_dict(), name="logistic, log x"))
+    transformed.transform_state("x", "log")
+    yield transformed, params, data
+
 
 def coverage(replications: int, rows: int):
     import warnings
@@ -97,6 +104,7 @@ def main():
     parser.add_argument("--particles", type=int, default=20000)
     parser.add_argument("--coverage", type=int, default=0)
     parser.add_argument("--proposal", default="ekf")
+    parser.add_argument("--model", action="append", default=[], help="a model's name to run (repeat; default: all)")
     args = parser.parse_args()
     if args.coverage:
         return coverage(args.coverage, args.rows)
@@ -104,6 +112,8 @@ def main():
 
     pd.set_option("display.width", 120)
     for model, params, data in models(args.rows):
+        if args.model and model.name not in args.model:
+            continue
         for name, value in params.items():
             model.set_parameter(name, init=value)
         table = compare_methods(model, params, data, methods=["ekf", "ukf", "gaussian2", "laplace"],

@@ -110,7 +110,7 @@ def prior_correlation(value) -> dict[tuple[str, str], float]:
 # ---------------------------------------------------------------------- model files
 #: Sections of a model file and the keys each may hold (None: any names, checked by kind).
 MODEL_SECTIONS = {
-    "model": ("name", "description", "inputs", "system", "algebraic", "observations", "initial_state",
+    "model": ("name", "description", "inputs", "system", "algebraic", "observations", "initial_state", "transforms",
               "initial_covariance", "initial_covariance_scale", "observation_covariance"),
     "parameters": None,
     "derived": None,
@@ -181,6 +181,10 @@ def check_model_document(document: Mapping) -> None:
         value = system if key == "system" else model.get(key, [])
         if not (isinstance(value, list) and all(isinstance(v, str) for v in value)):
             raise ModelError(f"[model] {key} must be a list of strings, e.g. {key} = [\"...\"], got {value!r}")
+    transforms = model.get("transforms", {})
+    if not (isinstance(transforms, Mapping) and all(isinstance(v, str) for v in transforms.values())):
+        raise ModelError(f"[model.transforms] must be a table of state = \"transform\" (e.g. x = \"log\"), got "
+                         f"{transforms!r}")
     if not model.get("observations"):
         raise ModelError("the model file has no [model.observations]; "
                          "add e.g. y = { equation = \"x\", variance = \"s\" }")

@@ -9,6 +9,7 @@ so they change nothing.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 from .. import runtime  # noqa: F401  (64-bit JAX and greyid's cache folder before any JAX work)
 import jax
@@ -20,6 +21,7 @@ from ..runtime.jit import structure_program
 from ..data.prepare import Series, as_frames, prepare_series
 from ..errors import DataError, FilterWarning, ModelError, warn
 from ..model.structure import Structure
+from ..model.transforms import to_original
 from .accuracy import choose_substeps, chooses_substeps
 from .driver import make_ahead, make_filter
 from .gaussian import initial_state
@@ -345,12 +347,42 @@ def _guarded(method: str, series: Series, guarded: np.ndarray) -> pd.Series:
     return pd.Series(guarded, index=series.index, name="guarded")
 
 
-def filter_data(model, params, data, time="t", hold="zoh", method=None, time_unit=None, **options):
-    """Filter result(s): one `FilterResult`, or a list for a list of data sets."""
+def _filtered(model, params, data, time, hold, method, time_unit, options):
+    """``(structure, θ, results)``: the filter's results in its own coordinates (those of the transformed
+    states, where any are)."""
     structure, theta, prepared = _prepare(model, params, data, time, hold, time_unit)
     opts = accurate_options(structure, theta, prepared, method, **options)[0]
     run = compiled_filter(structure, opts, keep_outputs=True)
-    results = [_result(structure, opts.method, series, *run(jnp.asarray(theta), inputs)) for series, inputs in prepared]
+    return structure, theta, [_result(structure, opts.method, series, *run(jnp.asarray(theta), inputs))
+                       for series, inputs in prepared]
+
+
+def _frame_to_original(structure: Structure, theta, frame: pd.DataFrame, cov: np.ndarray):
+    mean, cov = to_original(structure.state_transforms, theta, frame.to_numpy(), cov)
+    return pd.DataFrame(mean, index=frame.index, columns=frame.columns), cov
+
+
+def in_user_coordinates(structure: Structure, theta, result):
+    """A [`FilterResult`][greyid.filters.result.FilterResult] or
+    [`SmootherResult`][greyid.filters.result.SmootherResult] with its states in the user's coordinates, where the
+    model transforms any ([`to_original`][greyid.model.transforms.to_original]); unchanged otherwise."""
+    if not structure.state_transforms or result is None:
+        return result
+    if isinstance(result, SmootherResult):
+        smoothed, smoothed_cov = _frame_to_original(structure, theta, result.smoothed, result.smoothed_cov)
+        return replace(result, smoothed=smoothed, smoothed_cov=smoothed_cov,
+                       filter_result=in_user_coordinates(structure, theta, result.filter_result))
+    predicted, predicted_cov = _frame_to_original(structure, theta, result.predicted, result.predicted_cov)
+    filtered, filtered_cov = _frame_to_original(structure, theta, result.filtered, result.filtered_cov)
+    return replace(result, predicted=predicted, predicted_cov=predicted_cov, filtered=filtered,
+                   filtered_cov=filtered_cov)
+
+
+def filter_data(model, params, data, time="t", hold="zoh", method=None, time_unit=None, **options):
+    """Filter result(s): one `FilterResult`, or a list for a list of data sets; states in the user's
+    coordinates."""
+    structure, theta, results = _filtered(model, params, data, time, hold, method, time_unit, options)
+    results = [in_user_coordinates(structure, theta, r) for r in results]
     return results[0] if isinstance(data, pd.DataFrame) else results
 
 
@@ -424,10 +456,10 @@ def _laplace_smoothed(model, params, data, time, hold, time_unit, **options):
     for series, inputs in prepared:
         X, P = program(jnp.asarray(theta), inputs)
         n = series.n_rows
-        out.append(SmootherResult(pd.Series(series.times, index=series.index, name=series.time_name),
-                                  pd.DataFrame(np.asarray(X)[:n], index=series.index,
-                                               columns=list(structure.state_names)),
-                                  np.asarray(P)[:n], None))
+        out.append(in_user_coordinates(structure, theta, SmootherResult(
+            pd.Series(series.times, index=series.index, name=series.time_name),
+            pd.DataFrame(np.asarray(X)[:n], index=series.index, columns=list(structure.state_names)),
+            np.asarray(P)[:n], None)))
     return out[0] if isinstance(data, pd.DataFrame) else out
 
 
@@ -438,16 +470,17 @@ def smooth_data(model, params, data, time="t", hold="zoh", method=None, time_uni
     chosen = method or (KALMAN if structure.is_linear else EKF)
     if chosen == LAPLACE:
         return _laplace_smoothed(model, params, data, time, hold, time_unit, **options)
-    results = filter_data(model, params, data, time, hold, chosen, time_unit, **options)
-    single = isinstance(results, FilterResult)
+    structure, theta, results = _filtered(model, params, data, time, hold, chosen, time_unit, options)
+    single = isinstance(data, pd.DataFrame)
     out = []
-    for res in [results] if single else results:
+    for res in results:
         xs, Ps = rts_smooth(jnp.asarray(res.filtered.to_numpy()), jnp.asarray(res.filtered_cov),
                             jnp.asarray(res.predicted.to_numpy()), jnp.asarray(res.predicted_cov),
                             jnp.asarray(res.transitions))
         out.append(SmootherResult(res.times, pd.DataFrame(np.asarray(xs), index=res.filtered.index,
                                                           columns=res.filtered.columns),
                                   np.asarray(Ps), res))
+    out = [in_user_coordinates(structure, theta, r) for r in out]
     return out[0] if single else out
 
 
@@ -476,8 +509,9 @@ def predict_data(model, params, data, steps=1, time="t", hold="zoh", method=None
             cols[name] = y[:, j]
             cols[f"{name}_sd"] = sd[:, j]
         if states:
-            x = np.asarray(out.state_prediction)[:n]
-            x_sd = np.sqrt(np.diagonal(np.asarray(out.state_cov)[:n], axis1=1, axis2=2))
+            x, x_cov = to_original(structure.state_transforms, theta, np.asarray(out.state_prediction)[:n],
+                                   np.asarray(out.state_cov)[:n])
+            x_sd = np.sqrt(np.diagonal(x_cov, axis1=1, axis2=2))
             for j, name in enumerate(structure.state_names):
                 cols[name] = x[:, j]
                 cols[f"{name}_sd"] = x_sd[:, j]

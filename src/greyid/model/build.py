@@ -21,6 +21,7 @@ from .delays import find_delays
 from .distributions import NORMAL, Distribution
 from .equations import CONSTANTS, is_wiener_name
 from .symbols import TIME
+from .transforms import initial_mean_and_covariance, lamperti, state_transforms
 from .structure import (LTI, InitialCovariance, Structure, classify, lambdify_model, lambdify_parameters,
                         linear_drift_function, observation_is_constant)
 
@@ -71,6 +72,12 @@ def build_structure(model) -> Structure:
     if isinstance(cov, list):
         cov = [[sub(e) for e in row] for row in cov]
 
+    transforms, maps, ode_drift = dict(model._transforms), {}, None
+    if transforms:  # Lamperti transforms: every expression in the transformed states' coordinates
+        drift, diffusion, (observation, variance, shapes), maps, ode_drift = lamperti(
+            states, transforms, drift, diffusion, [observation, variance, shapes], noise_names)
+        mean_exprs, cov = initial_mean_and_covariance(states, transforms, maps, mean_exprs, cov)
+
     known = {sp.Symbol(n, real=True) for n in states + inputs} | {TIME}
     everything = [*drift, *[g for row in diffusion for g in row], *observation, *variance, *shapes, *mean_exprs,
                   *([] if correlation is None else [e for row in correlation for e in row])]
@@ -96,6 +103,7 @@ def build_structure(model) -> Structure:
     drift, observation, variance, shapes = ([e.xreplace(replace) for e in part]
                                             for part in (drift, observation, variance, shapes))
     diffusion = [[g.xreplace(replace) for g in row] for row in diffusion]
+    ode_drift = None if ode_drift is None else [e.xreplace(replace) for e in ode_drift]
 
     ordered: list[str] = []
     stand_ins = set(replace.values())
@@ -142,7 +150,7 @@ def build_structure(model) -> Structure:
     fingerprint = structure_fingerprint(
         states, input_syms, outputs, ordered, noise_names, kind, drift, flat_g, observation, variance,
         covariances, mean_exprs, cov if isinstance(cov, list) else (cov, model._initial_scale),
-        [(d.name, d.input, d.expression) for d in delayed], families, shapes)
+        [(d.name, d.input, d.expression) for d in delayed], families, shapes, sorted(transforms.items()))
     return Structure(
         state_names=tuple(states),
         input_names=tuple(inputs),
@@ -166,6 +174,8 @@ def build_structure(model) -> Structure:
         linear_dynamics=linear_dynamics,
         distributions=families if any(f != NORMAL for f in families) else (),
         observation_shape=None if all(f == NORMAL for f in families) else lambdify_model(shapes, *args, (s,)),
+        state_transforms=state_transforms(states, transforms, maps, ordered),
+        ode_drift=None if ode_drift is None else lambdify_model(ode_drift, *args, (n,)),
     )
 
 

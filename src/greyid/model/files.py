@@ -14,6 +14,9 @@ A model file holds what the Python API holds, readable at a glance::
     [model.observations]
     yTi = { equation = "Ti", variance = "exp(e11)" }
 
+    [model.transforms]                 # optional: Lamperti transforms of states with state-dependent noise
+    # Ti = "log"
+
     [model.initial_state]
     Ti = "Ti0"
     Te = "Te0"
@@ -96,6 +99,7 @@ def model_to_dict(model) -> dict:
         "observations": [_observation(model, o) for o in model._observations],
         "observation_covariance": _plain(model._observation_covariance),
         "algebraic": [a.text for a in model._algebraics],
+        "transforms": dict(model._transforms),
         "parameters": {n: parameter(p) for n, p in model.parameters.items()},
         "initial_state": None if model._initial_mean is None else {
             "mean": {k: _plain(v) for k, v in model._initial_mean.items()},
@@ -129,6 +133,8 @@ def model_from_dict(spec: Mapping, cls):
         m.add_inputs(*spec["inputs"])
     for a in spec.get("algebraic", []):
         m.add_algebraic(a)
+    for state, transform in (spec.get("transforms") or {}).items():
+        m.transform_state(state, transform)
     for o in spec["observations"]:
         m.add_observation(o["equation"], variance=o.get("variance"), distribution=o.get("distribution"))
     if spec.get("observation_covariance") is not None:
@@ -168,6 +174,7 @@ def spec_from_toml(document: Mapping) -> dict:
         "system": list(system),
         "inputs": list(model.get("inputs", [])),
         "algebraic": list(model.get("algebraic", [])),
+        "transforms": dict(model.get("transforms", {})),
         "observations": [observation_entry(n, v) for n, v in observations.items()],
         "parameters": {n: parameter_entry(n, v) for n, v in document.get("parameters", {}).items()},
         "initial_state": None if initial is None else {
@@ -262,6 +269,8 @@ def model_to_toml(model) -> str:
         name, rhs = (part.strip() for part in o["equation"].split("=", 1))
         entry = {"equation": rhs, **{k: o[k] for k in ("variance", "distribution") if k in o}}
         lines.append(f"{_key(name)} = {_value(entry)}")
+    if spec.get("transforms"):
+        lines += ["", "[model.transforms]"] + [f"{_key(k)} = {_value(v)}" for k, v in spec["transforms"].items()]
     if initial is not None:
         lines += ["", "[model.initial_state]"] + [f"{_key(k)} = {_value(v)}" for k, v in initial["mean"].items()]
     if spec["parameters"]:

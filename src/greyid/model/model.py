@@ -55,6 +55,7 @@ class ModelSpec:
         self._distributions: dict[str, Distribution] = {}  # by output; normal where not non-Gaussian
         self._observation_covariance = None  # a full matrix of expressions (set_observation_covariance)
         self._algebraics: list = []
+        self._transforms: dict[str, str] = {}  # state → Lamperti transform (transform_state)
         self._parameters: dict[str, Parameter] = {}
         self._initial_mean: dict[str, object] | None = None
         self._initial_covariance: object = "process"
@@ -202,6 +203,59 @@ class ModelSpec:
             self._expression(law.shape, f"{law.shape_name} of observation '{eq.lhs}'")  # checked here
         self._observations.append((eq, var, variance))
         self._distributions[eq.lhs] = law
+        self._changed()
+        return self
+
+    def transform_state(self, state: str, transform: str) -> Self:
+        """Work with a state in a coordinate where its noise is additive (a Lamperti transform).
+
+        A state with state-dependent noise (``s*x*dw1``, ``s*sqrt(x)*dw1``) is rewritten as z = ψ(x) by Itô's
+        formula (see [`transforms`][greyid.model.transforms]): the Gaussian filters linearise it better and the
+        Laplace method's transitions are Gaussian in it.  The equations stay as written, in the state's own name;
+        filtered, smoothed, predicted and simulated states are reported in the original coordinate (x = φ(z) of
+        the transformed mean, the median where z is Gaussian, with the delta method's covariance).
+
+        Parameters
+        ----------
+        state : str
+            The state, with exactly one noise term.
+        transform : str
+            ``"log"`` (noise ∝ x), ``"logit"`` (∝ x(1−x)), ``"sqrt"`` (∝ √x), ``"arcsine"`` (∝ √(x(1−x))), or
+            an expression of the state with one inverse, e.g. ``"log(x - c)"``.
+
+        Returns
+        -------
+        Model
+            The model itself.
+
+        Raises
+        ------
+        ModelError
+            A state that does not exist, a transform given twice, a transform that is not a string; when the
+            model is built: a state without noise or with several noise terms, or a transform that leaves the
+            noise state-dependent (it does not match the diffusion).
+
+        Examples
+        --------
+        >>> import greyid
+        >>> m = greyid.Model("gbm").add_system("dx = mu*x*dt + s*x*dw1")
+        >>> _ = m.add_observation("y = log(x)", variance="r")
+        >>> _ = m.set_initial_state(mean={"x": 1.0}, covariance=[[0.01]])
+        >>> _ = m.transform_state("x", "log")
+        >>> m.structure.kind   # linear in z = log x
+        'lti'
+        """
+        if self._functions is not None:
+            raise ModelError("transform_state() rewrites equations; this model is defined by Python functions")
+        if not isinstance(state, str) or not isinstance(transform, str) or not transform.strip():
+            raise ModelError(f"transform_state(state, transform) takes two strings, got {state!r} and {transform!r}")
+        states = self._declared_states()
+        if state not in states:
+            raise ModelError(f"transform_state: '{state}' is not a state (states: {states}); add its equation "
+                             "first")
+        if state in self._transforms:
+            raise ModelError(f"state '{state}' is already transformed ({self._transforms[state]!r})")
+        self._transforms[state] = transform.strip()
         self._changed()
         return self
 

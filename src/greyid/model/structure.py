@@ -84,6 +84,12 @@ class Structure:
     #: (x, u, t, θ) → each output's shape parameter (df, size, trials; 1 where it has none), or None where
     #: all outputs are normal.
     observation_shape: ModelFunction | None = None
+    #: The states the functions above see through a Lamperti transform
+    #: ([`StateTransform`][greyid.model.transforms.StateTransform]); results report them in the user's coordinates.
+    state_transforms: tuple = ()
+    #: Where states are transformed, the drift of the noise-free model dx = f dt in their coordinates (the drift
+    #: above less Itô's term): the simulator's deterministic path.  None otherwise (it is ``drift``).
+    ode_drift: ModelFunction | None = None
     #: Compiled filters and simulators for this structure, keyed by their settings.
     cache: dict = field(default_factory=dict, compare=False, repr=False)
 

@@ -136,7 +136,10 @@ def _model_section(fit) -> str:
     s = model.structure
     parts.append(_facts([("class", f"{s.kind} ({'exact Kalman filter' if s.is_linear else 'nonlinear'})"),
                          ("states", ", ".join(s.state_names)), ("inputs", ", ".join(s.input_names) or "none"),
-                         ("outputs", ", ".join(s.output_names))]))
+                         ("outputs", ", ".join(s.output_names))]
+                        + ([("transformed states", ", ".join(f"{t.state}: {t.kind} (worked in that coordinate, "
+                                                              "reported in the state's own)" for t in
+                                                              s.state_transforms))] if s.state_transforms else [])))
     return _section("model", f"Model '{model.name}'", "\n".join(parts))
 
 

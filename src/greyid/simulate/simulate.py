@@ -30,6 +30,7 @@ from ..filters.delays import check_delays, delays_at, values_at
 from ..filters.discretize import discretize, time_varying_step
 from ..model.distributions import moments, sample
 from ..model.structure import LTI
+from ..model.transforms import paths_to_original
 from .schemes import make_integrator
 
 METHODS = ("euler", "milstein", "heun", "exact")
@@ -182,6 +183,13 @@ def simulate(model, params, data_or_times, n_paths: int = 1, method: str = "eule
         raise ModelError(f"n_paths must be a positive integer, got {n_paths!r}")
     if not isinstance(substeps, int) or substeps < 1:
         raise ModelError(f"substeps must be a positive integer, got {substeps!r}")
+    if calculus == "stratonovich" and structure.state_transforms:
+        raise ModelError("the model's transformed states were rewritten by Itô's formula: its equations are Itô "
+                         "equations; simulate it with calculus='ito'")
+    if method == "exact" and not noise and structure.ode_drift is not None:
+        raise ModelError("noise=False follows dx = f dt, whose drift in the transformed states' coordinates is not "
+                         "the linear drift the exact scheme solves (Itô's term belongs to the noise); use "
+                         "method='heun' or 'euler'")
     if method == "exact" and not structure.is_linear:
         raise ModelError(f"exact simulation needs a linear model, but this model is {structure.kind}")
     theta = jnp.asarray(model.parameter_vector(params))
@@ -211,8 +219,10 @@ def simulate(model, params, data_or_times, n_paths: int = 1, method: str = "eule
         # Without noise the paths solve the ODE dx = f dt: the Itô–Stratonovich and
         # Milstein corrections belong to the noise and must go with it.
         diffusion = structure.diffusion if noise else _no_diffusion(m)
+        # A transformed state's drift holds Itô's term, which belongs to the noise as well.
+        drift = structure.drift if noise or structure.ode_drift is None else structure.ode_drift
         integrate = structure_program(structure, ("simulate", method, calculus, bool(noise)),
-                                      lambda: jax.vmap(make_integrator(structure.drift, diffusion, method, calculus),
+                                      lambda: jax.vmap(make_integrator(drift, diffusion, method, calculus),
                                                        in_axes=(None, 0, None, None, 0)))
         dW = np.asarray(path_noise) * np.sqrt(np.diff(fine_t))[None, :, None]
         fine = integrate(theta, init, jnp.asarray(fine_t), jnp.asarray(fine_u), dW)
@@ -234,7 +244,8 @@ def simulate(model, params, data_or_times, n_paths: int = 1, method: str = "eule
     else:  # correlated measurement noise: e = L z with L Lᵀ = S (S free of the states)
         full = jax.vmap(lambda uu, tt: structure.observation_covariance(jnp.zeros(n), uu, tt, theta))(u, t)
         y = y_mean + scale * jnp.einsum("kij,pkj->pki", jnp.linalg.cholesky(full), z)
-    return Simulation(series.times, series.inputs, np.asarray(states), np.asarray(y), series.time_name,
+    states = paths_to_original(structure.state_transforms, np.asarray(theta), np.asarray(states))
+    return Simulation(series.times, series.inputs, states, np.asarray(y), series.time_name,
                       structure.input_names, structure.state_names, structure.output_names)
 
 

@@ -50,7 +50,10 @@ def _frame_of(fit, data):
 
 def _simulate(fit, params, data, **options):
     s = fit.settings
-    method = options.pop("method", None) or ("exact" if fit.model.structure.is_linear else "heun")
+    structure = fit.model.structure
+    # Without noise a transformed state follows dx = f dt, which is not the transformed linear drift: Heun.
+    exact = structure.is_linear and not (structure.ode_drift is not None and options.get("noise") is False)
+    method = options.pop("method", None) or ("exact" if exact else "heun")
     return simulate_at(fit.model, params, data, method=method, hold=s["hold"], time=s["time"],
                        time_unit=s.get("time_unit"), **options)
 
