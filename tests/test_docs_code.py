@@ -19,9 +19,10 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = sorted([ROOT / "README.md", *(ROOT / "docs").rglob("*.md")])
-TUTORIALS = {"README.md", "getting-started.md", "user-guide.md", "design.md", "fleets.md", "population.md"}
+TUTORIALS = {"README.md", "getting-started.md", "user-guide.md", "design.md", "fleets.md", "population.md",
+             "latent-forces.md"}
 #: Pages whose code fits models of real data sets or populations: tens of seconds each.
-SLOW = {"user-guide.md", "design.md", "population.md"}
+SLOW = {"user-guide.md", "design.md", "population.md", "latent-forces.md"}
 BLOCK = re.compile(r"```(python|toml)\n(.*?)```", re.S)
 NOT_RUN = re.compile(r"<!-- not run: (.+?) -->\s*$")
 FILE = re.compile(r"`([\w.-]+\.toml)`:\s*$")

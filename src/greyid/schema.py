@@ -111,6 +111,7 @@ def prior_correlation(value) -> dict[tuple[str, str], float]:
 #: Sections of a model file and the keys each may hold (None: any names, checked by kind).
 MODEL_SECTIONS = {
     "model": ("name", "description", "inputs", "system", "algebraic", "observations", "initial_state", "transforms",
+              "latent_forces",
               "initial_covariance", "initial_covariance_scale", "observation_covariance"),
     "parameters": None,
     "derived": None,
@@ -175,12 +176,17 @@ def check_model_document(document: Mapping) -> None:
     system = model.get("system")
     if isinstance(system, str):
         system = [system]
-    if not system:
-        raise ModelError("[model] needs system = [\"dx = ...*dt + ...*dw1\", ...]")
+    if not system and not model.get("latent_forces"):
+        raise ModelError("[model] needs system = [\"dx = ...*dt + ...*dw1\", ...] (or [model.latent_forces])")
+    system = system or []
     for key in ("system", "inputs", "algebraic"):
         value = system if key == "system" else model.get(key, [])
         if not (isinstance(value, list) and all(isinstance(v, str) for v in value)):
             raise ModelError(f"[model] {key} must be a list of strings, e.g. {key} = [\"...\"], got {value!r}")
+    forces = model.get("latent_forces", {})
+    if not (isinstance(forces, Mapping) and all(isinstance(v, Mapping) for v in forces.values())):
+        raise ModelError("[model.latent_forces] must be a table of name = { kernel = \"matern32\", scale = ..., "
+                         f"lengthscale = ... }}, got {forces!r}")
     transforms = model.get("transforms", {})
     if not (isinstance(transforms, Mapping) and all(isinstance(v, str) for v in transforms.values())):
         raise ModelError(f"[model.transforms] must be a table of state = \"transform\" (e.g. x = \"log\"), got "

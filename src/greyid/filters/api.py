@@ -362,20 +362,32 @@ def _frame_to_original(structure: Structure, theta, frame: pd.DataFrame, cov: np
     return pd.DataFrame(mean, index=frame.index, columns=frame.columns), cov
 
 
+def _forces(structure: Structure, frame: pd.DataFrame, cov: np.ndarray) -> pd.DataFrame | None:
+    if not structure.latent_forces:
+        return None
+    columns = {}
+    for force in structure.latent_forces:
+        mean, variance = force.values(frame.to_numpy(), cov)
+        columns[force.name], columns[f"{force.name}_sd"] = mean, np.sqrt(np.maximum(variance, 0.0))
+    return pd.DataFrame(columns, index=frame.index)
+
+
 def in_user_coordinates(structure: Structure, theta, result):
     """A [`FilterResult`][greyid.filters.result.FilterResult] or
     [`SmootherResult`][greyid.filters.result.SmootherResult] with its states in the user's coordinates, where the
-    model transforms any ([`to_original`][greyid.model.transforms.to_original]); unchanged otherwise."""
-    if not structure.state_transforms or result is None:
+    model transforms any ([`to_original`][greyid.model.transforms.to_original]), and its latent forces' values
+    where it has any; unchanged otherwise."""
+    if result is None or not (structure.state_transforms or structure.latent_forces):
         return result
     if isinstance(result, SmootherResult):
         smoothed, smoothed_cov = _frame_to_original(structure, theta, result.smoothed, result.smoothed_cov)
         return replace(result, smoothed=smoothed, smoothed_cov=smoothed_cov,
-                       filter_result=in_user_coordinates(structure, theta, result.filter_result))
+                       filter_result=in_user_coordinates(structure, theta, result.filter_result),
+                       latent_forces=_forces(structure, result.smoothed, result.smoothed_cov))
     predicted, predicted_cov = _frame_to_original(structure, theta, result.predicted, result.predicted_cov)
     filtered, filtered_cov = _frame_to_original(structure, theta, result.filtered, result.filtered_cov)
     return replace(result, predicted=predicted, predicted_cov=predicted_cov, filtered=filtered,
-                   filtered_cov=filtered_cov)
+                   filtered_cov=filtered_cov, latent_forces=_forces(structure, result.filtered, result.filtered_cov))
 
 
 def filter_data(model, params, data, time="t", hold="zoh", method=None, time_unit=None, **options):

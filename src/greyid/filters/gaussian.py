@@ -37,7 +37,7 @@ def initial_state(structure: Structure, theta, data: FilterInputs, first_noise=N
     if spec.kind == "matrix":
         return x0, spec.matrix(theta)
     if spec.kind == "process" and first_noise is not None:
-        return x0, spec.scale * first_noise
+        return x0, with_latent_block(spec, theta, spec.scale * first_noise)
     u0, t0 = data.u_cur[0], data.t[0]
     if structure.linear_drift is not None:
         A = structure.linear_drift(theta)[0]
@@ -45,8 +45,24 @@ def initial_state(structure: Structure, theta, data: FilterInputs, first_noise=N
         A = jax.jacfwd(structure.drift, argnums=0)(x0, u0, t0, theta)
     G = structure.diffusion(x0, u0, t0, theta)
     if spec.kind == "process":
-        return x0, spec.scale * discretize(A, G @ G.T, data.first_interval).noise_covariance
-    return x0, stationary_covariance(A, G @ G.T)
+        return x0, with_latent_block(spec, theta, spec.scale * discretize(A, G @ G.T, data.first_interval)
+                                     .noise_covariance)
+    if spec.latent is None:
+        return x0, stationary_covariance(A, G @ G.T)
+    # The model's own states' stationary covariance without the forces' coupling (a periodic force's
+    # oscillators have none to solve for), the forces' own P∞ beside it.
+    k = spec.latent_start
+    own = stationary_covariance(A[:k, :k], (G @ G.T)[:k, :k]) if k else jnp.zeros((0, 0))
+    return x0, with_latent_block(spec, theta, jnp.zeros_like(A).at[:k, :k].set(own))
+
+
+def with_latent_block(spec, theta, P0):
+    """P0 with the latent forces' states (from ``spec.latent_start``) in their stationary law N(0, P∞),
+    independent of the model's own states at t₀."""
+    if spec.latent is None:
+        return P0
+    k = spec.latent_start
+    return P0.at[k:, :].set(0.0).at[:, k:].set(0.0).at[k:, k:].set(spec.latent(theta))
 
 
 def carried_from_start(theta, *initial):

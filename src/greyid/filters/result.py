@@ -37,6 +37,9 @@ class FilterResult:
     #: particles; a Gaussian filter's (and the ensemble Kalman filter's) are the standardized innovations,
     #: its predictive law being N(ŷ, R_k).
     quantile_residuals: pd.DataFrame | None = None
+    #: Each latent force's filtered value H x_{k|k} and its standard deviation (columns ``<force>``,
+    #: ``<force>_sd``), where the model has latent forces.
+    latent_forces: pd.DataFrame | None = None
 
     @property
     def loglik(self) -> float:
@@ -74,6 +77,9 @@ class SmootherResult:
     smoothed: pd.DataFrame
     smoothed_cov: np.ndarray
     filter_result: FilterResult | None
+    #: Each latent force's smoothed value H x_{k|N} and its standard deviation (columns ``<force>``,
+    #: ``<force>_sd``), where the model has latent forces.
+    latent_forces: pd.DataFrame | None = None
 
     @property
     def smoothed_std(self) -> pd.DataFrame:

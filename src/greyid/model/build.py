@@ -21,6 +21,7 @@ from .delays import find_delays
 from .distributions import NORMAL, Distribution
 from .equations import CONSTANTS, is_wiener_name
 from .symbols import TIME
+from .latent import augment
 from .transforms import initial_mean_and_covariance, lamperti, state_transforms
 from .structure import (LTI, InitialCovariance, Structure, classify, lambdify_model, lambdify_parameters,
                         linear_drift_function, observation_is_constant)
@@ -28,8 +29,9 @@ from .structure import (LTI, InitialCovariance, Structure, classify, lambdify_mo
 
 def build_structure(model) -> Structure:
     """The structure of a model written as equations (model (4.1)–(4.2))."""
-    if not model._system:
-        raise ModelError("the model has no system equations; add them with add_system()")
+    if not model._system and not model._latent_forces:
+        raise ModelError("the model has no system equations; add them with add_system() (or a latent force with "
+                         "add_latent_force())")
     if not model._observations:
         raise ModelError("the model has no observation equation; add one with add_observation()")
     states = [e.state for e in model._system]
@@ -60,14 +62,14 @@ def build_structure(model) -> Structure:
         # 'y = a + b*u + 0*x' (a static regression, on purpose) is a + b*u to SymPy: the text still
         # names the state, as '0*dt' does for a state without drift.
         written = {name for name in re.findall(r"[A-Za-z_]\w*", entry[0].text.split("=", 1)[1])}
-        if not ({s.name for s in h.free_symbols} | written) & set(states):
+        if not ({s.name for s in h.free_symbols} | written) & (set(states) | set(model._latent_forces)):
             uses = sorted(s.name for s in h.free_symbols if s.name not in inputs and s != TIME)
             which = f" (it uses {', '.join(repr(u) for u in uses)}, not a state)" if uses else ""
             raise ModelError(f"observation '{entry[0].text}' depends on no state{which}: it says nothing of the "
                              f"system's dynamics; an observation must be a function of the states {states}")
 
     correlation = observation_covariance_expressions(model, outputs, variance, states)
-    mean_exprs, cov = initial_state_expressions(model, states)
+    mean_exprs, cov = initial_state_expressions(model, states) if states else ([], [])
     mean_exprs = [sub(e) for e in mean_exprs]
     if isinstance(cov, list):
         cov = [[sub(e) for e in row] for row in cov]
@@ -78,8 +80,23 @@ def build_structure(model) -> Structure:
             states, transforms, drift, diffusion, [observation, variance, shapes], noise_names)
         mean_exprs, cov = initial_mean_and_covariance(states, transforms, maps, mean_exprs, cov)
 
+    # Latent forces: their kernels' states after the model's own, each force's H z put for its name.
+    augmented = augment(model, states, noise_names, drift, diffusion,
+                        [observation, variance, shapes, ode_drift or []])
+    own = len(states)
+    states, noise_names, drift, diffusion = (augmented.states, augmented.noise_names, augmented.drift,
+                                             augmented.diffusion)
+    observation, variance, shapes, ode_rows = augmented.others
+    ode_drift = None if ode_drift is None else ode_rows + drift[own:]  # the forces' states have no Itô term
+    latent_cov = augmented.latent_covariance
+    if latent_cov is not None:
+        mean_exprs = mean_exprs + [sp.Integer(0)] * latent_cov.shape[0]
+        if isinstance(cov, list):  # a given matrix: the forces' stationary block beside it
+            cov = sp.diag(sp.Matrix(cov) if cov else sp.zeros(0, 0), latent_cov).tolist()
+
     known = {sp.Symbol(n, real=True) for n in states + inputs} | {TIME}
     everything = [*drift, *[g for row in diffusion for g in row], *observation, *variance, *shapes, *mean_exprs,
+                  *([] if latent_cov is None else list(latent_cov)),
                   *([] if correlation is None else [e for row in correlation for e in row])]
     if isinstance(cov, list):
         everything += [e for row in cov for e in row]
@@ -146,11 +163,13 @@ def build_structure(model) -> Structure:
         cov_fn = lambdify_parameters([e for row in cov for e in row], param_syms, (n, n))
         initial_cov = InitialCovariance("matrix", matrix=cov_fn)
     else:
-        initial_cov = InitialCovariance(cov, scale=model._initial_scale)
+        latent = None if latent_cov is None else lambdify_parameters(list(latent_cov), param_syms, latent_cov.shape)
+        initial_cov = InitialCovariance(cov, scale=model._initial_scale, latent=latent, latent_start=augmented.start)
     fingerprint = structure_fingerprint(
         states, input_syms, outputs, ordered, noise_names, kind, drift, flat_g, observation, variance,
         covariances, mean_exprs, cov if isinstance(cov, list) else (cov, model._initial_scale),
-        [(d.name, d.input, d.expression) for d in delayed], families, shapes, sorted(transforms.items()))
+        [(d.name, d.input, d.expression) for d in delayed], families, shapes, sorted(transforms.items()),
+        None if latent_cov is None else (list(latent_cov), [(f.name, f.indices, f.weights) for f in augmented.forces]))
     return Structure(
         state_names=tuple(states),
         input_names=tuple(inputs),
@@ -176,6 +195,7 @@ def build_structure(model) -> Structure:
         observation_shape=None if all(f == NORMAL for f in families) else lambdify_model(shapes, *args, (s,)),
         state_transforms=state_transforms(states, transforms, maps, ordered),
         ode_drift=None if ode_drift is None else lambdify_model(ode_drift, *args, (n,)),
+        latent_forces=augmented.forces,
     )
 
 

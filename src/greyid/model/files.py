@@ -100,6 +100,7 @@ def model_to_dict(model) -> dict:
         "observation_covariance": _plain(model._observation_covariance),
         "algebraic": [a.text for a in model._algebraics],
         "transforms": dict(model._transforms),
+        "latent_forces": {name: kernel.to_dict() for name, kernel in model._latent_forces.items()},
         "parameters": {n: parameter(p) for n, p in model.parameters.items()},
         "initial_state": None if model._initial_mean is None else {
             "mean": {k: _plain(v) for k, v in model._initial_mean.items()},
@@ -128,13 +129,16 @@ def _observation(model, entry) -> dict:
 def model_from_dict(spec: Mapping, cls):
     """Rebuild a model of class ``cls`` from its [`model_to_dict()`][greyid.model.files.model_to_dict] form."""
     m = cls(spec.get("name", "model"), spec.get("description", ""))
-    m.add_system(*spec["system"])
+    if spec.get("system"):
+        m.add_system(*spec["system"])
     if spec.get("inputs"):
         m.add_inputs(*spec["inputs"])
     for a in spec.get("algebraic", []):
         m.add_algebraic(a)
     for state, transform in (spec.get("transforms") or {}).items():
         m.transform_state(state, transform)
+    for name, kernel in (spec.get("latent_forces") or {}).items():
+        m.add_latent_force(name, kernel)
     for o in spec["observations"]:
         m.add_observation(o["equation"], variance=o.get("variance"), distribution=o.get("distribution"))
     if spec.get("observation_covariance") is not None:
@@ -162,7 +166,8 @@ def spec_from_toml(document: Mapping) -> dict:
     [`greyid.schema`][greyid.schema])."""
     check_model_document(document)
     model = document["model"]
-    system = model["system"] if isinstance(model["system"], list) else [model["system"]]
+    system = model.get("system") or []
+    system = system if isinstance(system, list) else [system]
     observations = model["observations"]
     initial = model.get("initial_state")
     options = {}
@@ -175,6 +180,7 @@ def spec_from_toml(document: Mapping) -> dict:
         "inputs": list(model.get("inputs", [])),
         "algebraic": list(model.get("algebraic", [])),
         "transforms": dict(model.get("transforms", {})),
+        "latent_forces": dict(model.get("latent_forces", {})),
         "observations": [observation_entry(n, v) for n, v in observations.items()],
         "parameters": {n: parameter_entry(n, v) for n, v in document.get("parameters", {}).items()},
         "initial_state": None if initial is None else {
@@ -269,6 +275,8 @@ def model_to_toml(model) -> str:
         name, rhs = (part.strip() for part in o["equation"].split("=", 1))
         entry = {"equation": rhs, **{k: o[k] for k in ("variance", "distribution") if k in o}}
         lines.append(f"{_key(name)} = {_value(entry)}")
+    if spec.get("latent_forces"):
+        lines += ["", "[model.latent_forces]"] + [f"{_key(k)} = {_value(v)}" for k, v in spec["latent_forces"].items()]
     if spec.get("transforms"):
         lines += ["", "[model.transforms]"] + [f"{_key(k)} = {_value(v)}" for k, v in spec["transforms"].items()]
     if initial is not None:

@@ -29,6 +29,7 @@ from .equations import (
     parse_system_equation,
 )
 from .distributions import WITH_VARIANCE, Distribution, distribution_of
+from .kernels import kernel_of
 from .files import model_from_dict, model_to_dict, read_model, write_model
 from .options import check_options, rename_columns, resolve
 from .parameters import Parameter
@@ -56,6 +57,7 @@ class ModelSpec:
         self._observation_covariance = None  # a full matrix of expressions (set_observation_covariance)
         self._algebraics: list = []
         self._transforms: dict[str, str] = {}  # state → Lamperti transform (transform_state)
+        self._latent_forces: dict = {}  # name → kernels.Kernel (add_latent_force)
         self._parameters: dict[str, Parameter] = {}
         self._initial_mean: dict[str, object] | None = None
         self._initial_covariance: object = "process"
@@ -203,6 +205,63 @@ class ModelSpec:
             self._expression(law.shape, f"{law.shape_name} of observation '{eq.lhs}'")  # checked here
         self._observations.append((eq, var, variance))
         self._distributions[eq.lhs] = law
+        self._changed()
+        return self
+
+    def add_latent_force(self, name: str, kernel="matern32", **hyperparameters) -> Self:
+        """Add an unmeasured input modelled as a Gaussian process written as a linear SDE (a latent force).
+
+        The force's name is then used in the equations like an input (``+ Q/Ci``); its kernel's states are
+        appended to the model's, start in their stationary law and are estimated with it (see
+        [`kernels`][greyid.model.kernels] for the kernels and their state-space forms).  Filters and smoothers
+        give the force's path with its uncertainty (``result.latent_forces``).
+
+        Parameters
+        ----------
+        name : str
+            The force's name, as the equations use it.
+        kernel : str, dict or greyid.model.kernels.Kernel
+            ``"matern12"``, ``"matern32"``, ``"matern52"``, ``"periodic"`` or ``"quasiperiodic"`` with the
+            hyperparameters as keywords; or a table ``{"kernel": "sum" | "product", "parts": [...]}``; or kernel
+            objects combined with ``+`` and ``*`` (``Named("matern32", ("s1", "l1")) + ...``).
+        **hyperparameters : str or float
+            ``scale`` (a standard deviation in the force's unit), ``lengthscale`` and ``period`` (in the time
+            unit), ``smoothness`` (the periodic kernel's own, dimensionless lengthscale) and ``order`` (the
+            periodic kernels' number of harmonics, default 6): parameter names, expressions or numbers.
+
+        Returns
+        -------
+        Model
+            The model itself.
+
+        Raises
+        ------
+        ModelError
+            An unknown kernel or hyperparameter, a name that is not an identifier or is taken; when the model is
+            built: a force used in no equation, or a lengthscale, period or smoothness that may be zero or
+            negative (a number ≤ 0, or a parameter without a lower bound above 0).
+
+        Examples
+        --------
+        >>> import greyid
+        >>> m = greyid.Model("gp")
+        >>> _ = m.add_latent_force("f", kernel="matern32", scale="sf", lengthscale="lf")
+        >>> _ = m.add_observation("y = f", variance="r")
+        >>> _ = m.set_parameter("lf", init=1.0, lower=0.01, upper=100)
+        >>> m.state_names
+        ('f', 'f_d1')
+        """
+        if not isinstance(name, str) or not name.isidentifier() or is_wiener_name(name) or name in ("t", "dt"):
+            raise ModelError(f"latent force name {name!r} is not a valid name")
+        if name in self._latent_forces or name in self._declared_states() or name in self._inputs:
+            raise ModelError(f"latent force '{name}': the name is already a latent force, state or input")
+        if isinstance(kernel, str):
+            spec = {"kernel": kernel, **hyperparameters}
+        else:
+            if hyperparameters:
+                raise ModelError(f"latent force '{name}': give the hyperparameters in the kernel, not as keywords")
+            spec = kernel
+        self._latent_forces[name] = kernel_of(spec, f"latent force '{name}'")
         self._changed()
         return self
 

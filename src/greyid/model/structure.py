@@ -18,6 +18,7 @@ import sympy as sp
 from sympy.utilities.lambdify import lambdify
 
 from ..errors import ModelError
+from .kernels import scaled_besseli
 from .symbols import TIME
 
 Array = jnp.ndarray
@@ -40,6 +41,10 @@ class InitialCovariance:
     kind: str
     scale: float = 1.0
     matrix: Callable[[Array], Array] | None = None
+    #: Latent forces' states, from ``latent_start`` on: θ → their stationary covariance P∞, their block of P0
+    #: whatever ``kind`` gives the model's own states (with "process" and "stationary").
+    latent: Callable[[Array], Array] | None = None
+    latent_start: int = 0
 
 
 @dataclass(frozen=True)
@@ -90,6 +95,9 @@ class Structure:
     #: Where states are transformed, the drift of the noise-free model dx = f dt in their coordinates (the drift
     #: above less Itô's term): the simulator's deterministic path.  None otherwise (it is ``drift``).
     ode_drift: ModelFunction | None = None
+    #: The latent forces ([`LatentForce`][greyid.model.latent.LatentForce]): each a weighted sum of the states
+    #: its kernel appended.
+    latent_forces: tuple = ()
     #: Compiled filters and simulators for this structure, keyed by their settings.
     cache: dict = field(default_factory=dict, compare=False, repr=False)
 
@@ -193,7 +201,7 @@ def _extreme(reduce):
 
 
 #: Names SymPy's JAX printer may use, as functions of element-wise arguments.
-_ELEMENTWISE = {"amax": _extreme(jnp.max), "amin": _extreme(jnp.min)}
+_ELEMENTWISE = {"amax": _extreme(jnp.max), "amin": _extreme(jnp.min), "ScaledBesselI": scaled_besseli}
 
 
 def lambdify_model(exprs, states, inputs, parameters, shape) -> ModelFunction:

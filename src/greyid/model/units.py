@@ -248,7 +248,9 @@ def check_model_units(model, units: Mapping[str, str], time_name: str = "t") -> 
         raise ModelError(f"units are given but not the unit of the time column '{time_name}' "
                          f"(e.g. '{time_name}': 'h')")
     time_unit = parsed.get(time_name, parsed.get("t"))
-    names = set(model.state_names) | set(model.input_names) | set(model.output_names) | set(model.parameter_names)
+    forces = getattr(model, "_latent_forces", {})
+    names = (set(model.state_names) | set(model.input_names) | set(model.output_names) | set(model.parameter_names)
+             | set(forces))
     unknown = sorted(set(parsed) - names - {time_name, "t"})
     if unknown:
         raise ModelError(f"units given for '{unknown[0]}', which is not a name of model '{model.name}'")
@@ -275,6 +277,13 @@ def check_model_units(model, units: Mapping[str, str], time_name: str = "t") -> 
         if law is not None and law.shape_name is not None:
             shape = model._expression(law.shape, f"{law.shape_name} of {eq.lhs}")
             terms += check_terms(algebra, f"{law.shape_name} of {eq.lhs}", sub(shape), dimensionless)
+    # A force's scale is a standard deviation in its unit, its lengthscale and period are times.
+    expected = {"scale": None, "lengthscale": time_unit, "period": time_unit, "smoothness": dimensionless}
+    for name, kernel in forces.items():
+        for role, value in kernel.hyperparameters():
+            want = unit[name] if role == "scale" else expected[role]
+            terms += check_terms(algebra, f"{role} of latent force {name}",
+                                 sub(model._expression(value, f"{role} of latent force '{name}'")), want)
     return terms
 
 

@@ -26,7 +26,7 @@ from ..data.files import named_dataset
 from ..model.units import figure_units, pretty
 from ..validation.validate import validate
 from .equations import inline_formula, model_equations
-from .figures import data_figure, embedded_png
+from .figures import data_figure, embedded_png, latent_force_figure
 
 #: A particle reference whose runs spread by more than this (log-likelihood units) is flagged as uncertain.
 RELIABLE_SPREAD = 3.0
@@ -169,6 +169,23 @@ def _data_section(fit, frames) -> str:
     elif fit.data_file:
         parts.insert(0, f"<p>Read from <code>{_esc(fit.data_file)}</code>.</p>")
     return _section("data", "Data", "\n".join(parts))
+
+
+def _latent_force_section(fit) -> str:
+    """Each data set's latent forces, smoothed at the estimates (empty where the model has none)."""
+    s = fit.model.structure
+    if not s.latent_forces:
+        return ""
+    names = [f.name for f in s.latent_forces]
+    smoothed = fit.smooth()
+    time_name = fit.settings["time"]
+    units = figure_units(fit.model, time_name, fit.settings)
+    parts = [f"<p>{', '.join(names)}: unmeasured inputs modelled as Gaussian processes, their paths smoothed "
+             "given all the data.</p>"]
+    for result in smoothed if isinstance(smoothed, list) else [smoothed]:
+        parts.append(embedded_png(latent_force_figure(result.times.to_numpy(), result.latent_forces, names,
+                                                      time_name, units)))
+    return _section("forces", "Latent forces", "\n".join(parts))
 
 
 def _estimation_section(fit) -> str:
@@ -398,10 +415,12 @@ def html_report(fit, level: float = 0.05, steps: int = 4, n_paths: int = 100, se
         later = [_section("correlation", "Correlation of the estimates", _correlation_table(fit.corr)),
                  _derived_section(fit), _identifiability_section(fit),
                  *_validation_sections(fit, validation, steps, n_paths, seed)]
-        sections = [_model_section(fit), _data_section(fit, fit.data), _estimation_section(fit),
+        sections = [_model_section(fit), _data_section(fit, fit.data), _latent_force_section(fit),
+                    _estimation_section(fit),
                     _approximation_section(fit),
                     _parameters_section(fit, None if intervals is None else intervals.result()), *later]
-    return page(title, SECTIONS, sections)
+    ids = SECTIONS if not fit.model.structure.latent_forces else ("model", "data", "forces", *SECTIONS[2:])
+    return page(title, ids, [part for part in sections if part])
 
 
 def page(title: str, ids, sections: list[str], css: str = "") -> str:

@@ -48,6 +48,9 @@ class Simulation:
     input_names: tuple[str, ...]
     state_names: tuple[str, ...]
     output_names: tuple[str, ...]
+    #: The model's latent forces ([`LatentForce`][greyid.model.latent.LatentForce]): a force that is not itself
+    #: a state (a composite kernel's) is a column of its own in ``frame``.
+    latent_forces: tuple = ()
 
     @property
     def n_paths(self) -> int:
@@ -69,6 +72,8 @@ class Simulation:
         cols = {self.time_name: self.times}
         cols.update({n: self.inputs[:, j] for j, n in enumerate(self.input_names)})
         cols.update({n: self.states[path, :, j] for j, n in enumerate(self.state_names)})
+        cols.update({f.name: f.values(self.states[path])[0] for f in self.latent_forces
+                     if f.name not in self.state_names})
         cols.update({n: self.outputs[path, :, j] for j, n in enumerate(self.output_names)})
         return pd.DataFrame(cols)
 
@@ -246,7 +251,8 @@ def simulate(model, params, data_or_times, n_paths: int = 1, method: str = "eule
         y = y_mean + scale * jnp.einsum("kij,pkj->pki", jnp.linalg.cholesky(full), z)
     states = paths_to_original(structure.state_transforms, np.asarray(theta), np.asarray(states))
     return Simulation(series.times, series.inputs, states, np.asarray(y), series.time_name,
-                      structure.input_names, structure.state_names, structure.output_names)
+                      structure.input_names, structure.state_names, structure.output_names,
+                      structure.latent_forces)
 
 
 def available_memory() -> int | None:

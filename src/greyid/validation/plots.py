@@ -93,15 +93,18 @@ def residual_dashboard(residuals: pd.Series, inputs: pd.DataFrame | None = None,
     ax.set_xlabel("N(0, 1) quantiles")
 
     ax = fig.add_subplot(grid[2, 2])
-    if inputs is not None and inputs.shape[1]:
-        for i, name in enumerate(inputs.columns):
+    # A constant input has no correlation with anything: left out of the panel, named in its title.
+    varying = [] if inputs is None else [name for name in inputs.columns if inputs[name].nunique(dropna=True) > 1]
+    if varying:
+        for i, name in enumerate(varying):
             cc = cross_correlation(residuals, inputs[name], lags, level)
             ax.plot(cc.index, cc["ccf"], "o-", ms=2, lw=0.7, label=name, color=f"C{i}")
         ax.fill_between(cc.index, cc["lower"], cc["upper"], color="C1", alpha=0.2, lw=0)
         ax.axhline(0, color="k", lw=0.6)
         ax.legend(fontsize=7)
         ax.set_xlabel("lag (input leads for lag > 0)")
-    ax.set_title("cross-correlation with inputs")
+    constant = [] if inputs is None else [name for name in inputs.columns if name not in varying]
+    ax.set_title("cross-correlation with inputs" + (f" ({', '.join(constant)} constant)" if constant else ""))
     return fig
 
 
