@@ -202,6 +202,14 @@ def test_a_force_used_in_no_equation_and_taken_names_are_refused():
         m.add_latent_force("x", kernel="matern12", scale="sQ", lengthscale=2.0)
     with pytest.raises(greyid.ModelError, match="not a valid name"):
         m.add_latent_force("dw3", kernel="matern12", scale="sQ", lengthscale=2.0)
+    fixed = greyid.Model().add_latent_force("f", kernel="periodic", scale="sf", period="p", smoothness=1.0)
+    fixed.add_observation("y = f", variance="r").set_parameter("p", init=24.0, fixed=True)
+    assert set(fixed.parameter_names) == {"p", "sf", "r"}  # built: a fixed positive period needs no bounds
+    fixed.set_parameter("p", init=-24.0, fixed=True)
+    with pytest.raises(greyid.ModelError, match="its period 'p' is fixed at -24.0; it must be positive"):
+        fixed.structure  # noqa: B018
+    with pytest.raises(greyid.ModelError, match="'Q' is a latent force: it starts in its kernel's stationary"):
+        m.set_initial_state(mean={"x": 0.0, "Q": 1.0})
 
 
 def test_a_model_file_with_a_bad_kernel_exits_2(tmp_path, capsys):

@@ -69,6 +69,11 @@ def check_hyperparameter(force: str, role: str, value, parameters: dict) -> None
         return
     if isinstance(value, str) and value.strip().isidentifier():
         declared = parameters.get(value.strip())
+        if declared is not None and declared.fixed and declared.init is not None:
+            if not declared.init > 0:
+                raise ModelError(f"latent force '{force}': its {role} '{value.strip()}' is fixed at {declared.init}; "
+                                 "it must be positive")
+            return
         lower = None if declared is None else declared.lower
         if lower is None or lower <= 0:
             raise ModelError(f"latent force '{force}': its {role} '{value.strip()}' may be zero or negative; give "

@@ -715,6 +715,10 @@ class ModelSpec:
         if not isinstance(scale, (int, float)) or not scale > 0:
             raise ModelError(f"initial covariance scale must be a positive number, got {scale!r}")
         states = self._declared_states()
+        forced = [k for k in mean if k in self._latent_forces]
+        if forced:
+            raise ModelError(f"'{forced[0]}' is a latent force: it starts in its kernel's stationary distribution; "
+                             "give the initial state of the model's own states only")
         if states:  # the states are known: a wrong name or shape is an error here, not at the first fit
             unknown = [k for k in mean if k not in states]
             if unknown:
