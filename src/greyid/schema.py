@@ -112,7 +112,7 @@ def prior_correlation(value) -> dict[tuple[str, str], float]:
 MODEL_SECTIONS = {
     "model": ("name", "description", "inputs", "system", "algebraic", "observations", "initial_state", "transforms",
               "latent_forces",
-              "initial_covariance", "initial_covariance_scale", "observation_covariance"),
+              "initial_covariance", "initial_covariance_scale", "initial_diffuse", "observation_covariance"),
     "parameters": None,
     "derived": None,
     "units": None,
@@ -179,7 +179,7 @@ def check_model_document(document: Mapping) -> None:
     if not system and not model.get("latent_forces"):
         raise ModelError("[model] needs system = [\"dx = ...*dt + ...*dw1\", ...] (or [model.latent_forces])")
     system = system or []
-    for key in ("system", "inputs", "algebraic"):
+    for key in ("system", "inputs", "algebraic", "initial_diffuse"):
         value = system if key == "system" else model.get(key, [])
         if not (isinstance(value, list) and all(isinstance(v, str) for v in value)):
             raise ModelError(f"[model] {key} must be a list of strings, e.g. {key} = [\"...\"], got {value!r}")

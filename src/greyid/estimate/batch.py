@@ -293,6 +293,8 @@ def pad_series(series: Sequence, length: int, unique: int):
     """
     padded = []
     slots = max(len(s.delay_slots) for s in series)
+    # A longer diffuse period than a member's own changes nothing: once P∞ is zero its steps are ordinary.
+    head = max(len(s.diffuse_rows) for s in series)
     for s in series:
         s = jax.device_get(s)
         n, extra = len(s.t), length - len(s.t)
@@ -308,6 +310,6 @@ def pad_series(series: Sequence, length: int, unique: int):
             mask=np.concatenate([s.mask, np.zeros((extra, s.mask.shape[1]))]),
             dt_index=np.concatenate([s.dt_index, np.full(extra, zero, dtype=s.dt_index.dtype)]),
             unique_dt=np.concatenate([s.unique_dt, np.zeros(unique - len(s.unique_dt))]),
-            first_interval=s.first_interval, foh=s.foh, delay_slots=np.zeros(slots)))
+            first_interval=s.first_interval, foh=s.foh, delay_slots=np.zeros(slots), diffuse_rows=np.zeros(head)))
         assert n <= length
     return _stack(padded)

@@ -23,12 +23,14 @@ from ..errors import DataError, FilterWarning, ModelError, warn
 from ..model.structure import Structure
 from ..model.transforms import to_original
 from .accuracy import choose_substeps, chooses_substeps
-from .driver import make_ahead, make_filter
+from .driver import filter_steps, make_ahead, make_filter
 from .gaussian import initial_state
 from ..model.distributions import check_method, check_observed
 from . import laplace
 from .protocol import EKF, KALMAN, LAPLACE, PARTICLE, STOCHASTIC, FilterInputs, FilterOptions
 from .delays import check_delays, delay_slots, with_delayed_inputs
+from .diffuse import head_rows, scan_head
+from .diffuse_smoother import make_diffuse_smoother
 from .result import FilterResult, SmootherResult
 from .smoother import rts_smooth
 
@@ -85,10 +87,12 @@ def sampling_intervals(dt: np.ndarray, times: np.ndarray) -> np.ndarray:
     return representative[inverse.reshape(-1)]
 
 
-def filter_inputs(series: Series, hold: str, on_device: bool = True) -> FilterInputs:
+def filter_inputs(series: Series, hold: str, on_device: bool = True, diffuse: tuple = ()) -> FilterInputs:
     """Arrays for the filter from a checked series (padded, see module doc).
 
-    With ``on_device=False`` the arrays stay NumPy arrays (a fleet stacks them first).
+    With ``on_device=False`` the arrays stay NumPy arrays (a fleet stacks them first); ``diffuse`` holds, for
+    each diffuse initial state, the outputs that see it: the arrays mark the diffuse period
+    ([`head_rows()`][greyid.filters.diffuse.head_rows]).
     """
     if hold not in HOLDS:
         raise DataError(f"unknown hold '{hold}'; use 'zoh' (inputs held) or 'foh' (inputs interpolated)")
@@ -110,7 +114,8 @@ def filter_inputs(series: Series, hold: str, on_device: bool = True) -> FilterIn
     arrays = dict(t=t, t_prev=t_prev, dt=dt, u_prev=u_prev, u_cur=u, y=np.where(mask, y, 0.0),
                   mask=mask.astype(np.float64), dt_index=index.reshape(-1).astype(np.int32), unique_dt=unique,
                   first_interval=np.float64(first), foh=np.float64(HOLDS[hold]),
-                  delay_slots=np.zeros(delay_slots(series.times, regular=np.count_nonzero(unique) == 1)))
+                  delay_slots=np.zeros(delay_slots(series.times, regular=np.count_nonzero(unique) == 1)),
+                  diffuse_rows=np.zeros(head_rows(mask, n_rows, diffuse)))
     arrays = {name: np.asarray(a) for name, a in arrays.items()}
     # One transfer for all of them (one by one, a tenth of a shorter series' compiled fit).
     return FilterInputs(**(jax.device_put(arrays) if on_device else arrays))
@@ -180,6 +185,8 @@ def check_at_parameters(structure: Structure, theta: np.ndarray, series: Series,
         return S, P0, S_full
 
     S, P0, S_full = structure_program(structure, ("checks",), lambda: checks)(jnp.asarray(theta), data)
+    if structure.initial_covariance.diffuse:
+        check_diffuse_period(structure, theta, data)
     S = np.asarray(S)[: series.n_rows]
     bad = np.argwhere(~(S > 0))
     if len(bad):
@@ -207,6 +214,23 @@ def check_at_parameters(structure: Structure, theta: np.ndarray, series: Series,
             "the initial state covariance is not positive semi-definite for the given parameters "
             f"(kind '{structure.initial_covariance.kind}'); give a positive semi-definite matrix"
         )
+
+
+def check_diffuse_period(structure: Structure, theta: np.ndarray, data: FilterInputs) -> None:
+    """Name the diffuse states the outputs of the diffuse period's rows do not determine (P∞ not zero at
+    its end, [`head_rows()`][greyid.filters.diffuse.head_rows])."""
+    def remaining(theta, data):
+        parts = filter_steps(structure, FilterOptions(KALMAN))(theta, data)
+        rows = jax.tree_util.tree_map(lambda a: a[:parts.diffuse.rows], parts.rows)
+        state, _, _ = scan_head(parts.diffuse, parts.initial, parts.predict, rows, None, lambda terms: 0.0)
+        return state.mean
+
+    mean = structure_program(structure, ("diffuse period",), lambda: remaining)(jnp.asarray(theta), data)
+    if not np.all(np.isfinite(np.asarray(mean))):
+        names = [structure.state_names[i] for i in structure.initial_covariance.diffuse]
+        raise ModelError(f"the diffuse initial states {names} are not all determined by the outputs of the first "
+                         f"{data.diffuse_rows.shape[0]} rows (as many observed rows as diffuse states): an output must "
+                         "depend on each of them; give the others a mean and a covariance")
 
 
 def check_equations_finite(structure: Structure, theta: np.ndarray, series: Series, data: FilterInputs) -> None:
@@ -276,7 +300,8 @@ def prepare_datasets(structure: Structure, theta: np.ndarray, data, time, hold, 
         series = prepare_series(df, structure.input_names, structure.output_names, time, time_unit)
         for family, name, values in zip(structure.distributions, structure.output_names, series.outputs.T):
             check_observed(family, name, values, series.times, series.time_name)
-        inputs = filter_inputs(series, hold, on_device)
+        spec = structure.initial_covariance
+        inputs = filter_inputs(series, hold, on_device, spec.seen_by or ((),) * len(spec.diffuse))
         if structure.initial_covariance.kind == "process" and series.n_rows < 2:
             raise DataError(f"the data have one row (t = {series.times[0]:g}): the model's initial covariance "
                             "\"process\" is the process noise over the first sampling interval, and one row has "
@@ -482,8 +507,11 @@ def smooth_data(model, params, data, time="t", hold="zoh", method=None, time_uni
     chosen = method or (KALMAN if structure.is_linear else EKF)
     if chosen == LAPLACE:
         return _laplace_smoothed(model, params, data, time, hold, time_unit, **options)
-    structure, theta, results = _filtered(model, params, data, time, hold, chosen, time_unit, options)
     single = isinstance(data, pd.DataFrame)
+    if structure.initial_covariance.diffuse:
+        out = _diffuse_smoothed(model, params, data, time, hold, chosen, time_unit, options)
+        return out[0] if single else out
+    structure, theta, results = _filtered(model, params, data, time, hold, chosen, time_unit, options)
     out = []
     for res in results:
         xs, Ps = rts_smooth(jnp.asarray(res.filtered.to_numpy()), jnp.asarray(res.filtered_cov),
@@ -494,6 +522,24 @@ def smooth_data(model, params, data, time="t", hold="zoh", method=None, time_uni
                                   np.asarray(Ps), res))
     out = [in_user_coordinates(structure, theta, r) for r in out]
     return out[0] if single else out
+
+
+def _diffuse_smoothed(model, params, data, time, hold, method, time_unit, options) -> list:
+    """Smoothing after a diffuse start ([`diffuse_smoother`][greyid.filters.diffuse_smoother]), beside the filter's
+    results."""
+    structure, theta, prepared = _prepare(model, params, data, time, hold, time_unit)
+    opts = accurate_options(structure, theta, prepared, method, **options)[0]
+    run = compiled_filter(structure, opts, keep_outputs=True)
+    smoother = structure_program(structure, ("diffuse smoother", opts), lambda: make_diffuse_smoother(structure, opts))
+    out = []
+    for series, inputs in prepared:
+        res = _result(structure, opts.method, series, *run(jnp.asarray(theta), inputs))
+        means, covariances = smoother(jnp.asarray(theta), inputs)
+        n = series.n_rows
+        smoothed = pd.DataFrame(np.asarray(means)[:n], index=res.filtered.index, columns=res.filtered.columns)
+        out.append(in_user_coordinates(structure, theta, SmootherResult(res.times, smoothed,
+                                                                        np.asarray(covariances)[:n], res)))
+    return out
 
 
 def predict_data(model, params, data, steps=1, time="t", hold="zoh", method=None, time_unit=None,

@@ -23,7 +23,7 @@ from ..runtime.jit import jit
 from ..errors import ModelError
 from ..model.structure import Structure
 from ..model.distributions import check_method
-from . import ensemble, extended, kalman, laplace, particle, second_order, unscented
+from . import diffuse, ensemble, extended, kalman, laplace, particle, second_order, unscented
 from . import steady as steady_form
 from .protocol import (EKF, EKF2, ENKF, GAUSSIAN2, IEKF, KALMAN, LAPLACE, PARTICLE, STOCHASTIC, TRUNCATED2, UKF,
                        Family, FilterInputs, FilterOptions, FilterSteps)
@@ -55,16 +55,27 @@ def filter_steps(structure: Structure, options: FilterOptions) -> Callable[..., 
         A Gaussian filter asked for outputs whose distribution is not normal.
     """
     check_method(structure.distributions, structure.output_names, options.method)
+    check_diffuse(structure, options.method)
     if options.method in MARGINALS:
         raise ModelError(f"the {options.method} method gives a likelihood, not a filter's predictions and updates; "
                          "use a filter (method='ekf', 'ukf', 'particle', ...) for filtered states and predictions")
     return FAMILIES[options.method](structure, options)
 
 
+def check_diffuse(structure: Structure, method: str) -> None:
+    """Refuse a diffuse initial state to every method but the exact Kalman filter."""
+    diffuse = structure.initial_covariance.diffuse
+    if diffuse and method != KALMAN:
+        names = [structure.state_names[i] for i in diffuse]
+        raise ModelError(f"the diffuse initial states {names} are started exactly by the Kalman filter only "
+                         f"(method='kalman'), not by method='{method}'; give them a mean and a covariance to use it")
+
+
 def marginal_terms(structure: Structure, options: FilterOptions):
     """``run(theta, data) -> DensityTerms`` of a marginal method: the series' log-likelihood in row 0's
     term (nothing in the others'), each row's count of observed outputs."""
     check_method(structure.distributions, structure.output_names, options.method)
+    check_diffuse(structure, options.method)
     marginal = MARGINALS[options.method](structure, options)
 
     def run(theta, data: FilterInputs):
@@ -184,6 +195,9 @@ def scan_rows(parts: FilterSteps, n_rows: int, collect: Callable | None, accumul
     once where to switch ([`loop_until_settled()`][greyid.filters.driver.loop_until_settled]).
     """
 
+    if parts.diffuse is not None:
+        return scan_diffuse(parts, n_rows, collect, accumulate, forward_only)
+
     def step(carry, row):
         state, total = carry
         predicted, transition = parts.predict(state, row)
@@ -206,6 +220,50 @@ def scan_rows(parts: FilterSteps, n_rows: int, collect: Callable | None, accumul
     if n_rows < steady_form.MIN_ROWS:
         return scan_settling(parts, n_rows, step_by_step, collect, accumulate)
     return scan_chunks(parts, n_rows, step_by_step, collect, accumulate)
+
+
+def scan_diffuse(parts: FilterSteps, n_rows: int, collect: Callable | None, accumulate: Callable | None,
+                 forward_only: bool):
+    """[`scan_rows()`][greyid.filters.driver.scan_rows] of a filter with a diffuse start: the diffuse period's rows
+    with both parts of the covariance ([`diffuse`][greyid.filters.diffuse]), then the other rows as any filter's.
+
+    What the diffuse rows report: the covariances +∞ where P∞ is not zero, and the outputs whose prediction has
+    an infinite variance without an innovation (NaN; in the scoring's ``(ε, R)`` 0 and 1, adding nothing).
+    """
+    head = parts.diffuse.rows
+
+    def collect_diffuse(predicted, transition, upd, y_pred, infinite, infinite_after, loaded, scale):
+        out = collect(predicted, transition, upd, y_pred)
+        both = loaded[:, None] | loaded[None, :]
+        eye = jnp.eye(loaded.shape[0], dtype=bool)
+
+        def reported(kept):
+            if isinstance(kept, StepOutput):
+                return kept._replace(
+                    predicted_cov=kept.predicted_cov + diffuse.infinite_part(infinite, scale),
+                    filtered_cov=kept.filtered_cov + diffuse.infinite_part(infinite_after, scale),
+                    innovation=jnp.where(loaded, jnp.nan, kept.innovation),
+                    innovation_cov=jnp.where(both, jnp.where(eye, jnp.inf, 0.0), kept.innovation_cov))
+            if isinstance(kept, AheadStart):
+                return kept._replace(unknown=jnp.any(diffuse.infinite_part(infinite_after, scale) > 0))
+            if type(kept) is tuple and len(kept) == 2:  # the scoring's (ε, R)
+                return jnp.where(loaded, 0.0, kept[0]), jnp.where(both, eye.astype(kept[1].dtype), kept[1])
+            return kept
+
+        return tuple(reported(k) for k in out) if type(out) is tuple else reported(out)
+
+    first = jax.tree_util.tree_map(lambda a: a[:head], parts.rows)
+    state, total, collected = diffuse.scan_head(parts.diffuse, parts.initial, parts.predict, first,
+                                                None if accumulate is not None else collect_diffuse, accumulate)
+    if head == n_rows:
+        return total if accumulate is not None else collected
+    steady = parts.steady if n_rows - head >= steady_form.SHORT_ROWS else None
+    rest = parts._replace(initial=state, rows=jax.tree_util.tree_map(lambda a: a[head:], parts.rows),
+                          steady=steady, diffuse=None)
+    later = scan_rows(rest, n_rows - head, collect, accumulate, forward_only)
+    if accumulate is not None:
+        return total + later
+    return jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), collected, later)
 
 
 def collected_steady(collect: Callable, outputs):
@@ -328,6 +386,13 @@ def scan_chunks(parts: FilterSteps, n_rows: int, step_by_step: Callable, collect
     return total if accumulate is not None else collected
 
 
+class AheadStart(NamedTuple):
+    """A filtered state k-step predictions start from, and whether it still has a diffuse part."""
+
+    state: object
+    unknown: jnp.ndarray
+
+
 class AheadOutput(NamedTuple):
     """k-step predictions ŷ_{k|k-h}, their covariances and criterion terms."""
 
@@ -352,7 +417,10 @@ def make_ahead(structure: Structure, options: FilterOptions, horizon: int):
     def run(theta, data: FilterInputs):
         parts = build(theta, data)
         rows = jnp.arange(data.t.shape[0])
-        filtered = scan_rows(parts, data.t.shape[0], lambda predicted, transition, upd, y_pred: upd.state)
+        filtered = scan_rows(parts, data.t.shape[0],
+                             lambda predicted, transition, upd, y_pred: AheadStart(upd.state, jnp.asarray(False)))
+        # From a state with a diffuse part (the prior, rows of the diffuse period), predictions are unknown.
+        prior_unknown = parts.diffuse is not None
 
         def row_at(k):
             return jax.tree_util.tree_map(lambda a: a[k], parts.rows)
@@ -361,7 +429,9 @@ def make_ahead(structure: Structure, options: FilterOptions, horizon: int):
             start = k - horizon
             from_prior = start < 0
             state = jax.tree_util.tree_map(
-                lambda first, each: jnp.where(from_prior, first, each[jnp.maximum(start, 0)]), parts.initial, filtered)
+                lambda first, each: jnp.where(from_prior, first, each[jnp.maximum(start, 0)]), parts.initial,
+                filtered.state)
+            unknown = jnp.where(from_prior, prior_unknown, filtered.unknown[jnp.maximum(start, 0)])
             first = jnp.maximum(start + 1, 1)
 
             def advance(j, state):
@@ -374,7 +444,13 @@ def make_ahead(structure: Structure, options: FilterOptions, horizon: int):
             upd, y_pred = parts.update(state, row_at(k))
             # The prediction's covariance is wanted for every output, observed or not.
             full, _ = parts.update(state, row_at(k), jnp.ones_like(data.mask[k]))
-            return y_pred, full.innovation_covariance, *state_moments(state, form), upd.terms
+            x, P = state_moments(state, form)
+            if parts.diffuse is None:
+                return y_pred, full.innovation_covariance, x, P, upd.terms
+            # Unknown: infinite variances, no term of the criterion.
+            terms = jax.tree_util.tree_map(lambda a: jnp.where(unknown, jnp.zeros_like(a), a), upd.terms)
+            return (y_pred, jnp.where(unknown, jnp.inf, full.innovation_covariance), x,
+                    jnp.where(unknown, jnp.inf, P), terms)
 
         y, R, x, P, terms = jax.vmap(ahead)(rows)
         return AheadOutput(y, R, x, P, terms)

@@ -14,9 +14,11 @@ from typing import Callable
 from .. import runtime  # noqa: F401  (64-bit JAX and greyid's cache folder before any JAX work)
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..model.structure import Structure
 from . import small
+from .diffuse import prepare_start
 from .discretize import discretize, stationary_covariance
 from .predictors import Interval, linearized_observation, second_order_term
 from .protocol import FilterInputs, FilterOptions, FilterSteps, Row, series_rows
@@ -30,8 +32,21 @@ IntervalPredictor = Callable[[jnp.ndarray, jnp.ndarray, Interval], tuple]
 def initial_state(structure: Structure, theta, data: FilterInputs, first_noise=None):
     """x0 and P0 (matrix, CTSM's scaled process noise, or stationary covariance).
 
-    ``first_noise`` is Λ of the first interval when the caller has it already.
+    ``first_noise`` is Λ of the first interval when the caller has it already.  Diffuse
+    states' rows and columns of P0 are zero: their infinite part is the filter's P∞
+    ([`diffuse`][greyid.filters.diffuse]).
     """
+    x0, P0 = initial_moments(structure, theta, data, first_noise)
+    diffuse = structure.initial_covariance.diffuse
+    if not diffuse:
+        return x0, P0
+    index = np.asarray(diffuse)
+    return x0, P0.at[index, :].set(0.0).at[:, index].set(0.0)
+
+
+def initial_moments(structure: Structure, theta, data: FilterInputs, first_noise=None):
+    """x0 and P0 as the initial covariance's kind gives them, diffuse states included
+    ([`initial_state()`][greyid.filters.gaussian.initial_state] sets theirs to zero)."""
     x0 = structure.initial_mean(theta)
     spec = structure.initial_covariance
     if spec.kind == "matrix":
@@ -47,13 +62,16 @@ def initial_state(structure: Structure, theta, data: FilterInputs, first_noise=N
     if spec.kind == "process":
         return x0, with_latent_block(spec, theta, spec.scale * discretize(A, G @ G.T, data.first_interval)
                                      .noise_covariance)
-    if spec.latent is None:
+    if spec.latent is None and not spec.diffuse:
         return x0, stationary_covariance(A, G @ G.T)
     # The model's own states' stationary covariance without the forces' coupling (a periodic force's
-    # oscillators have none to solve for), the forces' own P∞ beside it.
-    k = spec.latent_start
-    own = stationary_covariance(A[:k, :k], (G @ G.T)[:k, :k]) if k else jnp.zeros((0, 0))
-    return x0, with_latent_block(spec, theta, jnp.zeros_like(A).at[:k, :k].set(own))
+    # oscillators have none to solve for) and without the diffuse states (a random walk has none), as
+    # statsmodels' mixed initialisation solves each block on its own; the forces' own P∞ beside it.
+    k = structure.n_states if spec.latent is None else spec.latent_start
+    keep = np.array([i for i in range(k) if i not in spec.diffuse], dtype=int)
+    own = stationary_covariance(A[np.ix_(keep, keep)], (G @ G.T)[np.ix_(keep, keep)]) if len(keep) else None
+    P0 = jnp.zeros_like(A) if own is None else jnp.zeros_like(A).at[np.ix_(keep, keep)].set(own)
+    return x0, with_latent_block(spec, theta, P0)
 
 
 def with_latent_block(spec, theta, P0):
@@ -164,6 +182,8 @@ def interval_steps(structure: Structure, options: FilterOptions, predict_interva
         def update_with(state: GaussianState, row: Row, mask=None):
             return update(state, row, row.mask if mask is None else mask, theta)
 
-        return FilterSteps(start(structure, theta, series.data, options.form), series.rows, predict, update_with)
+        diffuse = prepare_start(structure, theta, series.data, options.form, carried_from_start)
+        return FilterSteps(start(structure, theta, series.data, options.form), series.rows, predict, update_with,
+                           diffuse=diffuse)
 
     return steps

@@ -20,7 +20,8 @@ from ..model.structure import LTI, Structure
 from . import small
 from . import steady as steady_form
 from .discretize import discretize, discretize_each, time_varying_step
-from .gaussian import interval_steps, linearized_update, predict_in_pieces, start
+from .diffuse import prepare_start
+from .gaussian import carried_from_start, interval_steps, linearized_update, predict_in_pieces, start
 from .predictors import Interval, linear_predict
 from .protocol import KALMAN, FilterInputs, FilterOptions, FilterSteps, Row, series_rows
 from .updates import GaussianState, propagate
@@ -128,6 +129,7 @@ def time_invariant(structure: Structure, options: FilterOptions):
             cache = discretize_each(*linear_matrices, data.unique_dt)
             first_noise = cache.noise_covariance[data.dt_index[1]]  # the first interval's Λ
         initial = start(structure, theta, data, form, first_noise)
+        diffuse = prepare_start(structure, theta, data, form, carried_from_start)
         steady = None
         if (takes_steady_state(structure, options)
                 and steady_form.switches(data.t.shape[0], options.steady_state)):
@@ -170,6 +172,6 @@ def time_invariant(structure: Structure, options: FilterOptions):
         def update_with(state: GaussianState, row: Row, mask=None):
             return update(state, row, row.mask if mask is None else mask, theta)
 
-        return FilterSteps(initial, series.rows, predict, update_with, steady)
+        return FilterSteps(initial, series.rows, predict, update_with, steady, diffuse)
 
     return steps

@@ -128,6 +128,9 @@ class FilterInputs(NamedTuple):
     first_interval: jnp.ndarray  # t_1 − t_0
     foh: jnp.ndarray  # 0.0 (zoh) or 1.0 (foh)
     delay_slots: jnp.ndarray  # (W,) zeros: W cuts per delay fit in one interval; (0,): regular sampling
+    #: (D,) zeros: the first D rows hold the diffuse period of a diffuse initial state
+    #: ([`diffuse`][greyid.filters.diffuse]); (0,) without diffuse states.
+    diffuse_rows: jnp.ndarray
 
 
 class Row(NamedTuple):
@@ -154,6 +157,9 @@ class FilterSteps(NamedTuple):
     #: A time-invariant linear model's pieces for the steady-state form ([`steady`][greyid.filters.steady]),
     #: or None where the driver steps through every row.
     steady: Any = None
+    #: The exact diffuse start ([`DiffuseStart`][greyid.filters.diffuse.DiffuseStart]) whose rows the driver filters
+    #: first, or None.
+    diffuse: Any = None
 
 
 class Family(Protocol):

@@ -23,7 +23,7 @@ from .equations import CONSTANTS, is_wiener_name
 from .symbols import TIME
 from .latent import augment
 from .transforms import initial_mean_and_covariance, lamperti, state_transforms
-from .structure import (LTI, InitialCovariance, Structure, classify, lambdify_model, lambdify_parameters,
+from .structure import (LTI, NONLINEAR, InitialCovariance, Structure, classify, lambdify_model, lambdify_parameters,
                         linear_drift_function, observation_is_constant)
 
 
@@ -159,15 +159,26 @@ def build_structure(model) -> Structure:
     n, m, s = len(states), len(noise_names), len(outputs)
     args = (state_syms, input_syms, param_syms)
     flat_g = [g for row in diffusion for g in row]
+    diffuse = tuple(states.index(x) for x in model._diffuse)
+    if diffuse and kind == NONLINEAR:
+        raise ModelError(f"the diffuse initial state {list(model._diffuse)} needs a linear model (the exact diffuse "
+                         "start is a Kalman filter's), but this model is nonlinear; give those states a mean and a "
+                         "covariance instead")
+    seen_by = outputs_seeing(f_mat, h_mat, state_syms, diffuse)
+    for i, outputs_of_state in zip(diffuse, seen_by):
+        if not outputs_of_state:
+            raise ModelError(f"diffuse state '{states[i]}' is seen by no output (directly or through the states it "
+                             "drives): its initial value cannot be determined; give it a mean and a covariance")
     if isinstance(cov, list):
         cov_fn = lambdify_parameters([e for row in cov for e in row], param_syms, (n, n))
-        initial_cov = InitialCovariance("matrix", matrix=cov_fn)
+        initial_cov = InitialCovariance("matrix", matrix=cov_fn, diffuse=diffuse, seen_by=seen_by)
     else:
         latent = None if latent_cov is None else lambdify_parameters(list(latent_cov), param_syms, latent_cov.shape)
-        initial_cov = InitialCovariance(cov, scale=model._initial_scale, latent=latent, latent_start=augmented.start)
+        initial_cov = InitialCovariance(cov, scale=model._initial_scale, latent=latent, latent_start=augmented.start,
+                                        diffuse=diffuse, seen_by=seen_by)
     fingerprint = structure_fingerprint(
         states, input_syms, outputs, ordered, noise_names, kind, drift, flat_g, observation, variance,
-        covariances, mean_exprs, cov if isinstance(cov, list) else (cov, model._initial_scale),
+        covariances, mean_exprs, cov if isinstance(cov, list) else (cov, model._initial_scale), diffuse,
         [(d.name, d.input, d.expression) for d in delayed], families, shapes, sorted(transforms.items()),
         None if latent_cov is None else (list(latent_cov), [(f.name, f.indices, f.weights) for f in augmented.forces]))
     return Structure(
@@ -197,6 +208,24 @@ def build_structure(model) -> Structure:
         ode_drift=None if ode_drift is None else lambdify_model(ode_drift, *args, (n,)),
         latent_forces=augmented.forces,
     )
+
+
+def outputs_seeing(f_mat, h_mat, state_syms, states: tuple[int, ...]) -> tuple[tuple[int, ...], ...]:
+    """For each of ``states``, the outputs whose equation depends on it, directly or through the states whose
+    drift it enters (and so on): the outputs that can determine its initial value."""
+    n = len(state_syms)
+    drives = [[k for k in range(n) if f_mat[k].has(state_syms[i])] for i in range(n)]
+    seen = []
+    for i in states:
+        reached, frontier = {i}, [i]
+        while frontier:
+            for k in drives[frontier.pop()]:
+                if k not in reached:
+                    reached.add(k)
+                    frontier.append(k)
+        seen.append(tuple(j for j in range(h_mat.shape[0])
+                          if any(h_mat[j].has(state_syms[k]) for k in reached)))
+    return tuple(seen)
 
 
 def structure_fingerprint(*parts) -> str:
@@ -254,10 +283,11 @@ def initial_state_expressions(model, states: list[str]):
     unknown = [k for k in model._initial_mean if k not in states]
     if unknown:
         raise ModelError(f"initial state given for '{unknown[0]}', which is not a state (states: {states})")
-    missing = [x for x in states if x not in model._initial_mean]
+    missing = [x for x in states if x not in model._initial_mean and x not in model._diffuse]
     if missing:
         raise ModelError(f"initial state mean missing for state '{missing[0]}'")
-    mean = [model._expression(model._initial_mean[x], f"initial state of '{x}'") for x in states]
+    model._checked_diffuse(model._diffuse, model._initial_mean, model._initial_covariance, states)
+    mean = [model._expression(model._initial_mean.get(x, 0.0), f"initial state of '{x}'") for x in states]
     cov = model._initial_covariance
     if isinstance(cov, str):
         return mean, cov

@@ -10,6 +10,7 @@ A model file holds what the Python API holds, readable at a glance::
       "dTe = (1/(Ce*Rie)*(Ti-Te) + 1/(Ce*Rea)*(Ta-Te))*dt + exp(p22)*dw2",
     ]
     initial_covariance = "process"     # or a matrix, or a vector of variances
+    # initial_diffuse = ["Te"]         # optional: states started exactly diffuse (Koopman & Durbin)
 
     [model.observations]
     yTi = { equation = "Ti", variance = "exp(e11)" }
@@ -106,6 +107,7 @@ def model_to_dict(model) -> dict:
             "mean": {k: _plain(v) for k, v in model._initial_mean.items()},
             "covariance": _plain(model._initial_covariance),
             "scale": model._initial_scale,
+            **({"diffuse": list(model._diffuse)} if model._diffuse else {}),
         },
         "derived": model.derived,
         "units": model.units,
@@ -149,7 +151,8 @@ def model_from_dict(spec: Mapping, cls):
                         fixed=p.get("fixed", False), prior=None if prior is None else (prior["mean"], prior["sd"]))
     init = spec.get("initial_state")
     if init is not None:
-        m.set_initial_state(mean=init["mean"], covariance=init["covariance"], scale=init.get("scale", 1.0))
+        m.set_initial_state(mean=init["mean"], covariance=init["covariance"], scale=init.get("scale", 1.0),
+                            diffuse=init.get("diffuse", ()))
     for name, expr in spec.get("derived", {}).items():
         m.add_derived(name, expr)
     if spec.get("units"):
@@ -170,6 +173,8 @@ def spec_from_toml(document: Mapping) -> dict:
     system = system if isinstance(system, list) else [system]
     observations = model["observations"]
     initial = model.get("initial_state")
+    if initial is None and model.get("initial_diffuse"):  # every state diffuse: no means to give
+        initial = {}
     options = {}
     for section in ("data", "filter", "estimation"):
         options.update(document.get(section, {}))
@@ -187,6 +192,7 @@ def spec_from_toml(document: Mapping) -> dict:
             "mean": dict(initial),
             "covariance": model.get("initial_covariance", "process"),
             "scale": model.get("initial_covariance_scale", 1.0),
+            **({"diffuse": model["initial_diffuse"]} if "initial_diffuse" in model else {}),
         },
         "derived": dict(document.get("derived", {})),
         "units": dict(document.get("units", {})),
@@ -268,6 +274,8 @@ def model_to_toml(model) -> str:
         lines.append(f"initial_covariance = {_value(initial['covariance'])}")
         if initial["scale"] != 1.0:
             lines.append(f"initial_covariance_scale = {_value(initial['scale'])}")
+        if initial.get("diffuse"):
+            lines.append(f"initial_diffuse = {_value(initial['diffuse'])}")
     if spec.get("observation_covariance") is not None:
         lines.append(f"observation_covariance = {_value(spec['observation_covariance'])}")
     lines += ["", "[model.observations]"]

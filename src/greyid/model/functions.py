@@ -34,11 +34,17 @@ def build_from_functions(model) -> Structure:
         return model_function
 
     n = len(states)
+    diffuse = tuple(list(states).index(x) for x in model._diffuse)
+    if diffuse and spec["kind"] == "nonlinear":
+        raise ModelError(f"the diffuse initial state {list(model._diffuse)} needs a linear model (the exact diffuse "
+                         "start is a Kalman filter's), but this model is declared nonlinear")
     if isinstance(rows, str):
-        initial_cov = InitialCovariance(rows, scale=model._initial_scale)
+        initial_cov = InitialCovariance(rows, scale=model._initial_scale, diffuse=diffuse,
+                                        seen_by=((),) * len(diffuse))
     else:
         initial_cov = InitialCovariance("matrix", matrix=lambdify_parameters(
-            [e for r in rows for e in r], param_syms, (n, n)))
+            [e for r in rows for e in r], param_syms, (n, n)), diffuse=diffuse,
+            seen_by=((),) * len(diffuse))
     import jax
 
     g_shape = jax.eval_shape(wrap(spec["diffusion"]), jnp.zeros(n), jnp.zeros(len(spec["inputs"])),

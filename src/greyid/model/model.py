@@ -62,6 +62,7 @@ class ModelSpec:
         self._initial_mean: dict[str, object] | None = None
         self._initial_covariance: object = "process"
         self._initial_scale: float = 1.0
+        self._diffuse: tuple[str, ...] = ()  # states started exactly diffuse (set_initial_state)
         self._functions: dict | None = None
         self._structure: Structure | None = None
         self._options: dict = {}
@@ -680,20 +681,28 @@ class ModelSpec:
         mean: Mapping[str, float | str],
         covariance: str | Sequence | np.ndarray = "process",
         scale: float = 1.0,
+        diffuse: Sequence[str] = (),
     ) -> Self:
-        """Set the initial state, x(t0) ~ N(mean, covariance).
+        """Set the initial state, x(t0) ~ N(mean, covariance), some states possibly diffuse.
 
         Parameters
         ----------
         mean : mapping of str to float or str
             Every state's mean: a number, or a parameter name or expression (then estimated).
+            A diffuse state's mean may be left out (it does not change any result).
         covariance : {"process", "stationary"} or array_like
             A matrix (numbers or expressions), a vector of variances, ``"process"``
             (the process noise integrated over the first sampling interval, times
             ``scale``, as in CTSM) or ``"stationary"`` (the stationary covariance of a
-            stable linear model).
+            stable linear model; with diffuse states, of the other states' own block).
+            A matrix gives the diffuse states' rows and columns as zeros.
         scale : float
             The factor of the ``"process"`` covariance.
+        diffuse : sequence of str
+            States whose initial value is unknown, x0 = a + δ with δ ~ N(0, κ I), κ → ∞: the
+            exact diffuse initialisation of Koopman and Durbin, filtered exactly by the Kalman
+            filter of a linear model ([`diffuse`][greyid.filters.diffuse]).  Their observations'
+            log-likelihood terms are −½(log 2π + log F∞), statsmodels' convention.
 
         Returns
         -------
@@ -704,7 +713,14 @@ class ModelSpec:
         ------
         ModelError
             A name that is not a state, a covariance of the wrong shape or not a
-            covariance (negative variance, not symmetric, not positive semi-definite).
+            covariance (negative variance, not symmetric, not positive semi-definite), a
+            diffuse state given a variance or an estimated mean.
+
+        Examples
+        --------
+        >>> import greyid
+        >>> m = greyid.Model().add_system("dx = 0*dt + sig*dw").add_observation("y = x", variance="s2")
+        >>> m = m.set_initial_state(mean={}, covariance="process", diffuse=["x"])
         """
         if not isinstance(mean, Mapping):
             raise ModelError("initial state mean must be a mapping from state name to value")
@@ -731,11 +747,42 @@ class ModelSpec:
                                      f"has {n} states {states}: it must be {n}x{n} (or a vector of {n} variances)")
         if not isinstance(covariance, str):
             check_constant_covariance(covariance)
+        diffuse = self._checked_diffuse(diffuse, mean, covariance, states)
         self._initial_mean = dict(mean)
+        self._diffuse = diffuse
         self._initial_covariance = covariance
         self._initial_scale = float(scale)
         self._changed()
         return self
+
+    def _checked_diffuse(self, diffuse, mean, covariance, states) -> tuple[str, ...]:
+        """The diffuse states, checked: states, once each, with neither a variance nor an estimated mean."""
+        if isinstance(diffuse, str) or not all(isinstance(d, str) for d in diffuse):
+            raise ModelError(f"diffuse must be a list of state names, got {diffuse!r}")
+        diffuse = tuple(diffuse)
+        for name in diffuse:
+            if diffuse.count(name) > 1:
+                raise ModelError(f"diffuse state '{name}' is named twice")
+            if name in self._latent_forces:
+                raise ModelError(f"'{name}' is a latent force: it starts in its kernel's stationary distribution "
+                                 "and cannot be diffuse")
+            if states and name not in states:
+                raise ModelError(f"diffuse state '{name}' is not a state (states: {states})")
+            value = mean.get(name, 0.0)
+            if not isinstance(value, (int, float, np.integer, np.floating)) or isinstance(value, bool):
+                raise ModelError(f"diffuse state '{name}' has the mean {value!r}: a diffuse state's mean does not "
+                                 "change the likelihood, so it cannot be estimated; give a number or leave it out")
+        if diffuse and not isinstance(covariance, str) and states:
+            arr = np.asarray(covariance, dtype=object)
+            for name in diffuse:
+                i = states.index(name)
+                entries = [arr[i]] if arr.ndim == 1 else [*arr[i], *arr[:, i]]
+                given = [e for e in entries if not (isinstance(e, (int, float, np.integer, np.floating))
+                                                    and float(e) == 0.0)]
+                if given:
+                    raise ModelError(f"state '{name}' is diffuse but the initial covariance gives it "
+                                     f"{given[0]!r}: its rows and columns must be zero (its variance is infinite)")
+        return diffuse
 
     def _declared_states(self) -> list[str]:
         if self._functions is not None:

@@ -45,6 +45,12 @@ class InitialCovariance:
     #: whatever ``kind`` gives the model's own states (with "process" and "stationary").
     latent: Callable[[Array], Array] | None = None
     latent_start: int = 0
+    #: The states started exactly diffuse (their indices): their rows and columns of P0 are zero, their
+    #: unknown part is the filter's P∞ ([`diffuse`][greyid.filters.diffuse]).
+    diffuse: tuple[int, ...] = ()
+    #: For each diffuse state, the outputs that depend on it (directly or through the states it drives); empty
+    #: where unknown (models of Python functions: every output).
+    seen_by: tuple[tuple[int, ...], ...] = ()
 
 
 @dataclass(frozen=True)
