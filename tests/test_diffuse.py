@@ -5,6 +5,8 @@ models a ``KalmanSmoother`` given the exact discretisation computed in the test 
 SciPy), so that neither side's discretisation is shared.
 """
 
+import warnings
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -61,7 +63,7 @@ def statsmodels_filter(y, T, Q, Z, H, init):
     """statsmodels' exact diffuse filter and smoother of y_k = Z x_k + e_k, x_{k+1} = T x_k + η_k."""
     y = np.asarray(y, dtype=float).reshape(len(y), -1)
     n, p = T.shape[0], y.shape[1]
-    ssm = KalmanSmoother(k_endog=p, k_states=n, k_posdef=n)
+    ssm = KalmanSmoother(k_endog=p, k_states=n, k_posdef=n, tolerance=0.0)  # never hold the covariance
     ssm.bind(y)
     ssm.initialize(init)
     ssm["design"], ssm["obs_cov"], ssm["transition"] = Z, H, T
@@ -141,52 +143,58 @@ def test_continuous_trend_equals_statsmodels(form, missing):
     m = trend_model()
     data = frame(y, dt)
     res = m.filter(params, data, time="t", form=form)
-    # The two discretisations (greyid's and SciPy's matrix exponential) agree to rounding: 1e-11 relative.
-    assert res.loglik == pytest.approx(ref.llf, rel=1e-10)
-    np.testing.assert_allclose(res.loglik_terms.to_numpy(), ref.llf_obs, rtol=1e-9, atol=1e-10)
-    np.testing.assert_allclose(res.filtered.to_numpy(), ref.filtered_state.T, rtol=1e-9, atol=2e-9)
-    # statsmodels holds the covariance once its change falls below its tolerance (row 52 on here): 1e-8.
+    assert res.loglik == pytest.approx(ref.llf, rel=1e-12)
+    np.testing.assert_allclose(res.loglik_terms.to_numpy(), ref.llf_obs, rtol=1e-10, atol=1e-11)
+    np.testing.assert_allclose(res.filtered.to_numpy(), ref.filtered_state.T, rtol=1e-10, atol=1e-11)
     later = ref.nobs_diffuse
     np.testing.assert_allclose(res.filtered_cov[later:], np.moveaxis(ref.filtered_state_cov, -1, 0)[later:],
-                               rtol=1e-8, atol=1e-12)
+                               rtol=1e-10, atol=1e-13)
     np.testing.assert_allclose(res.predicted_cov[later:], np.moveaxis(ref.predicted_state_cov, -1, 0)[later:-1],
-                               rtol=1e-8, atol=1e-12)
+                               rtol=1e-10, atol=1e-13)
     smooth = m.smooth(params, data, time="t", form=form)
-    np.testing.assert_allclose(smooth.smoothed.to_numpy(), ref.smoothed_state.T, rtol=1e-8, atol=1e-9)
-    np.testing.assert_allclose(smooth.smoothed_cov, np.moveaxis(ref.smoothed_state_cov, -1, 0), rtol=1e-7,
-                               atol=1e-10)
+    np.testing.assert_allclose(smooth.smoothed.to_numpy(), ref.smoothed_state.T, rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(smooth.smoothed_cov, np.moveaxis(ref.smoothed_state_cov, -1, 0), rtol=1e-9,
+                               atol=1e-11)
 
 
-def test_mixed_diffuse_and_stationary_equals_statsmodels():
+@pytest.mark.parametrize("correlated", [False, True])
+def test_mixed_diffuse_and_stationary_equals_statsmodels(correlated):
     """A diffuse random-walk level beside a stationary Ornstein–Uhlenbeck deviation (its own block's stationary
     covariance, as statsmodels' mixed initialisation), both seen through one output, with a second output of the
-    deviation alone; the first output missing at the start."""
+    deviation alone; the first output missing at the start; the outputs' noise independent or correlated
+    (statsmodels then diagonalises it by its Cholesky factor, as greyid does)."""
     rng = np.random.default_rng(11)
-    dt, sl, a, so, r1, r2 = 1.0, 0.3, 0.8, 0.5, 0.2, 0.1
+    dt, sl, a, so, r1, r2, c = 1.0, 0.3, 0.8, 0.5, 0.2, 0.1, 0.08 if correlated else 0.0
     n = 80
     y = np.column_stack([np.cumsum(rng.normal(0, sl, n)) + rng.normal(0, 0.6, n), rng.normal(0, 0.6, n)])
     y[0, 0] = np.nan
+    y[5, 1] = np.nan
     m = (greyid.Model().add_system("dL = 0*dt + sl*dw1").add_system("dD = -a*D*dt + so*dw2")
          .add_observation("y1 = L + D", variance="r1").add_observation("y2 = D", variance="r2")
          .set_parameter("sl", init=sl).set_parameter("a", init=a).set_parameter("so", init=so)
          .set_parameter("r1", init=r1).set_parameter("r2", init=r2)
          .set_initial_state(mean={"D": 0.0}, covariance="stationary", diffuse=["L"]))
     params = {"sl": sl, "a": a, "so": so, "r1": r1, "r2": r2}
+    if correlated:
+        m = m.set_observation_covariance([["r1", "c"], ["c", "r2"]]).set_parameter("c", init=c)
+        params["c"] = c
     A = np.array([[0.0, 0.0], [0.0, -a]])
     T, Q = van_loan(A, np.diag([sl**2, so**2]), dt)
     init = Initialization(2)
     init.set(0, "diffuse")
     init.set(1, "stationary")
-    ref = statsmodels_filter(y, T, Q, np.array([[1.0, 1.0], [0.0, 1.0]]), np.diag([r1, r2]), init)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # statsmodels' note on its diagonalised disturbances
+        ref = statsmodels_filter(y, T, Q, np.array([[1.0, 1.0], [0.0, 1.0]]), np.array([[r1, c], [c, r2]]), init)
     data = pd.DataFrame({"t": dt * np.arange(n), "y1": y[:, 0], "y2": y[:, 1]})
     res = m.filter(params, data, time="t")
-    assert res.loglik == pytest.approx(ref.llf, rel=1e-10)  # statsmodels' held covariance, as above
-    np.testing.assert_allclose(res.loglik_terms.to_numpy(), ref.llf_obs, rtol=1e-9, atol=1e-9)
-    np.testing.assert_allclose(res.filtered.to_numpy(), ref.filtered_state.T, rtol=1e-9, atol=2e-9)
+    assert res.loglik == pytest.approx(ref.llf, rel=1e-12)
+    np.testing.assert_allclose(res.loglik_terms.to_numpy(), ref.llf_obs, rtol=1e-10, atol=1e-11)
+    np.testing.assert_allclose(res.filtered.to_numpy(), ref.filtered_state.T, rtol=1e-10, atol=1e-11)
     smooth = m.smooth(params, data, time="t")
-    np.testing.assert_allclose(smooth.smoothed.to_numpy(), ref.smoothed_state.T, rtol=1e-8, atol=1e-9)
-    np.testing.assert_allclose(smooth.smoothed_cov, np.moveaxis(ref.smoothed_state_cov, -1, 0), rtol=1e-7,
-                               atol=1e-10)
+    np.testing.assert_allclose(smooth.smoothed.to_numpy(), ref.smoothed_state.T, rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(smooth.smoothed_cov, np.moveaxis(ref.smoothed_state_cov, -1, 0), rtol=1e-9,
+                               atol=1e-11)
 
 
 def test_predictions_from_a_diffuse_start():
