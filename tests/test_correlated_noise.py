@@ -101,3 +101,72 @@ def test_observation_covariance_is_checked():
     df = pd.DataFrame({"t": [0.0, 1.0], "u": [0.0, 0.0], "y1": [0.1, 0.2], "y2": [0.0, 0.3]})
     with pytest.raises(greyid.ModelError, match="not positive definite at row 0"):
         m.loglik(dict(TRUE, c12=1.0), df)
+
+
+@pytest.fixture(scope="module")
+def simulated():
+    """60 rows of the model itself (exact scheme), a fifth of the values missing."""
+    m = correlated_model()
+    rng = np.random.default_rng(8)
+    t = np.cumsum(rng.uniform(0.3, 1.2, 60))
+    frame = pd.DataFrame({"t": t, "u": rng.normal(size=60)})
+    sim = m.simulate(TRUE, frame, method="exact", seed=4).frame(0)
+    Y = sim[["y1", "y2"]].to_numpy().copy()
+    Y[rng.random(Y.shape) < 0.2] = np.nan
+    df = frame.assign(y1=Y[:, 0], y2=Y[:, 1])
+    return m, df, t, frame[["u"]].to_numpy(), Y
+
+
+def rosenblatt(result):
+    """The Kalman filter's innovations whitened by the Cholesky factor of their covariance, row by row: each
+    output's one-step transform given the row's outputs before it."""
+    eps, R = result.innovations.to_numpy(), result.innovation_cov
+    z = np.full_like(eps, np.nan)
+    for k in range(len(eps)):
+        seen = ~np.isnan(eps[k])
+        if seen.any():
+            z[k, seen] = np.linalg.solve(np.linalg.cholesky(R[k][np.ix_(seen, seen)]), eps[k, seen])
+    return z
+
+
+def test_laplace_method_with_correlated_noise(simulated):
+    """The Laplace method on a linear Gaussian model is the exact likelihood; its one-step residuals (each output given
+    the rows before and the row's outputs before it, as ctsmTMB's) are the Kalman filter's innovations whitened within
+    the row, up to the tails' Laplace error (largest at the first row, whose prior is wide)."""
+    from greyid.filters.api import laplace_residuals
+
+    m, df, t, U, Y = simulated
+    reference = dense_loglik(TRUE, t, U, Y)
+    assert m.loglik(TRUE, df, method="laplace") == pytest.approx(reference, rel=1e-10)
+    z = rosenblatt(m.filter(TRUE, df))
+    residuals = laplace_residuals(m, TRUE, df).to_numpy()
+    assert np.array_equal(np.isnan(residuals), np.isnan(z))
+    assert np.nanmax(np.abs(residuals - z)) < 0.1 and np.nanmax(np.abs(residuals - z)[1:]) < 0.06
+
+
+@pytest.mark.parametrize("proposal", ["bootstrap", "ekf"])
+def test_particle_filter_with_correlated_noise(simulated, proposal):
+    from greyid.estimate.approximations import particle_loglik
+
+    m, df, t, U, Y = simulated
+    reference = dense_loglik(TRUE, t, U, Y)
+    estimate = particle_loglik(m, TRUE, df, particles=2000, seed=1, proposal=proposal)
+    assert abs(estimate.loglik - reference) < 3 * estimate.std_error + 0.05
+    # Without the correlation the estimate moves away.
+    independent = particle_loglik(m, dict(TRUE, c12=0.0), df, particles=2000, seed=1, proposal=proposal)
+    assert abs(independent.loglik - reference) > 3 * independent.std_error + 1.0
+    # Its quantile residuals: each output's own, as the Kalman filter's standardized innovations.
+    residuals = m.filter(TRUE, df, method="particle", particles=4000, proposal="ekf").quantile_residuals.to_numpy()
+    assert np.nanmax(np.abs(residuals - m.filter(TRUE, df).standardized_innovations.to_numpy())) < 0.15
+
+
+def test_ensemble_kalman_filter_with_correlated_noise(simulated):
+    """The ensemble's estimate approaches the exact value as it grows (seeds averaged), and it perturbs the
+    observations with the correlated noise (without it the value is another)."""
+    m, df, t, U, Y = simulated
+    reference = dense_loglik(TRUE, t, U, Y)
+    errors = {P: np.mean([abs(m.loglik(TRUE, df, method="enkf", particles=P, seed=s) - reference) for s in range(4)])
+              for P in (50, 5000)}
+    assert errors[5000] < 0.3 and errors[5000] < errors[50] / 3
+    independent = m.loglik(dict(TRUE, c12=0.0), df, method="enkf", particles=5000)
+    assert abs(independent - reference) > 1.0

@@ -38,7 +38,8 @@ from ..model.structure import Structure
 from . import small
 from .predictors import linearized_observation
 from .protocol import FilterInputs, Row
-from .updates import SQRT, GaussianState, StepTerms, Update, mask_observation, symmetrize
+from .updates import (SQRT, GaussianState, StepTerms, Update, mask_observation, observed_root, symmetrize,
+                      whiten)
 
 #: F∞ counts as positive above this fraction of |c|² times the largest diagonal element P∞ has had
 #: (P∞ starts as the identity on the diffuse states): rounding leaves P∞ at about 1e-16 of that.
@@ -163,11 +164,9 @@ def prepare_start(structure: Structure, theta, data: FilterInputs, form: str, ti
         # Correlated noise: the observed outputs decorrelated by the Cholesky factor L of their noise
         # covariance (as updates.correlated_update), log det R gaining 2 log det L.
         m = row.mask
-        L = small.cholesky(symmetrize(full(state.mean, u, t, theta) * m[:, None] * m[None, :] + jnp.diag(1.0 - m)))
-        white, infinite = diffuse_update(
-            *state, infinite, scale, small.solve_lower(L, jnp.where(m > 0, row.y, 0.0)), m,
-            small.solve_lower(L, jnp.where(m > 0, y_pred, 0.0)), small.solve_lower(L, C * m[:, None]),
-            jnp.ones_like(row.y), form)
+        L = observed_root(full(state.mean, u, t, theta), m)
+        white, infinite = diffuse_update(*state, infinite, scale, whiten(L, m, row.y), m, whiten(L, m, y_pred),
+                                         small.solve_lower(L, C * m[:, None]), jnp.ones_like(row.y), form)
         terms = white.terms._replace(logdet=white.terms.logdet + 2.0 * jnp.sum(jnp.log(jnp.diag(L))))
         R = symmetrize(small.mm(small.mm(L, white.innovation_covariance), L.T))
         upd = Update(white.mean, white.covariance, jnp.where(m > 0, row.y - y_pred, 0.0), R, terms)

@@ -24,12 +24,13 @@ from typing import NamedTuple
 from .. import runtime  # noqa: F401  (64-bit JAX and greyid's cache folder before any JAX work)
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..errors import ModelError
 from ..model.structure import Structure
 from . import small
 from .particle import sampled_dynamics
-from .protocol import FilterInputs, FilterOptions, FilterSteps, Row, refuse_unsupported, series_rows
+from .protocol import FilterInputs, FilterOptions, FilterSteps, Row, refuse_delays, series_rows
 from .updates import StepTerms
 
 #: The observations' perturbations are drawn from the seed's key folded with this tag and the row's number.
@@ -61,12 +62,14 @@ class EnsembleUpdate(NamedTuple):
 
 def prepare(structure: Structure, options: FilterOptions):
     """``steps(theta, data, key=None) -> FilterSteps`` of the stochastic ensemble Kalman filter."""
-    refuse_unsupported(structure, "the ensemble Kalman filter")
+    refuse_delays(structure, "the ensemble Kalman filter")
     size, inflation, seed = options.particles, options.inflation, options.seed
     if size < 2:
         raise ModelError(f"an ensemble needs at least 2 members, got particles={size}")
     h, variance_of = structure.observation, structure.observation_variance
     n_out = len(structure.output_names)
+    full = structure.observation_covariance
+    zeros = np.zeros(structure.n_states)
 
     def steps(theta, data: FilterInputs, key=None) -> FilterSteps:
         base = jax.random.PRNGKey(seed) if key is None else key
@@ -85,18 +88,22 @@ def prepare(structure: Structure, options: FilterOptions):
             X = mean + inflation * (X - mean)
             Y = jax.vmap(lambda x: h(x, row.u_cur, row.t, theta))(X)
             S = jnp.mean(jax.vmap(lambda x: variance_of(x, row.u_cur, row.t, theta))(X), axis=0)
+            # The noise's covariance: its variances, or where the outputs' noise is correlated its matrix
+            # (which does not depend on the state).
+            noise = jnp.diag(S) if full is None else full(zeros, row.u_cur, row.t, theta)
             y_pred = jnp.mean(Y, axis=0)
             A, B = X - mean, Y - y_pred
             both = mask[:, None] * mask[None, :]
             # Unobserved outputs: their rows and columns of R_k are the identity's, their innovation 0.
-            R = jnp.where(both > 0, B.T @ B / (size - 1) + jnp.diag(S), jnp.eye(n_out))
+            R = jnp.where(both > 0, B.T @ B / (size - 1) + noise, jnp.eye(n_out))
             cross = A.T @ B / (size - 1) * mask[None, :]
             innovation = jnp.where(mask > 0, row.y - y_pred, 0.0)
             L = small.cholesky(R)
             terms = StepTerms(small.solve_lower(L, innovation), 2 * jnp.sum(jnp.log(jnp.diag(L))), jnp.sum(mask))
             gain = small.cho_solve(L, cross.T).T  # K = cov(x, y) R⁻¹
-            noise = jax.random.normal(jax.random.fold_in(perturb_key, state.step), (size, n_out)) * jnp.sqrt(S)
-            discrepancy = jnp.where(mask > 0, row.y + noise - Y, 0.0)
+            normals = jax.random.normal(jax.random.fold_in(perturb_key, state.step), (size, n_out))
+            perturbation = normals * jnp.sqrt(S) if full is None else normals @ small.cholesky(noise).T
+            discrepancy = jnp.where(mask > 0, row.y + perturbation - Y, 0.0)
             members = X + discrepancy @ gain.T
             return EnsembleUpdate(EnsembleState(members, state.step + 1), terms, innovation, R), y_pred
 

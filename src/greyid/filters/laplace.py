@@ -43,7 +43,8 @@ from ..model.structure import Structure
 from . import small
 from .discretize import discretize_each
 from .gaussian import initial_state
-from .protocol import FilterInputs, FilterOptions, refuse_unsupported, series_rows
+from .protocol import FilterInputs, FilterOptions, refuse_delays, series_rows
+from .updates import observed_root, whiten
 
 #: Newton steps at most, and the largest step (relative to the states' size) that ends the search.
 NEWTON_STEPS = 50
@@ -181,13 +182,14 @@ class Laplace(NamedTuple):
 
 def build(structure: Structure, options: FilterOptions) -> Laplace:
     """The [`Laplace`][greyid.filters.laplace.Laplace] functions of the method (see the module doc)."""
-    refuse_unsupported(structure, "the Laplace method")
+    refuse_delays(structure, "the Laplace method")
     n, s = structure.n_states, options.substeps
     families = structure.output_families
     f, G = structure.drift, structure.diffusion
     ctsmtmb = options.scheme == "ctsmtmb"
     exact = structure.linear_dynamics is not None and options.scheme == "auto"
     zeros = np.zeros(n)
+    full = structure.observation_covariance
 
     def gaussian(root, residual):
         """log N(residual; 0, root rootᵀ)."""
@@ -230,7 +232,17 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
         def observed(x, row):
             y, mask, u, t = row[:4]
             law = structure.observation_law(x, u, t, theta)
+            if full is not None:
+                # Correlated noise: the observed outputs (and the one whose tail is taken) whitened by the
+                # Cholesky factor L of their noise covariance, the density the whitened one's over det L.  A
+                # whitened output's tail given the outputs before it is the output's own (L is triangular with
+                # a positive diagonal), so the one-step transforms keep their meaning.
+                seen = mask if cdf is None else jnp.maximum(mask, row[4])
+                L = observed_root(full(zeros, u, t, theta), seen)
+                y, law = whiten(L, seen, y), (whiten(L, seen, law[0]), jnp.ones_like(law[1]), law[2])
             value = observations_log_density(families, y, mask, *law)
+            if full is not None:
+                value = value - jnp.sum(jnp.where(mask > 0, jnp.log(jnp.diag(L)), 0.0))
             if cdf is None:
                 return value
             on, shift, upper = row[4:]

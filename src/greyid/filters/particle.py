@@ -39,8 +39,8 @@ from . import small
 from .discretize import discretize_each
 from .gaussian import initial_state
 from .proposals import BOOTSTRAP, guided_draw, linearise
-from .protocol import FilterInputs, FilterOptions, FilterSteps, Row, refuse_unsupported, series_rows
-from .updates import DensityTerms
+from .protocol import FilterInputs, FilterOptions, FilterSteps, Row, refuse_delays, series_rows
+from .updates import DensityTerms, observed_root, whiten
 
 #: Random numbers for the initial particles, the rows' predictions and their resampling are drawn
 #: from keys folded from the seed's with these tags.
@@ -202,12 +202,14 @@ def prepare(structure: Structure, options: FilterOptions):
     """``steps(theta, data, key=None) -> FilterSteps`` of the particle filter (``method="particle"``), bootstrap or
     with a Gaussian-filter proposal (``proposal``, see [`proposals`][greyid.filters.proposals]); ``key``
     replaces the seed's random numbers (independent replicates)."""
-    refuse_unsupported(structure, "the particle filter")
+    refuse_delays(structure, "the particle filter")
     n_particles, threshold = options.particles, options.resample
     n = structure.n_states
     families = structure.output_families
     seed, proposal = options.seed, options.proposal
     guided = proposal != BOOTSTRAP
+    full = structure.observation_covariance
+    zeros = np.zeros(n)  # the noise's covariance does not depend on the state
 
     def steps(theta, data: FilterInputs, key=None) -> FilterSteps:
         base = jax.random.PRNGKey(seed) if key is None else key
@@ -223,36 +225,52 @@ def prepare(structure: Structure, options: FilterOptions):
         def law(x, row: Row):
             return jax.vmap(lambda xi: structure.observation_law(xi, row.u_cur, row.t, theta))(x)
 
-        def log_densities(row: Row, mask, m, S, a):
-            return jax.vmap(lambda mi, si, ai: observations_log_density(families, row.y, mask, mi, si, ai))(m, S, a)
+        def whitened(row: Row, mask):
+            """The row's observations and their law where the observed outputs' noise is independent with unit
+            variances (correlated noise whitened by the Cholesky factor L of its covariance; their density is
+            the whitened one's over det L), and log det L; as they are where the noise is independent."""
+            if full is None:
+                return row.y, (lambda x: structure.observation_law(x, row.u_cur, row.t, theta)), 0.0
+            L = observed_root(full(zeros, row.u_cur, row.t, theta), mask)
+
+            def law_of(x):
+                m, S, a = structure.observation_law(x, row.u_cur, row.t, theta)
+                return whiten(L, mask, m), jnp.ones_like(S), a
+
+            return whiten(L, mask, row.y), law_of, jnp.sum(jnp.log(jnp.diag(L)))
+
+        def log_densities(y, mask, m, S, a):
+            return jax.vmap(lambda mi, si, ai: observations_log_density(families, y, mask, mi, si, ai))(m, S, a)
 
         def predict(state: ParticleState, row: Row):
             moved = state._replace(particles=dynamics.advance(state.particles, row, state.step))
             return (moved._replace(previous=state.particles) if guided else moved), jnp.eye(n)
 
-        def guided_weights(state: ParticleState, row: Row, mask):
+        def guided_weights(state: ParticleState, row: Row, mask, y, law_of):
             """The particles moved again over the row's interval by the proposal, and their log-weights'
             corrections."""
 
             def conditional(x):
-                m, S, a = structure.observation_law(x, row.u_cur, row.t, theta)
+                m, S, a = law_of(x)
                 both = [moments(fam, m[j], S[j], a[j]) for j, fam in enumerate(families)]
                 return jnp.stack([b[0] for b in both]), jnp.stack([b[1] for b in both])
 
             def draw(end, scale, rest, normals):
-                return guided_draw(linearise(proposal, conditional, end, scale, rest), row.y, mask, normals)
+                return guided_draw(linearise(proposal, conditional, end, scale, rest), y, mask, normals)
 
             return dynamics.guided(state.previous, row, state.step, draw)
 
         def update(state: ParticleState, row: Row, mask=None):
             mask = row.mask if mask is None else mask
             m, S, a = law(state.particles, row)
+            y_white, law_of, log_root = whitened(row, mask)
+            white = jax.vmap(law_of)
             if guided:
-                particles, correction = guided_weights(state, row, mask)
-                joint = state.log_weights + correction + log_densities(row, mask, *law(particles, row))
+                particles, correction = guided_weights(state, row, mask, y_white, law_of)
+                joint = state.log_weights + correction + log_densities(y_white, mask, *white(particles)) - log_root
                 weighed = state._replace(particles=particles)
             else:
-                joint = state.log_weights + log_densities(row, mask, m, S, a)
+                joint = state.log_weights + log_densities(y_white, mask, *white(state.particles)) - log_root
                 weighed = state
             increment = logsumexp(joint)
             weighed = weighed._replace(log_weights=joint - increment)
@@ -266,8 +284,13 @@ def prepare(structure: Structure, options: FilterOptions):
             y_pred = w @ mean_y
             spread = mean_y - y_pred
             R = (spread * w[:, None]).T @ spread + jnp.diag(w @ var_y)
+            if full is not None:  # the noise's covariances beside its variances
+                noise = full(zeros, row.u_cur, row.t, theta)
+                R = R + noise - jnp.diag(jnp.diag(noise))
             innovation = jnp.where(mask > 0, row.y - y_pred, 0.0)
             terms = DensityTerms(increment, jnp.sum(mask))
+            # Each output's own transform (its marginal law, S_jj where the noise is correlated), as the Gaussian
+            # filters' standardized innovations are.
             transformed = jnp.stack([
                 w @ probability_integral_transform(fam, row.y[j], m[:, j], S[:, j], a[:, j],
                                                    pit_uniforms[state.step, j])

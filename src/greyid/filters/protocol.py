@@ -169,13 +169,10 @@ class Family(Protocol):
         ...
 
 
-def refuse_unsupported(structure: Structure, name: str) -> None:
-    """Refuse what the particle, ensemble and Laplace methods (``name``) do not take yet: delayed inputs and
-    correlated observation noise."""
+def refuse_delays(structure: Structure, name: str) -> None:
+    """Refuse what the particle, ensemble and Laplace methods (``name``) do not take yet: delayed inputs."""
     if structure.delays:
         raise ModelError(f"{name} does not take delay() inputs yet; use a Gaussian filter")
-    if structure.observation_covariance is not None:
-        raise ModelError(f"{name} takes independent observation noise only (no observation covariance)")
 
 
 class SeriesRows(NamedTuple):

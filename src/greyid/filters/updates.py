@@ -144,6 +144,17 @@ def linear_update(mean, cov, y, mask, y_pred, C, S, form: str) -> Update:
     return Update(new_mean, new_cov, innovation, R, gaussian_term(innovation, chol_R, mask))
 
 
+def observed_root(S_full, mask):
+    """The Cholesky factor L of the observed outputs' noise covariance, an identity block for the unobserved
+    ones: L⁻¹ makes the observed outputs' noise independent with unit variances."""
+    return small.cholesky(symmetrize(S_full * mask[:, None] * mask[None, :] + jnp.diag(1.0 - mask)))
+
+
+def whiten(L, mask, v):
+    """L⁻¹ v over the observed elements of v (the unobserved ones 0)."""
+    return small.solve_lower(L, jnp.where(mask > 0, v, 0.0))
+
+
 def correlated_update(mean, cov, y, mask, y_pred, C, S_full, form: str, update=None) -> Update:
     """The update with correlated measurement noise S (a full matrix).
 
@@ -155,12 +166,9 @@ def correlated_update(mean, cov, y, mask, y_pred, C, S_full, form: str, update=N
     """
     update = update or linear_update
     m = mask
-    S_observed = symmetrize(S_full * m[:, None] * m[None, :] + jnp.diag(1.0 - m))
-    L = small.cholesky(S_observed)
-    observed_y = jnp.where(m > 0, y, 0.0)
-    observed_pred = jnp.where(m > 0, y_pred, 0.0)
-    white = update(mean, cov, small.solve_lower(L, observed_y), m, small.solve_lower(L, observed_pred),
-                   small.solve_lower(L, C * m[:, None]), jnp.ones_like(y), form)
+    L = observed_root(S_full, m)
+    white = update(mean, cov, whiten(L, m, y), m, whiten(L, m, y_pred), small.solve_lower(L, C * m[:, None]),
+                   jnp.ones_like(y), form)
     terms = white.terms._replace(logdet=white.terms.logdet + 2.0 * jnp.sum(jnp.log(jnp.diag(L))))
     innovation = jnp.where(m > 0, y - y_pred, 0.0)
     R = symmetrize(small.mm(small.mm(L, white.innovation_covariance), L.T))
