@@ -272,3 +272,62 @@ def test_the_information_of_a_delay_is_continuous_across_whole_sampling_interval
           .to_numpy() for d in (-1e-6, 0.0, 1e-6)]
     np.testing.assert_allclose(at[1], 0.5 * (at[0] + at[2]), rtol=1e-4)
     np.testing.assert_allclose(at[0], at[2], rtol=1e-4)
+
+
+@pytest.fixture(scope="module")
+def delayed_series():
+    """The one-delay model with bounds, on its regular series and on the same values at irregular times."""
+    m, truth, data = simulated_delay(0.37, 0.25, 120, 6, 1, 2)
+    for name, value in truth.items():
+        m.set_parameter(name, init=value, lower=0.0 if name == "tau" else None, upper=5.0 if name == "tau" else None)
+    irregular = data.assign(t=np.cumsum(np.random.default_rng(0).uniform(0.1, 0.4, len(data))))
+    return m, truth, {"regular": data, "irregular": irregular}
+
+
+@pytest.mark.parametrize("sampling", ["regular", "irregular"])
+def test_laplace_method_with_delays_is_the_kalman_filter(delayed_series, sampling):
+    """Exact transitions cut where the delayed input switches: the Laplace value and its gradient (the delay's
+    included) are the Kalman filter's; Euler–Maruyama transitions converge to it as the sub-steps grow."""
+    m, truth, sets = delayed_series
+    data = sets[sampling]
+    exact, laplace = m.likelihood(data), m.likelihood(data, method="laplace")
+    x = np.array([truth[n] for n in exact.names])
+    (value, gradient), (l_value, l_gradient) = exact.value_and_grad(x), laplace.value_and_grad(x)
+    assert l_value == pytest.approx(value, rel=1e-11)
+    np.testing.assert_allclose(l_gradient, gradient, rtol=1e-8, atol=1e-8)
+    errors = [abs(m.loglik(truth, data, method="laplace", scheme="euler", substeps=s) + value) for s in (2, 8, 32)]
+    assert errors[0] > 3 * errors[1] and errors[1] > 3 * errors[2]  # first order: a quarter per 4× the sub-steps
+    with pytest.raises(ModelError, match="ctsmtmb.*does not take delay"):
+        m.loglik(truth, data, method="laplace", scheme="ctsmtmb")
+
+
+@pytest.mark.parametrize("sampling", ["regular", "irregular"])
+def test_particle_and_ensemble_filters_with_delays(delayed_series, sampling):
+    from greyid.estimate.approximations import particle_loglik
+
+    m, truth, sets = delayed_series
+    data = sets[sampling]
+    reference = m.loglik(truth, data)
+    estimate = particle_loglik(m, truth, data, particles=2000, seed=3)
+    assert abs(estimate.loglik - reference) < 3 * estimate.std_error
+    # Without the delay's cuts (τ = 0 is another model) the value is another.
+    assert abs(particle_loglik(m, dict(truth, tau=0.0), data, particles=2000, seed=3).loglik - reference) > 2.0
+    ensemble = np.mean([m.loglik(truth, data, method="enkf", particles=5000, seed=s) for s in range(3)])
+    assert ensemble == pytest.approx(reference, abs=0.3)
+
+
+def test_particle_filter_sub_steps_with_delays():
+    """A model that is not linear (a negligible cubic term) takes Euler–Maruyama sub-steps, each cut where the
+    delayed input switches: the particle estimate is within its error of the Laplace value of the same Euler
+    chain (exact for it, the chain being linear and Gaussian up to the cubic term), and both near the exact
+    filter of the linear model."""
+    from greyid.estimate.approximations import particle_loglik
+
+    m, truth, data = simulated_delay(0.37, 0.25, 84, 6, 1, 2)
+    cubic = first_order("k*delay(u, tau) - q*x**3")
+    cubic.set_initial_state(mean={"x": 0.0}, covariance=[[0.01]])
+    params = dict(truth, q=1e-9)
+    chain = cubic.loglik(params, data, method="laplace", scheme="euler", substeps=16)
+    estimate = particle_loglik(cubic, params, data, particles=2000, seed=1, substeps=16, proposal="ekf")
+    assert abs(estimate.loglik - chain) < 3 * estimate.std_error + 1e-3
+    assert abs(chain - m.loglik(truth, data)) < 0.2

@@ -165,6 +165,33 @@ def interval_pieces(delays: Delays, data, n_inputs: int, offsets=None) -> Pieces
                   jnp.concatenate([own_prev + ramp * fraction_end[..., None], delayed_end], axis=2))
 
 
+def step_pieces(delays: Delays, data, start, length, u_start, u_end, n_inputs: int) -> Pieces:
+    """Any grid's steps [start, start + length] cut where the delayed inputs switch, as
+    [`interval_pieces()`][greyid.filters.delays.interval_pieces] cuts the sampling intervals (a step no longer
+    than the series' widest interval holds no more switching instants than an interval does).  ``u_start`` and
+    ``u_end`` are the extended inputs at the steps' ends; leading axis the steps."""
+    steps = _Steps(start, start + length, u_start, u_end, data.delay_slots)
+    return interval_pieces(delays, steps, n_inputs)
+
+
+class _Steps(NamedTuple):
+    t_prev: jnp.ndarray
+    t: jnp.ndarray
+    u_prev: jnp.ndarray
+    u_cur: jnp.ndarray
+    delay_slots: jnp.ndarray
+
+
+def piece_drift(f, x, pieces: Pieces, foh):
+    """Σ_p f(x, u_p, s_p) ℓ_p / Σ_p ℓ_p: the drift of an Euler step at x with the inputs of each of the step's
+    pieces (u_p held, or at the piece's middle with a first-order hold), weighted by its length — smooth in
+    the delays, which move the pieces' ends."""
+    u = pieces.u_start + 0.5 * foh * (pieces.u_end - pieces.u_start)
+    values = jax.vmap(lambda ui, si: f(x, ui, si))(u, pieces.start)
+    total = jnp.sum(pieces.length)
+    return jnp.sum(values * pieces.length[:, None], axis=0) / jnp.where(total > 0, total, 1.0)
+
+
 def check_delays(structure, theta, times: np.ndarray) -> None:
     """Named errors for a negative delay or one longer than the series."""
     if not structure.delays:

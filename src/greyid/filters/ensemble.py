@@ -30,7 +30,7 @@ from ..errors import ModelError
 from ..model.structure import Structure
 from . import small
 from .particle import sampled_dynamics
-from .protocol import FilterInputs, FilterOptions, FilterSteps, Row, refuse_delays, series_rows
+from .protocol import FilterInputs, FilterOptions, FilterSteps, Row, series_rows
 from .updates import StepTerms
 
 #: The observations' perturbations are drawn from the seed's key folded with this tag and the row's number.
@@ -62,7 +62,6 @@ class EnsembleUpdate(NamedTuple):
 
 def prepare(structure: Structure, options: FilterOptions):
     """``steps(theta, data, key=None) -> FilterSteps`` of the stochastic ensemble Kalman filter."""
-    refuse_delays(structure, "the ensemble Kalman filter")
     size, inflation, seed = options.particles, options.inflation, options.seed
     if size < 2:
         raise ModelError(f"an ensemble needs at least 2 members, got particles={size}")
@@ -74,7 +73,7 @@ def prepare(structure: Structure, options: FilterOptions):
     def steps(theta, data: FilterInputs, key=None) -> FilterSteps:
         base = jax.random.PRNGKey(seed) if key is None else key
         series = series_rows(structure, theta, data)
-        dynamics = sampled_dynamics(structure, options, theta, series.data, base, size)
+        dynamics = sampled_dynamics(structure, options, theta, series.data, base, size, series.delays)
         perturb_key = jax.random.fold_in(base, _PERTURB)
 
         def predict(state: EnsembleState, row: Row):

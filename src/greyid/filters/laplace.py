@@ -38,12 +38,14 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import log_ndtr
 
+from ..errors import ModelError
 from ..model.distributions import COUNTS, NORMAL, cdf, observations_log_density
 from ..model.structure import Structure
 from . import small
-from .discretize import discretize_each
+from .delays import Pieces, piece_drift, step_pieces
+from .discretize import discretize, discretize_each
 from .gaussian import initial_state
-from .protocol import FilterInputs, FilterOptions, refuse_delays, series_rows
+from .protocol import FilterInputs, FilterOptions, series_rows
 from .updates import observed_root, whiten
 
 #: Newton steps at most, and the largest step (relative to the states' size) that ends the search.
@@ -65,6 +67,8 @@ class Grid(NamedTuple):
     u_start: jnp.ndarray  # (T, nu)
     u_end: jnp.ndarray  # (T, nu)
     interval: jnp.ndarray  # (T,) the step's sampling interval among the data's distinct ones
+    #: With delayed inputs, each step cut where they switch ([`step_pieces()`][greyid.filters.delays.step_pieces]).
+    pieces: Pieces | None = None
 
 
 class Terms(NamedTuple):
@@ -182,7 +186,9 @@ class Laplace(NamedTuple):
 
 def build(structure: Structure, options: FilterOptions) -> Laplace:
     """The [`Laplace`][greyid.filters.laplace.Laplace] functions of the method (see the module doc)."""
-    refuse_delays(structure, "the Laplace method")
+    if structure.delays and options.scheme == "ctsmtmb":
+        raise ModelError("scheme='ctsmtmb' (ctsmTMB's transitions) does not take delay() inputs; use scheme='auto' "
+                         "or 'euler'")
     n, s = structure.n_states, options.substeps
     families = structure.output_families
     f, G = structure.drift, structure.diffusion
@@ -201,8 +207,12 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
         Newton loop that evaluates them many times.  ``cdf = (on, shift, upper)`` (N, outputs) adds, where
         ``on``, log P(Y ≤ y − shift | x) of each output, or log P(Y > y | x) where ``upper`` (the one-step
         transforms')."""
-        data = series_rows(structure, theta, data).data
+        series = series_rows(structure, theta, data)
+        data = series.data
         grid = fine_grid(data, s, linear_inputs=ctsmtmb)
+        if series.delays is not None:
+            grid = grid._replace(pieces=step_pieces(series.delays, data, grid.start, grid.length, grid.u_start,
+                                                    grid.u_end, structure.n_inputs))
         x0, P0 = initial_state(structure, theta, data)
         prior_root = small.cholesky(0.5 * (P0 + P0.T))
         if exact:  # one discretization per distinct step length, as the exact Kalman filter
@@ -210,20 +220,34 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
             g = G(zeros, data.u_cur[0], data.t[0], theta)
             cache = discretize_each(A, g @ g.T, data.unique_dt / s)
 
+            def pieces_mean(x, cut):
+                def piece(x, p):
+                    disc = discretize(A, g @ g.T, p.length)
+                    b_start, b_end = B @ p.u_start + c, B @ p.u_end + c
+                    return (disc.transition @ x + disc.input_gain @ b_start
+                            + data.foh * disc.ramp_gain @ (b_end - b_start)), None
+
+                return jax.lax.scan(piece, x, cut)[0]
+
         def transition(x, step):
             """log N(x_{j+1}; m_j(x_j), V_j); a step of length 0 (padding) is N(x_{j+1}; x_j, I)."""
             x_now, x_next = x[:n], x[n:]
-            start, length, u_start, u_end, interval = step
+            start, length, u_start, u_end, interval, cut = step
             still = length <= 0
             if exact:
                 disc = jax.tree_util.tree_map(lambda a: a[interval], cache)
-                b_start, b_end = B @ u_start + c, B @ u_end + c
-                mean = (disc.transition @ x_now + disc.input_gain @ b_start
-                        + data.foh * disc.ramp_gain @ (b_end - b_start))
+                if cut is None:
+                    b_start, b_end = B @ u_start + c, B @ u_end + c
+                    mean = (disc.transition @ x_now + disc.input_gain @ b_start
+                            + data.foh * disc.ramp_gain @ (b_end - b_start))
+                else:  # piece by piece where delayed inputs switch inside the step (the noise is the step's)
+                    mean = pieces_mean(x_now, cut)
                 V = disc.noise_covariance
             else:
                 g = G(x_now, u_start, start, theta)
-                mean = x_now + f(x_now, u_start, start, theta) * length
+                velocity = (f(x_now, u_start, start, theta) if cut is None else
+                            piece_drift(lambda x, u, t: f(x, u, t, theta), x_now, cut, data.foh))
+                mean = x_now + velocity * length
                 V = (g @ g.T + (CTSMTMB_JITTER * jnp.eye(n) if ctsmtmb else 0.0)) * length
             V = jnp.where(still, jnp.eye(n), 0.5 * (V + V.T))
             mean = jnp.where(still, x_now, mean)

@@ -36,10 +36,11 @@ from jax.scipy.special import logsumexp
 from ..model.distributions import moments, observations_log_density, probability_integral_transform
 from ..model.structure import Structure
 from . import small
-from .discretize import discretize_each
+from .delays import piece_drift, step_pieces
+from .discretize import discretize, discretize_each
 from .gaussian import initial_state
 from .proposals import BOOTSTRAP, guided_draw, linearise
-from .protocol import FilterInputs, FilterOptions, FilterSteps, Row, refuse_delays, series_rows
+from .protocol import FilterInputs, FilterOptions, FilterSteps, Row, series_rows
 from .updates import DensityTerms, observed_root, whiten
 
 #: Random numbers for the initial particles, the rows' predictions and their resampling are drawn
@@ -119,7 +120,7 @@ class SampledDynamics(NamedTuple):
 
 
 def sampled_dynamics(structure: Structure, options: FilterOptions, theta, data: FilterInputs, base,
-                     members: int) -> SampledDynamics:
+                     members: int, delays=None) -> SampledDynamics:
     """x(t₀) ~ N(x0, P0) and the transitions of the module doc, for ``members`` members, random numbers
     from the key ``base``.
 
@@ -127,7 +128,8 @@ def sampled_dynamics(structure: Structure, options: FilterOptions, theta, data: 
     step's standard normals w drawn by ``draw(end, scale, rest, e) -> (w, log_correction)`` from the
     row's fixed normals e instead of taking w = e: the step is x → m + scale · w, and the member would
     reach ``end`` + scale · w + rest · v (v ~ N(0, I), the later sub-steps' noise) at t_k
-    ([`proposals`][greyid.filters.proposals]).
+    ([`proposals`][greyid.filters.proposals]).  With ``delays`` (the series' delayed inputs; ``data`` then holds
+    them and the rows their pieces) each interval or sub-step is cut where they switch.
     """
     n, substeps = structure.n_states, options.substeps
     f, G = structure.drift, structure.diffusion
@@ -158,12 +160,21 @@ def sampled_dynamics(structure: Structure, options: FilterOptions, theta, data: 
     def euler_maruyama(x, row: Row, noise, draw=None):
         step = row.dt / substeps
         du = (row.u_cur - row.u_prev) * data.foh
+        if delays is not None:  # each sub-step cut where the delayed inputs switch inside it
+            fraction = jnp.arange(substeps) / substeps
+            cuts = step_pieces(delays, data, row.t_prev + row.dt * fraction, jnp.full(substeps, step),
+                               row.u_prev + du * fraction[:, None],
+                               row.u_prev + du * (fraction[:, None] + 1 / substeps), structure.n_inputs)
 
         def one(j, carry):
             x, correction = carry
             t = row.t_prev + j * step
             u = row.u_prev + du * (j / substeps)
-            drift = jax.vmap(lambda xi: f(xi, u, t, theta))(x)
+            if delays is None:
+                drift = jax.vmap(lambda xi: f(xi, u, t, theta))(x)
+            else:
+                cut = jax.tree_util.tree_map(lambda a: a[j], cuts)
+                drift = jax.vmap(lambda xi: piece_drift(lambda x, u, t: f(x, u, t, theta), xi, cut, data.foh))(x)
             diffusion = jax.vmap(lambda xi: G(xi, u, t, theta))(x)
             if draw is None:
                 return x + drift * step + jnp.einsum("pij,pj->pi", diffusion, noise[j]) * jnp.sqrt(step), correction
@@ -179,6 +190,14 @@ def sampled_dynamics(structure: Structure, options: FilterOptions, theta, data: 
         return jax.lax.fori_loop(0, substeps, one, (x, jnp.zeros(x.shape[0])))
 
     def exact_mean(x, row: Row):
+        if row.pieces is not None:  # piece by piece where delayed inputs switch inside the interval
+            def piece(x, p):
+                disc = discretize(A, g @ g.T, p.length)
+                b_start, b_end = B @ p.u_start + c, B @ p.u_end + c
+                return (x @ disc.transition.T + disc.input_gain @ b_start
+                        + data.foh * (disc.ramp_gain @ (b_end - b_start))), None
+
+            return jax.lax.scan(piece, x, row.pieces)[0]
         disc = jax.tree_util.tree_map(lambda a: a[row.dt_index], cache)
         b_prev, b_cur = B @ row.u_prev + c, B @ row.u_cur + c
         return x @ disc.transition.T + disc.input_gain @ b_prev + data.foh * (disc.ramp_gain @ (b_cur - b_prev))
@@ -202,7 +221,6 @@ def prepare(structure: Structure, options: FilterOptions):
     """``steps(theta, data, key=None) -> FilterSteps`` of the particle filter (``method="particle"``), bootstrap or
     with a Gaussian-filter proposal (``proposal``, see [`proposals`][greyid.filters.proposals]); ``key``
     replaces the seed's random numbers (independent replicates)."""
-    refuse_delays(structure, "the particle filter")
     n_particles, threshold = options.particles, options.resample
     n = structure.n_states
     families = structure.output_families
@@ -214,7 +232,7 @@ def prepare(structure: Structure, options: FilterOptions):
     def steps(theta, data: FilterInputs, key=None) -> FilterSteps:
         base = jax.random.PRNGKey(seed) if key is None else key
         series = series_rows(structure, theta, data)
-        dynamics = sampled_dynamics(structure, options, theta, series.data, base, n_particles)
+        dynamics = sampled_dynamics(structure, options, theta, series.data, base, n_particles, series.delays)
         initial = ParticleState(dynamics.initial, jnp.full(n_particles, -jnp.log(n_particles)),
                                 jnp.zeros((), jnp.int32))
         if guided:

@@ -169,12 +169,6 @@ class Family(Protocol):
         ...
 
 
-def refuse_delays(structure: Structure, name: str) -> None:
-    """Refuse what the particle, ensemble and Laplace methods (``name``) do not take yet: delayed inputs."""
-    if structure.delays:
-        raise ModelError(f"{name} does not take delay() inputs yet; use a Gaussian filter")
-
-
 class SeriesRows(NamedTuple):
     """A series' rows as every family's steps read them, for one parameter vector."""
 
