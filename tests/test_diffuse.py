@@ -197,6 +197,28 @@ def test_mixed_diffuse_and_stationary_equals_statsmodels(correlated):
                                atol=1e-11)
 
 
+def test_laplace_method_with_a_flat_prior_is_the_diffuse_likelihood():
+    """The Laplace method integrates the diffuse states out under a flat prior: less ½ log 2π per diffuse state it
+    is Koopman and Durbin's diffuse log-likelihood (exact here, the models being linear and Gaussian), its smoother
+    the exact diffuse smoother, its fit the Kalman filter's."""
+    m, data = local_level(), frame(NILE)
+    missing = NILE.copy()
+    missing[:2] = np.nan
+    for series in (data, frame(missing)):
+        assert m.loglik(LEVEL, series, time="t", method="laplace") == pytest.approx(
+            m.loglik(LEVEL, series, time="t"), rel=1e-13)
+    rng = np.random.default_rng(3)
+    y = np.cumsum(np.cumsum(rng.normal(0, 0.2, 60))) * 0.1 + rng.normal(0, 0.5, 60)
+    trend, params = trend_model(), {"s1": 0.4, "sb": 0.15, "s2": 0.3}
+    assert trend.loglik(params, frame(y, 0.5), time="t", method="laplace") == pytest.approx(
+        trend.loglik(params, frame(y, 0.5), time="t"), rel=1e-12)
+    laplace, kalman = (m.smooth(LEVEL, data, time="t", method=method) for method in ("laplace", "kalman"))
+    np.testing.assert_allclose(laplace.smoothed.to_numpy(), kalman.smoothed.to_numpy(), rtol=1e-12)
+    np.testing.assert_allclose(laplace.smoothed_cov, kalman.smoothed_cov, rtol=1e-9)
+    fit = m.fit(data, time="t", method="laplace")
+    assert fit.loglik == pytest.approx(m.fit(data, time="t").loglik, rel=1e-10)
+
+
 def test_predictions_from_a_diffuse_start():
     """One-step predictions equal the filter's; k-step ones from a state with a diffuse part are unknown (infinite
     standard deviation); later ones are the ordinary k-step predictions of the filtered state."""
@@ -273,8 +295,9 @@ def test_refusals():
     with pytest.raises(ModelError, match="needs a linear model"):
         (greyid.Model().add_system("dx = -k*x**3*dt + s*dw").add_observation("y = x", variance="r")
          .set_initial_state(mean={}, diffuse=["x"])).structure
-    with pytest.raises(ModelError, match="Kalman filter only"):
-        local_level().loglik(LEVEL, frame(NILE), time="t", method="ukf")
+    for method in ("ukf", "particle"):
+        with pytest.raises(ModelError, match="started exactly by the Kalman filter .* and the Laplace method"):
+            local_level().loglik(LEVEL, frame(NILE), time="t", method=method)
     with pytest.raises(DataError, match="1 observed rows of the outputs that see the diffuse initial states, fewer "
                                         "than the model's 2"):
         trend_model().loglik({"s1": 1.0, "s2": 1.0, "sb": 0.3}, frame(np.r_[1.0, [np.nan] * 9]), time="t")

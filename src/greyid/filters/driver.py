@@ -63,12 +63,13 @@ def filter_steps(structure: Structure, options: FilterOptions) -> Callable[..., 
 
 
 def check_diffuse(structure: Structure, method: str) -> None:
-    """Refuse a diffuse initial state to every method but the exact Kalman filter."""
+    """Refuse a diffuse initial state to every method but the exact Kalman filter and the Laplace method."""
     diffuse = structure.initial_covariance.diffuse
-    if diffuse and method != KALMAN:
+    if diffuse and method not in (KALMAN, LAPLACE):
         names = [structure.state_names[i] for i in diffuse]
-        raise ModelError(f"the diffuse initial states {names} are started exactly by the Kalman filter only "
-                         f"(method='kalman'), not by method='{method}'; give them a mean and a covariance to use it")
+        raise ModelError(f"the diffuse initial states {names} are started exactly by the Kalman filter "
+                         f"(method='kalman') and the Laplace method (a flat prior), not by method='{method}'; "
+                         "give them a mean and a covariance to use it")
 
 
 def marginal_terms(structure: Structure, options: FilterOptions):

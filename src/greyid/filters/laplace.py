@@ -214,7 +214,12 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
             grid = grid._replace(pieces=step_pieces(series.delays, data, grid.start, grid.length, grid.u_start,
                                                     grid.u_end, structure.n_inputs))
         x0, P0 = initial_state(structure, theta, data)
-        prior_root = small.cholesky(0.5 * (P0 + P0.T))
+        # Diffuse states ([`diffuse`][greyid.filters.diffuse]) have a flat prior: the others' Gaussian alone, less
+        # ½ log 2π per diffuse state, so that the value is the exact diffuse likelihood in Koopman and Durbin's
+        # convention (log ∫ p(y | δ) dδ − (d/2) log 2π, the limit of log p_κ(y) + (d/2) log κ).
+        kept = np.array([i for i in range(n) if i not in structure.initial_covariance.diffuse], dtype=int)
+        flat = 0.5 * (n - len(kept)) * np.log(2 * np.pi)
+        prior_root = small.cholesky(0.5 * (P0 + P0.T)[np.ix_(kept, kept)]) if len(kept) else None
         if exact:  # one discretization per distinct step length, as the exact Kalman filter
             A, B, c = structure.linear_dynamics(theta)
             g = G(zeros, data.u_cur[0], data.t[0], theta)
@@ -281,7 +286,15 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
             return f(x, u, t, theta)
 
         rows = (data.y, data.mask, data.u_cur, data.t) + (() if cdf is None else tuple(cdf))
-        return Terms(grid, transition, observed, lambda x: gaussian(prior_root, x - x0), rows, x0, drift)
+        def prior(x):
+            if prior_root is None:  # every state diffuse
+                return -flat + 0.0 * jnp.sum(x)
+            residual = (x - x0)[kept]
+            z = small.solve_lower(prior_root, residual)
+            return (-0.5 * (z @ z) - jnp.sum(jnp.log(jnp.diag(prior_root))) - 0.5 * len(kept) * jnp.log(2 * jnp.pi)
+                    - flat)
+
+        return Terms(grid, transition, observed, prior, rows, x0, drift)
 
     def joint(terms: Terms, X):
         """J(X, θ) of the terms at θ: X (T + 1, n)."""

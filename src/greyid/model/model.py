@@ -700,9 +700,10 @@ class ModelSpec:
             The factor of the ``"process"`` covariance.
         diffuse : sequence of str
             States whose initial value is unknown, x0 = a + δ with δ ~ N(0, κ I), κ → ∞: the
-            exact diffuse initialisation of Koopman and Durbin, filtered exactly by the Kalman
-            filter of a linear model ([`diffuse`][greyid.filters.diffuse]).  Their observations'
-            log-likelihood terms are −½(log 2π + log F∞), statsmodels' convention.
+            exact diffuse initialisation of Koopman and Durbin, for linear models, by the Kalman
+            filter ([`diffuse`][greyid.filters.diffuse]) and the Laplace method (a flat prior).
+            Their observations' log-likelihood terms are −½(log 2π + log F∞), statsmodels'
+            convention.  Simulation starts a diffuse state at its mean.
 
         Returns
         -------
