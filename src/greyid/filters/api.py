@@ -229,8 +229,9 @@ def check_diffuse_period(structure: Structure, theta: np.ndarray, data: FilterIn
     if not np.all(np.isfinite(np.asarray(mean))):
         names = [structure.state_names[i] for i in structure.initial_covariance.diffuse]
         raise ModelError(f"the diffuse initial states {names} are not all determined by the outputs of the first "
-                         f"{data.diffuse_rows.shape[0]} rows (as many observed rows as diffuse states): an output must "
-                         "depend on each of them; give the others a mean and a covariance")
+                         f"{data.diffuse_rows.shape[0]} rows (up to observation {len(names)} of the outputs that "
+                         "see them) at the given parameters: an output must depend on each of them there; give "
+                         "them a mean and a covariance instead")
 
 
 def check_equations_finite(structure: Structure, theta: np.ndarray, series: Series, data: FilterInputs) -> None:

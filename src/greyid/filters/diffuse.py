@@ -56,7 +56,7 @@ class DiffuseStart(NamedTuple):
     update: Callable
 
 
-def head_rows(mask: np.ndarray, n_rows: int, seen_by: tuple[tuple[int, ...], ...], where: str = "the data") -> int:
+def head_rows(mask: np.ndarray, n_rows: int, seen_by: tuple[tuple[int, ...], ...]) -> int:
     """The rows of the diffuse period: for each diffuse state, up to the row holding the d-th row where an
     output that sees it is observed (d the number of diffuse states); the last of these.
 
@@ -76,7 +76,7 @@ def head_rows(mask: np.ndarray, n_rows: int, seen_by: tuple[tuple[int, ...], ...
     for outputs in seen_by:
         observed = np.flatnonzero(mask[:, list(outputs)].any(axis=1) if outputs else mask.any(axis=1))
         if len(observed) < d:
-            raise DataError(f"{where} have {len(observed)} observed rows of the outputs that see the diffuse initial "
+            raise DataError(f"the data have {len(observed)} observed rows of the outputs that see the diffuse initial "
                             f"states, fewer than the model's {d} diffuse states: their initial values cannot be "
                             "determined; give them a mean and a covariance instead")
         rows = max(rows, int(observed[d - 1]) + 1)
