@@ -213,7 +213,11 @@ def _release_memory(request):
     """After each test module, drop the programs JAX keeps for the functions it traced and hand
     the freed heap back to the system: the suite runs in one process, and glibc keeps what XLA's
     compiler freed unless asked (``malloc_trim``), so the process grew past 13 GB without it.
-    ``GREYID_TEST_MEMORY_LOG=FILE`` appends each module's resident memory before and after."""
+    ``GREYID_TEST_MEMORY_LOG=FILE`` appends each module's seconds and resident memory (GiB) before
+    and after."""
+    import time
+
+    started = time.monotonic()
     yield
     import gc
 
@@ -231,7 +235,8 @@ def _release_memory(request):
     log = os.environ.get("GREYID_TEST_MEMORY_LOG")
     if log:
         with open(log, "a") as out:
-            out.write(f"{request.module.__name__} {before:.2f} {_resident_gib():.2f}\n")
+            out.write(f"{request.module.__name__} {time.monotonic() - started:.1f} s {before:.2f} "
+                      f"{_resident_gib():.2f}\n")
 
 
 def _resident_gib() -> float:
