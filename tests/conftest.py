@@ -212,7 +212,7 @@ def compilations(monkeypatch):
 def _release_memory(request):
     """After each test module, drop the programs JAX keeps for the functions it traced and hand
     the freed heap back to the system: the suite runs in one process, and glibc keeps what XLA's
-    compiler freed unless asked (``malloc_trim``), so the process grew past 13 GB without it.
+    compiler freed unless asked (``malloc_trim``), so without it the process grows module by module.
     ``GREYID_TEST_MEMORY_LOG=FILE`` appends each module's seconds and resident memory (GiB) before
     and after."""
     import time
