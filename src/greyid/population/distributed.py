@@ -60,13 +60,14 @@ def evaluate(programs, phi, u0, kind: str):
     """The modes at φ and what ``kind`` ("value", "gradient", "exact") asks of them, for one set of members;
     ``kind="hessian"`` takes ``u0`` as the modes at φ, found before, and gives the outer Hessian alone."""
     if kind == "hessian":
-        return None, None, None, np.asarray(programs.hessian(phi, u0))
+        tangents, multipliers = programs.gradient(phi, u0)[2:]  # the Hessian's T and λ (laplace's doc)
+        return None, None, None, np.asarray(programs.hessian(phi, u0, tangents, multipliers))
     modes = laplace.conditional_modes(programs, phi, u0)
     values, gradients, hessians = laplace.laplace_values(modes), None, None
     if kind != "value" and modes.finite.all():
-        values, gradients = map(np.asarray, programs.gradient(phi, modes.u))
+        values, gradients, tangents, multipliers = map(np.asarray, programs.gradient(phi, modes.u))
         if kind == "exact":
-            hessians = np.asarray(programs.hessian(phi, modes.u))
+            hessians = np.asarray(programs.hessian(phi, modes.u, tangents, multipliers))
     return modes, values, gradients, hessians
 
 

@@ -22,10 +22,16 @@ along z(φ) = (û(φ), φ) with T = dz/dφ = [û'; I] and û' = −H⁻¹ G_φ:
     ℓ_i'' = Tᵀ F_zz T + F_u û'',   H û''_{·jk} = −G_zz[T_{·j}, T_{·k}].
 
 (At the mode F_u is the log-determinant's slope alone: the envelope theorem for
-g_i.)  F_z, F_zz, G_z and G_zz come from forward derivatives in z of the one
-function z ↦ (F, G) — a few random effects and a handful of population
-parameters, so forward mode is cheap: the Hessian needs the first derivatives
-in z, then the second derivatives along T's p columns (p² tangents).
+g_i.)  With λ = −H⁻¹F_uᵀ the second term is λᵀG_zz[T, T], so
+
+    ℓ_i'' = ∂²/∂ψ² [F + λᵀG](z + Tψ) at ψ = 0,
+
+the second derivatives of one scalar along T's p columns.  F_z and G_z come from
+forward derivatives in z of the one function z ↦ (F, G) — a few random effects
+and a handful of population parameters, so forward mode is cheap; the gradient's
+program returns T and λ with ℓ_i', and the Hessian's program takes them, so
+that it holds the fourth derivatives of the filter alone (p² tangents), not
+also the third ones that give T.
 """
 
 from __future__ import annotations
@@ -47,8 +53,8 @@ class LaplacePrograms(NamedTuple):
 
     value: Callable  # (u, φ, x, base, data) -> g_i
     inner: Callable  # (u, φ, x, base, data) -> (g_i, ∇_u g_i, ∇²_u g_i)
-    gradient: Callable  # (φ, û, x, base, data) -> (ℓ_i, ∂ℓ_i/∂φ)
-    hessian: Callable  # (φ, û, x, base, data) -> ∂²ℓ_i/∂φ²
+    gradient: Callable  # (φ, û, x, base, data) -> (ℓ_i, ∂ℓ_i/∂φ, T_i, λ_i)
+    hessian: Callable  # (φ, û, T, λ, x, base, data) -> ∂²ℓ_i/∂φ²
 
 
 def value_gradient_hessian(fun):
@@ -112,21 +118,22 @@ def build(structure, spec, options) -> LaplacePrograms:
         return jnp.concatenate([slope, jnp.eye(Gz.shape[1] - q)]), H
 
     def gradient(phi, u_hat, x, base, data):
+        """ℓ_i, ℓ_i' = F_z T, and the path's tangents T and multipliers λ = −H⁻¹F_uᵀ for the Hessian."""
         z = jnp.concatenate([jax.lax.stop_gradient(u_hat), phi])
         (Fz, Gz), (F, _) = jax.jacfwd(with_aux(lambda z: parts(z, x, base, data)), has_aux=True)(z)
-        T, _ = path(Gz)
-        return F, Fz @ T
-
-    def hessian(phi, u_hat, x, base, data):
-        z = jnp.concatenate([jax.lax.stop_gradient(u_hat), phi])
-        Fz, Gz = jax.jacfwd(lambda z: parts(z, x, base, data))(z)
         T, H = path(Gz)
-        # Second derivatives along the path's tangents only: Tᵀ F_zz T and G_zz[T, T] as the
-        # second derivatives of ψ ↦ (F, G)(z + Tψ) at 0 (p² tangents rather than (q + p)²).
-        along = jax.jacfwd(jax.jacfwd(lambda psi: parts(z + T @ psi, x, base, data)))
-        F2, G2 = along(jnp.zeros(T.shape[1]))
-        u2 = -jnp.linalg.solve(H, G2.reshape(q, -1)).reshape(G2.shape)
-        return F2 + jnp.einsum("k,kij->ij", Fz[:q], u2)
+        return F, Fz @ T, T, -jnp.linalg.solve(H, Fz[:q])
+
+    def hessian(phi, u_hat, T, lam, x, base, data):
+        """ℓ_i'' = ∂²/∂ψ² [F + λᵀG](z + Tψ) at 0: second derivatives along the path's tangents only
+        (p² tangents rather than (q + p)²), T and λ from ``gradient`` at the same φ and modes."""
+        z = jnp.concatenate([jax.lax.stop_gradient(u_hat), phi])
+
+        def along(psi):
+            F, G = parts(z + T @ psi, x, base, data)
+            return F + lam @ G
+
+        return jax.jacfwd(jax.jacfwd(along))(jnp.zeros(T.shape[1]))
 
     over_members = (0, None, 0, None, 0)
     over_members_phi_first = (None, 0, 0, None, 0)
@@ -138,7 +145,7 @@ def build(structure, spec, options) -> LaplacePrograms:
         value=jit(jax.vmap(member, in_axes=over_members), key=kept("value")),
         inner=jit(jax.vmap(inner, in_axes=over_members), key=kept("inner")),
         gradient=jit(jax.vmap(gradient, in_axes=over_members_phi_first), key=kept("gradient")),
-        hessian=jit(jax.vmap(hessian, in_axes=over_members_phi_first), key=kept("hessian")),
+        hessian=jit(jax.vmap(hessian, in_axes=(None, 0, 0, 0, 0, None, 0)), key=kept("hessian")),
     )
 
 
@@ -319,6 +326,7 @@ class MemberPrograms:
         return self._run(lambda part: self.programs.inner(np.asarray(u)[part[1]], phi, part[2], self.base, part[3]))
 
     def gradient(self, phi, u):
+        """``(ℓ_i, ℓ_i', T_i, λ_i)`` per member at the modes ``u``; T and λ are what ``hessian`` takes."""
         phi = jnp.asarray(phi)
         return self._run(lambda part: self.programs.gradient(phi, np.asarray(u)[part[1]], part[2], self.base,
                                                              part[3]), self.derivative_parts)
@@ -329,21 +337,26 @@ class MemberPrograms:
         from concurrent.futures import ThreadPoolExecutor
 
         part = self.derivative_parts[0]
-        args = (jnp.asarray(phi), np.asarray(u)[part[1]], part[2], self.base, part[3])
+        u = np.asarray(u)[part[1]]
+        p, q = len(phi), u.shape[1]
+        tangents, multipliers = np.zeros((len(u), q + p, p)), np.zeros((len(u), q))
+        args = (jnp.asarray(phi), u, tangents, multipliers, part[2], self.base, part[3])
         compiler = ThreadPoolExecutor(1)
         self._hessian_compiled = compiler.submit(self.programs.hessian.executable, *args)
         compiler.shutdown(wait=False)
 
-    def hessian(self, phi, u):
-        """In chunks of [`DERIVATIVE_MEMBERS`][greyid.population.laplace.DERIVATIVE_MEMBERS], split over the threads as
-        the gradient's."""
+    def hessian(self, phi, u, tangents, multipliers):
+        """ℓ_i'' per member, from the modes ``u`` and the ``tangents`` T and ``multipliers`` λ that ``gradient``
+        gave at the same φ; in chunks of [`DERIVATIVE_MEMBERS`][greyid.population.laplace.DERIVATIVE_MEMBERS], split
+        over the threads as the gradient's."""
         if getattr(self, "_hessian_compiled", None) is not None:
             self._hessian_compiled.result()  # compiled in the background (an error there is raised here)
         phi = jnp.asarray(phi)
         program = self.programs.hessian
 
         def run(part):
-            args = (phi, np.asarray(u)[part[1]], part[2], self.base, part[3])
+            args = (phi, np.asarray(u)[part[1]], np.asarray(tangents)[part[1]], np.asarray(multipliers)[part[1]],
+                    part[2], self.base, part[3])
             return program.executable(*args)(*args)
 
         return self._run(run, self.derivative_parts)
