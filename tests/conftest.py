@@ -13,6 +13,22 @@ _SHARED_DATA = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "da
 if os.path.isdir(_SHARED_DATA):
     os.environ.setdefault("GREYID_DATA_MIRROR", os.path.abspath(_SHARED_DATA))
 
+# One compilation cache for the run, in a folder of its own (removed at exit; the user's cache folder
+# is neither read nor written): XLA's compilation of a program is most of a test's time, and the same
+# program is compiled again and again — by tests that build the same model anew, in a module after an
+# earlier one's programs were released (_release_memory), in the command line's and Dask's worker
+# processes (which inherit these variables).  Every program is kept, however quickly it compiled
+# (JAX keeps only those of a second or more by default), so that each is compiled once per run.
+if "GREYID_CACHE_DIR" not in os.environ:
+    import atexit
+    import shutil
+    import tempfile
+
+    _RUN_CACHE = tempfile.mkdtemp(prefix="greyid-tests-")
+    atexit.register(shutil.rmtree, _RUN_CACHE, True)
+    os.environ["GREYID_CACHE_DIR"] = _RUN_CACHE
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 import scipy.linalg as sl  # noqa: E402
@@ -234,9 +250,33 @@ def _release_memory(request):
         pass
     log = os.environ.get("GREYID_TEST_MEMORY_LOG")
     if log:
+        compiling = {name: _COMPILE_SECONDS.pop(event, 0.0) for event, name in _COMPILE_EVENTS.items()}
         with open(log, "a") as out:
             out.write(f"{request.module.__name__} {time.monotonic() - started:.1f} s {before:.2f} "
-                      f"{_resident_gib():.2f}\n")
+                      f"{_resident_gib():.2f} "
+                      + " ".join(f"{name}={seconds:.1f}" for name, seconds in compiling.items())
+                      + "\n")
+
+
+# JAX's own timings of the three steps of a compilation (jax.monitoring, a public API), summed
+# per module for GREYID_TEST_MEMORY_LOG: where the suite's time goes.
+_COMPILE_EVENTS = {
+    "/jax/core/compile/jaxpr_trace_duration": "trace",
+    "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
+    "/jax/core/compile/backend_compile_duration": "xla",
+}
+_COMPILE_SECONDS: dict[str, float] = {}
+
+
+def _count_compile_seconds(event: str, duration: float, **_: object) -> None:
+    if event in _COMPILE_EVENTS:
+        _COMPILE_SECONDS[event] = _COMPILE_SECONDS.get(event, 0.0) + duration
+
+
+if os.environ.get("GREYID_TEST_MEMORY_LOG"):
+    import jax.monitoring  # noqa: E402
+
+    jax.monitoring.register_event_duration_secs_listener(_count_compile_seconds)
 
 
 def _resident_gib() -> float:

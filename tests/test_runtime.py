@@ -119,11 +119,14 @@ def test_only_greyids_own_process_is_frozen_and_keeps_every_program(tmp_path):
             "import greyid.model, greyid.api, sys; assert 'jax' in sys.modules and 'sympy' in sys.modules; "
             "assert gc.isenabled() and gc.get_freeze_count() == 0, gc.get_freeze_count(); "
             "assert jax.config.jax_persistent_cache_min_compile_time_secs == before")
-    subprocess.run([sys.executable, "-c", user], check=True)
+    # JAX's own default, not the one conftest.py sets for the suite's processes:
+    plain = {key: value for key, value in __import__("os").environ.items()
+             if key != "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"}
+    subprocess.run([sys.executable, "-c", user], check=True, env=plain)
     own = ("import gc; from greyid import cli; cli.OWN_PROCESS['on'] = True; cli._load_layers(); import jax; "
            "assert gc.isenabled() and gc.get_freeze_count() > 100_000, gc.get_freeze_count(); "
            "assert jax.config.jax_persistent_cache_min_compile_time_secs == 0.0")
-    env = dict(__import__("os").environ, GREYID_CACHE_DIR=str(tmp_path))
+    env = dict(plain, GREYID_CACHE_DIR=str(tmp_path))
     subprocess.run([sys.executable, "-c", own], check=True, env=env)
     off = ("import gc; from greyid import cli; cli.OWN_PROCESS['on'] = True; gc.disable(); cli._load_layers(); "
            "assert not gc.isenabled() and gc.get_freeze_count() == 0")
