@@ -194,6 +194,14 @@ def test_outer_gradient_and_hessian_against_central_differences(nonlinear_proble
     numeric_H = np.array([(outer.exact(phi + 1e-4 * e)[1] - outer.exact(phi - 1e-4 * e)[1]) / 2e-4
                           for e in np.eye(len(phi))])
     np.testing.assert_allclose(H, numeric_H, rtol=1e-4, atol=1e-5 * np.abs(H).max())
+    # Where the search's last gradient was taken at φ, its modes' tangents and multipliers give the Hessian:
+    # the same one as the Hessian computed with everything anew.
+    outer.value_and_gradient(phi)
+    assert outer.last_gradient[4] is not None
+    f_kept, g_kept, H_kept = outer.exact(phi)
+    assert f_kept == pytest.approx(f, rel=1e-10)  # the modes solved again from another start: to their tolerance
+    np.testing.assert_allclose(g_kept, g, rtol=1e-7, atol=1e-9 * np.abs(g).max())
+    np.testing.assert_allclose(H_kept, H, rtol=1e-7, atol=1e-9 * np.abs(H).max())
 
 
 def test_parameter_map_by_hand(nonlinear_problem):
@@ -532,9 +540,11 @@ def test_a_lost_worker_loses_no_chunk(gain_problem):
         victim = next(iter(holders.values()))[0]
         pid = client.run(os.getpid, workers=[victim])[victim]
         os.kill(pid, signal.SIGKILL)  # the nanny starts a fresh worker, without the chunk's data
-        _, values, gradients, _ = evaluator(phi, u0, "gradient")
+        _, values, gradients, _, path = evaluator(phi, u0, "gradient")
     np.testing.assert_allclose(values, laplace.laplace_values(expected[0]), rtol=1e-12)
     np.testing.assert_allclose(gradients, expected[2], rtol=1e-10)
+    for chunked, alone in zip(path, expected[4]):  # the Hessian's T and λ, put together in the members' order
+        np.testing.assert_allclose(chunked, alone, rtol=1e-10, atol=1e-14)
 
 
 @pytest.mark.slow

@@ -46,29 +46,33 @@ def _worker_programs(spec_json: str, spec, options):
     return _PROGRAMS[key]
 
 
-def _evaluate_chunk(payload, phi, u0, kind: str):
-    """On a worker: ``(u, values, hessians_u, gradients, outer_hessians)`` of one chunk (None where not asked)."""
+def _evaluate_chunk(payload, phi, u0, kind: str, path=None):
+    """On a worker: [`evaluate()`][greyid.population.distributed.evaluate] of one chunk of members."""
     spec_json, spec, options, x, data = payload
     programs = laplace.MemberPrograms(_worker_programs(spec_json, spec, options), x, spec.base(), data, 1)
     try:
-        return evaluate(programs, phi, u0, kind)
+        return evaluate(programs, phi, u0, kind, path)
     finally:
         programs.close()
 
 
-def evaluate(programs, phi, u0, kind: str):
-    """The modes at φ and what ``kind`` ("value", "gradient", "exact") asks of them, for one set of members;
-    ``kind="hessian"`` takes ``u0`` as the modes at φ, found before, and gives the outer Hessian alone."""
+def evaluate(programs, phi, u0, kind: str, path=None):
+    """The modes at φ and what ``kind`` ("value", "gradient", "exact") asks of them, for one set of members:
+    ``(modes, values, gradients, hessians, path)``, None where not asked; ``path`` is the modes' tangents T and
+    multipliers λ that the outer Hessian needs (laplace's module doc), given with every gradient.
+    ``kind="hessian"`` takes ``u0`` as the modes at φ and ``path`` as their T and λ, both found before by a
+    gradient at φ, and gives the outer Hessian alone (without ``path`` the gradient's program runs again for it)."""
     if kind == "hessian":
-        tangents, multipliers = programs.gradient(phi, u0)[2:]  # the Hessian's T and λ (laplace's doc)
-        return None, None, None, np.asarray(programs.hessian(phi, u0, tangents, multipliers))
+        tangents, multipliers = path if path is not None else programs.gradient(phi, u0)[2:]
+        return None, None, None, np.asarray(programs.hessian(phi, u0, tangents, multipliers)), None
     modes = laplace.conditional_modes(programs, phi, u0)
-    values, gradients, hessians = laplace.laplace_values(modes), None, None
+    values, gradients, hessians, path = laplace.laplace_values(modes), None, None, None
     if kind != "value" and modes.finite.all():
         values, gradients, tangents, multipliers = map(np.asarray, programs.gradient(phi, modes.u))
+        path = (tangents, multipliers)
         if kind == "exact":
             hessians = np.asarray(programs.hessian(phi, modes.u, tangents, multipliers))
-    return modes, values, gradients, hessians
+    return modes, values, gradients, hessians, path
 
 
 class ClusterEvaluator:
@@ -122,12 +126,13 @@ class ClusterEvaluator:
                 raise ModelError(f"the population fit stopped: the cluster had no worker for "
                                  f"{self.worker_timeout:g} s")
 
-    def __call__(self, phi, u0, kind: str):
+    def __call__(self, phi, u0, kind: str, path=None):
         phi = np.asarray(phi, dtype=float)
 
         def submit(k):
             index, payload = self.chunks[k]
-            return self.client.submit(_evaluate_chunk, payload, phi, u0[index], kind, pure=False)
+            part = None if path is None else tuple(np.asarray(leaf)[index] for leaf in path)
+            return self.client.submit(_evaluate_chunk, payload, phi, u0[index], kind, part, pure=False)
 
         futures = [submit(k) for k in range(len(self.chunks))]
         for attempt in range(RESENDS + 1):
@@ -152,7 +157,9 @@ class ClusterEvaluator:
         values = None if parts[0][1] is None else np.concatenate([p[1] for p in parts])
         gradients = None if any(p[2] is None for p in parts) else np.concatenate([p[2] for p in parts])
         hessians = None if any(p[3] is None for p in parts) else np.concatenate([p[3] for p in parts])
-        return modes, values, gradients, hessians
+        path = None if any(p[4] is None for p in parts) else tuple(np.concatenate([p[4][k] for p in parts])
+                                                                   for k in range(2))
+        return modes, values, gradients, hessians, path
 
     def close(self):
         pass

@@ -49,7 +49,8 @@ class Outer:
         self.members = members
         self.u = np.zeros((len(members.names), spec.n_random))
         self.evaluations = 0
-        self.last_gradient = None  # (φ, modes, values, gradients) of the last finite gradient evaluation
+        # (φ, modes, values, gradients, path) of the last finite gradient evaluation (path: the Hessian's T, λ)
+        self.last_gradient = None
         self.programs = None
         if evaluator is None:
             self.programs = laplace.MemberPrograms(programs, members.x, spec.base(), members.data,
@@ -59,11 +60,11 @@ class Outer:
         self.evaluator = evaluator
 
     def _evaluate(self, phi, kind: str):
-        modes, values, gradients, hessians = self.evaluator(np.asarray(phi, dtype=float), self.u, kind)
+        modes, values, gradients, hessians, path = self.evaluator(np.asarray(phi, dtype=float), self.u, kind)
         if modes.finite.all():
             self.u = modes.u  # warm start for the next evaluation
         self.evaluations += 1
-        return modes, values, gradients, hessians
+        return modes, values, gradients, hessians, path
 
     def _at_last_gradient(self, phi) -> bool:
         last = self.last_gradient
@@ -78,13 +79,13 @@ class Outer:
         return (float(np.sum(self._evaluate(phi, "value")[1])),)
 
     def member_gradients(self, phi):
-        modes, values, gradients, _ = self._evaluate(phi, "gradient")
+        modes, values, gradients, _, path = self._evaluate(phi, "gradient")
         if gradients is None:
             n = len(phi)
             return np.full(len(modes.u), np.inf), np.full((len(modes.u), n), np.nan), modes
         values, gradients = np.asarray(values), np.asarray(gradients)
         if np.all(np.isfinite(values)) and np.all(np.isfinite(gradients)):
-            self.last_gradient = (np.array(phi, dtype=float), modes, values, gradients)
+            self.last_gradient = (np.array(phi, dtype=float), modes, values, gradients, path)
         return values, gradients, modes
 
     def value_and_gradient(self, phi):
@@ -93,14 +94,14 @@ class Outer:
 
     def exact(self, phi):
         """Value, gradient and Hessian at φ; where the search's last gradient was taken at this φ (where
-        the quasi-Newton stage ends), its modes, values and gradients are used and only the Hessian is
-        computed."""
+        the quasi-Newton stage ends), its modes, values, gradients and the modes' path are used and only the
+        Hessian is computed."""
         if self._at_last_gradient(phi):
-            _, modes, values, gradients = self.last_gradient
-            hessians = self.evaluator(np.asarray(phi, dtype=float), modes.u, "hessian")[3]
+            _, modes, values, gradients, path = self.last_gradient
+            hessians = self.evaluator(np.asarray(phi, dtype=float), modes.u, "hessian", path)[3]
             self.evaluations += 1
         else:
-            _, values, gradients, hessians = self._evaluate(phi, "exact")
+            _, values, gradients, hessians, _ = self._evaluate(phi, "exact")
         if hessians is None or not np.all(np.isfinite(values)):
             n = len(phi)
             return np.inf, np.full(n, np.nan), np.full((n, n), np.nan)
