@@ -387,6 +387,20 @@ def test_k_step_predictions_equal_dense_conditional_means(linear_model):
     # Conditioning on less data cannot make the prediction more certain.
     sd1 = linear_model.predict(params, df, steps=1)[["y1_sd", "y2_sd"]].to_numpy()
     assert np.all(pred[["y1_sd", "y2_sd"]].to_numpy() >= sd1 - 1e-9)
+    # Every horizon from one program (the horizon its argument), with the answers of the program whose
+    # horizon is fixed (the k-step criterion's, which is differentiated).
+    from greyid.filters import api
+    from greyid.filters.driver import make_ahead
+
+    assert len([key for key in linear_model.structure.cache if key[0] == "ahead"]) == 1
+    structure, theta, prepared = api._prepare(linear_model, params, df, "t", "zoh", None)
+    options = api.accurate_options(structure, theta, prepared, None)[0]
+    fixed = make_ahead(structure, options, 3)(jnp.asarray(theta), prepared[0][1])
+    np.testing.assert_allclose(pred[["y1", "y2"]].to_numpy(), np.asarray(fixed.output_prediction)[:len(df)],
+                               rtol=1e-12, atol=1e-14)
+    for steps in (0, 2.5, True):
+        with pytest.raises(greyid.ModelError, match="horizon must be a positive integer"):
+            linear_model.predict(params, df, steps=steps)
 
 
 def test_k_step_criterion_fit(ou):

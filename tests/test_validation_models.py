@@ -201,6 +201,12 @@ def test_simulation_check_and_bootstrap(nested):
     check = v.simulation_check(big, n_paths=200, seed=1)
     assert 0.85 <= check.coverage["yTi"] <= 1.0
     assert check.rmse["yTi"] > 0
+    # The deterministic path (simulated as many times as the band's paths, one program for both) is the
+    # model's single path without noise, and the band's paths are simulate()'s own.
+    alone = big.model.simulate(big.values, data, noise=False, method="exact", substeps=20)
+    np.testing.assert_allclose(check.frame["yTi_simulated"], alone.outputs[0, :, 0], rtol=1e-13)
+    paths = big.model.simulate(big.values, data, n_paths=200, seed=1, method="exact", substeps=20)
+    np.testing.assert_allclose(check.frame["yTi_mean"], paths.outputs[:, :, 0].mean(axis=0), rtol=1e-13)
     boot = v.parameter_bootstrap(big, n_samples=300, seed=2)
     assert boot.samples.shape == (300, 6)
     sd = boot.samples.std().to_numpy()

@@ -543,6 +543,13 @@ def _diffuse_smoothed(model, params, data, time, hold, method, time_unit, option
     return out
 
 
+def _horizon(steps) -> int:
+    """The prediction horizon, checked: a positive whole number of samples."""
+    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
+        raise ModelError(f"the prediction horizon must be a positive integer, got {steps!r}")
+    return int(steps)
+
+
 def predict_data(model, params, data, steps=1, time="t", hold="zoh", method=None, time_unit=None,
                  states=False, **options):
     """ŷ_{k|k−steps} and its standard deviation for every output (one DataFrame per data set).
@@ -554,12 +561,14 @@ def predict_data(model, params, data, steps=1, time="t", hold="zoh", method=None
     predicted all the same, so rows of future inputs appended to the data give
     forecasts past its end.
     """
+    steps = _horizon(steps)
     structure, theta, prepared = _prepare(model, params, data, time, hold, time_unit)
     opts = accurate_options(structure, theta, prepared, method, **options)[0]
-    program = structure_program(structure, ("ahead", opts, int(steps)), lambda: make_ahead(structure, opts, int(steps)))
+    # The horizon an argument: one program predicts at every horizon (no derivative is taken here).
+    program = structure_program(structure, ("ahead", opts), lambda: make_ahead(structure, opts, None))
     frames = []
     for (series, inputs), frame in zip(prepared, as_frames(data)):
-        out = program(jnp.asarray(theta), inputs)
+        out = program(jnp.asarray(theta), inputs, jnp.asarray(steps))
         n = series.n_rows
         y = np.asarray(out.output_prediction)[:n]
         sd = np.sqrt(np.diagonal(np.asarray(out.output_cov)[:n], axis1=1, axis2=2))
@@ -581,13 +590,14 @@ def predict_data(model, params, data, steps=1, time="t", hold="zoh", method=None
 def predict_draws(model, thetas, data, steps=1, time="t", hold="zoh", method=None, time_unit=None, **options):
     """``steps``-ahead output means (draws, N, outputs) and covariances (draws, N, outputs, outputs)
     of one data set at each parameter vector of ``thetas`` (draws, parameters), in one vectorised program."""
+    steps = _horizon(steps)
     structure = model.structure
     thetas = np.asarray(thetas, dtype=np.float64)
     prepared = prepare_datasets(structure, thetas[0], data, time, hold, time_unit)
     opts = accurate_options(structure, thetas[0], prepared, method, **options)[0]
-    program = structure_program(structure, ("ahead", opts, int(steps), "draws"),
-                                lambda: jax.vmap(make_ahead(structure, opts, int(steps)), in_axes=(0, None)))
+    program = structure_program(structure, ("ahead", opts, "draws"),
+                                lambda: jax.vmap(make_ahead(structure, opts, None), in_axes=(0, None, None)))
     series, inputs = prepared[0]
-    out = program(jnp.asarray(thetas), inputs)
+    out = program(jnp.asarray(thetas), inputs, jnp.asarray(steps))
     n = series.n_rows
     return series, np.asarray(out.output_prediction)[:, :n], np.asarray(out.output_cov)[:, :n]

@@ -404,18 +404,21 @@ class AheadOutput(NamedTuple):
     terms: StepTerms
 
 
-def make_ahead(structure: Structure, options: FilterOptions, horizon: int):
+def make_ahead(structure: Structure, options: FilterOptions, horizon: int | None):
     """A jitted ``run(theta, data) -> AheadOutput`` of ``horizon``-step predictions.
 
     Row k is predicted from the filtered state at row k − horizon, or from the
-    state at t₀ for the first rows (section 7.2's k-step criterion).
+    state at t₀ for the first rows (section 7.2's k-step criterion).  With
+    ``horizon=None`` the horizon is an argument, ``run(theta, data, horizon)``: one
+    program predicts at every horizon, but its loop over the horizon's intervals
+    has no reverse-mode derivative (the k-step criterion fixes the horizon).
     """
-    if not isinstance(horizon, int) or horizon < 1:
+    if horizon is not None and (not isinstance(horizon, int) or horizon < 1):
         raise ModelError(f"the prediction horizon must be a positive integer, got {horizon!r}")
     form = options.form
     build = filter_steps(structure, options)
 
-    def run(theta, data: FilterInputs):
+    def run(theta, data: FilterInputs, steps=horizon):
         parts = build(theta, data)
         rows = jnp.arange(data.t.shape[0])
         filtered = scan_rows(parts, data.t.shape[0],
@@ -427,7 +430,7 @@ def make_ahead(structure: Structure, options: FilterOptions, horizon: int):
             return jax.tree_util.tree_map(lambda a: a[k], parts.rows)
 
         def ahead(k):
-            start = k - horizon
+            start = k - steps
             from_prior = start < 0
             state = jax.tree_util.tree_map(
                 lambda first, each: jnp.where(from_prior, first, each[jnp.maximum(start, 0)]), parts.initial,
@@ -441,7 +444,7 @@ def make_ahead(structure: Structure, options: FilterOptions, horizon: int):
                 active = row <= k
                 return jax.tree_util.tree_map(lambda new, old: jnp.where(active, new, old), moved, state)
 
-            state = jax.lax.fori_loop(0, horizon, advance, state)
+            state = jax.lax.fori_loop(0, steps, advance, state)
             upd, y_pred = parts.update(state, row_at(k))
             # The prediction's covariance is wanted for every output, observed or not.
             full, _ = parts.update(state, row_at(k), jnp.ones_like(data.mask[k]))

@@ -48,12 +48,16 @@ def _frame_of(fit, data):
     return frames[0] if isinstance(frames, list) else frames
 
 
-def _simulate(fit, params, data, **options):
-    s = fit.settings
+def _exact(fit, noise: bool = False) -> bool:
+    """Whether the model's paths (without ``noise``: its deterministic path) are simulated exactly."""
     structure = fit.model.structure
     # Without noise a transformed state follows dx = f dt, which is not the transformed linear drift: Heun.
-    exact = structure.is_linear and not (structure.ode_drift is not None and options.get("noise") is False)
-    method = options.pop("method", None) or ("exact" if exact else "heun")
+    return structure.is_linear and not (structure.ode_drift is not None and not noise)
+
+
+def _simulate(fit, params, data, **options):
+    s = fit.settings
+    method = options.pop("method", None) or ("exact" if _exact(fit, options.get("noise", True)) else "heun")
     return simulate_at(fit.model, params, data, method=method, hold=s["hold"], time=s["time"],
                        time_unit=s.get("time_unit"), **options)
 
@@ -85,8 +89,11 @@ def simulation_check(fit, data=None, n_paths: int = 200, seed: int = 0, level: f
     """
     frame = _frame_of(fit, data)
     outputs = fit.model.output_names
-    det = _simulate(fit, fit.values, frame, noise=False, substeps=substeps)
     mc = _simulate(fit, fit.values, frame, n_paths=n_paths, seed=seed, substeps=substeps)
+    # A linear model's paths, with noise or without, come from one program: the deterministic path as
+    # many times as the band's paths (all equal) compiles nothing more; a nonlinear one's ODE is another.
+    det = _simulate(fit, fit.values, frame, noise=False, substeps=substeps,
+                    n_paths=n_paths if _exact(fit) else 1)
     time_name = fit.settings["time"]
     out = pd.DataFrame({time_name: frame[time_name].to_numpy()}, index=frame.index)
     rmse, coverage = {}, {}
