@@ -1,6 +1,6 @@
 """Population benchmark (issue "Population models"): Armadillo-size houses with two random effects.
 
-    python benchmarks/population.py [--sizes 100,1000] [--scheduler local] [--cache-dir DIR]
+    python benchmarks/population.py [--sizes 100,1000] [--scheduler local] [--cache-dir DIR] [--timings]
 
 Houses: the Armadillo model (pySIP's TwTi_RoRi, first-order hold, 232 rows; data
 the data set armadillo) simulated at its fitted parameters with a lognormal spread
@@ -8,10 +8,12 @@ of 20 % in Ro and 30 % in Cw (one house per seed).  For each size it fits the
 population with ``Ro`` and ``Cw`` lognormal and prints the time of
 ``greyid.fit_population`` on the first call (compiling its programs, on an empty
 cache folder in a fresh process, or loading them from ``--cache-dir``) and on a second call, with the estimates
-beside the true spread, the peak memory of Python objects in the call and the
-process's peak resident memory so far (run one size per process to compare
-sizes).  ``--scheduler local`` runs the members' inner
-optimisations on a Dask LocalCluster with two workers.
+beside the true spread and the process's peak resident memory so far (run one size
+per process to compare sizes; Python's allocation tracing, tracemalloc, is left off:
+it slows the tracing of a first call by half).  ``--scheduler local`` runs the members' inner
+optimisations on a Dask LocalCluster with two workers; ``--timings`` also prints
+the seconds of each call spent in the members' modes, the outer gradients and the
+outer Hessian (in this process, so not with ``--scheduler local``).
 """
 
 from __future__ import annotations
@@ -19,7 +21,6 @@ from __future__ import annotations
 import argparse
 import resource
 import time
-import tracemalloc
 from pathlib import Path
 
 import numpy as np
@@ -40,11 +41,34 @@ def houses(model, data, fitted, count: int, seed: int = 7) -> dict:
     return out
 
 
+def time_the_steps(spent: dict) -> None:
+    """Wrap the members' programs so that each call's seconds add up in ``spent`` (name -> [seconds, calls])."""
+    import jax
+
+    from greyid.population import laplace
+
+    def timed(name, fn):
+        def wrapper(*args, **kwargs):
+            start = time.perf_counter()
+            out = jax.block_until_ready(fn(*args, **kwargs))
+            entry = spent.setdefault(name, [0.0, 0])
+            entry[0] += time.perf_counter() - start
+            entry[1] += 1
+            return out
+
+        return wrapper
+
+    laplace.MemberPrograms.gradient = timed("outer gradients", laplace.MemberPrograms.gradient)
+    laplace.MemberPrograms.hessian = timed("outer Hessian", laplace.MemberPrograms.hessian)
+    laplace.conditional_modes = timed("members' modes", laplace.conditional_modes)  # as evaluate() calls it
+
+
 def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--sizes", default="100,1000")
     parser.add_argument("--scheduler", default=None, choices=[None, "local"])
     parser.add_argument("--cache-dir", default=None, help="greyid's cache folder (default: a new, empty one)")
+    parser.add_argument("--timings", action="store_true", help="seconds in the modes, gradients and Hessian")
     args = parser.parse_args()
     import os
     import tempfile
@@ -67,20 +91,23 @@ def main():
 
         client = Client(LocalCluster(n_workers=2, threads_per_worker=1))
     random = {name: "lognormal" for name in SPREAD}
+    spent: dict = {}
+    if args.timings:
+        time_the_steps(spent)
     for size in [int(v) for v in args.sizes.split(",")]:
         fleet = houses(model, data, fitted, size)
         for attempt in ("first", "second"):
-            tracemalloc.start()
+            spent.clear()
             start = time.perf_counter()
             fit = greyid.fit_population(model, fleet, random, time="Time", hold="foh",
                                         **({} if client is None else dict(scheduler=client)))
             seconds = time.perf_counter() - start
-            peak = tracemalloc.get_traced_memory()[1] / 2 ** 20
-            tracemalloc.stop()
             rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
             print(f"{size} houses, {attempt} call: {seconds:.1f} s, {fit.iterations} iterations, "
-                  f"converged {fit.converged}, peak Python memory {peak:.0f} MiB, peak resident memory of "
+                  f"converged {fit.converged}, peak resident memory of "
                   f"the process so far {rss:.0f} MiB")
+            for name, (seconds, calls) in spent.items():
+                print(f"  {name}: {seconds:.1f} s in {calls} calls")
         omega = {name: round(float(fit.params.loc[f"omega_{name}", "estimate"]), 3) for name in SPREAD}
         print(f"  omega {omega} (simulated {SPREAD}); loglik {fit.loglik:.3f}")
     if client is not None:
