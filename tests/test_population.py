@@ -66,10 +66,26 @@ def dense_marginal(params, datasets, b11, c1, s1, omega):
     return total
 
 
+GAIN_FIT_EVENTS: list = []  # what the gain fit's progress callable received
+
+
 @pytest.fixture(scope="module")
 def gain_fit(gain_problem):
     model, _, datasets = gain_problem
-    return fit_population(model, datasets, {"b11": "normal"})
+    return fit_population(model, datasets, {"b11": "normal"}, progress=GAIN_FIT_EVENTS.append)
+
+
+def test_progress_reaches_a_callable_phase_by_phase_and_step_by_step(gain_fit):
+    """The phases in their order (the pooled start, the members' programs, the search), then one dict per
+    accepted step with its log-likelihood, rising to the fit's."""
+    phases = [event["phase"] for event in GAIN_FIT_EVENTS if "phase" in event]
+    assert phases == ["start", "programs", "search"]
+    assert "first 6 of the 6 members" in GAIN_FIT_EVENTS[0]["message"]
+    steps = [event for event in GAIN_FIT_EVENTS if "iteration" in event]
+    assert len(steps) >= 2 and set(steps[0]) == {"iteration", "stage", "value", "max_gradient"}
+    values = np.array([step["value"] for step in steps])
+    assert np.all(np.diff(values) >= -1e-9 * np.abs(values[:-1]))  # accepted steps never lose likelihood
+    assert values[-1] == pytest.approx(gain_fit.loglik, rel=1e-8)
 
 
 @pytest.fixture(scope="module")
@@ -418,9 +434,13 @@ def test_command_line_population(nonlinear_problem, tmp_path, capsys):
     covariates.rename_axis("house").to_csv(table)
     out = tmp_path / "out"
     code = main(["population", str(model_file), str(folder), "--random", "a:lognormal", "--covariates", str(table),
-                 "--effect", "b:area", "--out", str(out), "--report", "-q"])
-    printed = capsys.readouterr().out
+                 "--effect", "b:area", "--out", str(out), "--report"])
+    printed, told = capsys.readouterr()
     assert code == 0 and "omega_a" in printed and "beta_b_area" in printed
+    # What the fit is doing while it compiles and searches, on standard error (-q: nothing).
+    for line in ("population: the start", "population: the members' programs", "population step 1: log-likelihood",
+                 "fitted in"):
+        assert line in told, line
     assert {p.name for p in out.iterdir()} >= {"population.json", "summary.txt", "parameters.csv",
                                                 "random_effects.csv", "report.html"}
     assert '<section id="members">' in (out / "report.html").read_text(encoding="utf-8")

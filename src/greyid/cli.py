@@ -372,7 +372,7 @@ def population_command(
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", PopulationWarning)  # the summary lists the members left out
             result = fit_population(m, files, kinds or None, covariates=table, effects=effects or None, omega=omega,
-                                    time=time_column, hold=hold, method=method)
+                                    time=time_column, hold=hold, method=method, progress=not quiet)
         if not quiet:
             err.print(f"fitted in {time.perf_counter() - started:.2f} s")
         out.print(result.summary())

@@ -148,9 +148,13 @@ def _pooled_start(model, names, sources, init, settings) -> dict | None:
 
 
 def _progress_report(progress):
-    """Search reports printed to standard error (one line per accepted outer step) when ``progress``."""
+    """The outer search's reports when ``progress``: one line per accepted step on standard error, or for a
+    callable one dict per step (``iteration``, ``stage``, ``value``: the log-likelihood, ``max_gradient``)."""
     if not progress:
         return lambda iteration, stage, f, g: None
+    if callable(progress):
+        return lambda iteration, stage, f, g: progress(dict(iteration=iteration, stage=stage, value=-float(f),
+                                                            max_gradient=float(np.max(np.abs(g)))))
     import sys
 
     def report(iteration, stage, f, g):
@@ -158,6 +162,17 @@ def _progress_report(progress):
               file=sys.stderr, flush=True)
 
     return report
+
+
+def _say(progress, phase: str, text: str) -> None:
+    """A phase of the fit announced when ``progress``: a line on standard error, or for a callable a dict
+    with ``phase`` and ``message``."""
+    if callable(progress):
+        progress(dict(phase=phase, message=text))
+    elif progress:
+        import sys
+
+        print(f"population: {text}", file=sys.stderr, flush=True)
 
 
 def _search(outer: Outer, phi0: np.ndarray, maxiter: int, progress=False):
@@ -242,7 +257,9 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
     worker_timeout : float, optional
         Seconds the cluster may have no worker before the fit stops with an error (default 60).
     progress : bool or callable
-        Print (or pass to the callable) the outer search's iterations.
+        Print to standard error each phase (the pooled start, the members' programs, which a first run
+        compiles) and each step of the outer search; a callable receives one dict per event instead
+        (``phase`` and ``message``, or ``iteration``, ``stage``, ``value``, ``max_gradient``).
     **options
         The filter's settings (``form``, ``substeps``, ``iterations``, ...),
         ``time_unit`` and ``columns``; not ``steady_state``.
@@ -314,6 +331,8 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
     columns = columns or settings.get("columns")
     make_spec(model, random, covariates, effects, omega, names, init, omega_init)  # bad input named first
     if start == "pooled":
+        _say(progress, "start", f"the start: one fit to the first {min(POOLED_MEMBERS, len(names))} of the "
+                                f"{len(names)} members' data together")
         init = _pooled_start(model, names, sources, init, dict(time=time, hold=hold, method=method,
                                                                time_unit=time_unit, columns=columns, **options))
     elif start != "init":
@@ -323,6 +342,8 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
     members = prepare_members(model, names, sources, spec, raw, time, hold, time_unit, columns)
     structure = model.structure
     fo = population_filter(model, spec, members, method, time, hold, time_unit, options)
+    _say(progress, "programs", f"the members' programs for {len(members.names)} members (a first run compiles "
+                               "them, which can take a minute; greyid's cache folder keeps them for later runs)")
     if scheduler is not None:
         evaluator = ClusterEvaluator(scheduler, model, spec, fo, members, chunk_size,
                                      60.0 if worker_timeout is None else worker_timeout)
@@ -331,6 +352,7 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
         outer = Outer(population_programs(structure, spec, fo), members, spec)
     phi0 = spec.phi0()
     try:
+        _say(progress, "search", "the outer search (the members' modes, the gradient, then the exact Hessian)")
         optimum = _search(outer, phi0, maxiter, progress)
         modes = outer.modes(optimum.z)
     finally:
