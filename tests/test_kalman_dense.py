@@ -1,10 +1,11 @@
 """The Kalman log-likelihood equals the dense Gaussian likelihood of all observations."""
 
+import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 import pytest
 
-from conftest import dense_reference, random_linear_parameters
+from conftest import dense_reference, random_linear_model_spec, random_linear_parameters
 
 
 def random_data(rng, N=40, nu=2, ny=2, missing=0.2):
@@ -53,6 +54,39 @@ def test_several_experiments_add_up(linear_model):
     assert total == pytest.approx(linear_model.loglik(params, a) + linear_model.loglik(params, b), rel=1e-12)
     results = linear_model.filter(params, [a, b])
     assert len(results) == 2 and results[1].innovations.shape == (33, 2)
+
+
+def test_data_sets_of_one_shape_run_through_one_vectorised_filter():
+    """Data sets of one shape are evaluated together (jax.vmap, one filter in the program): the value, gradient
+    and Hessian of three data sets (two of one shape) equal the sums over each data set alone."""
+    from greyid.estimate.objective import summed_over_datasets
+
+    rng = np.random.default_rng(8)
+    params, _ = random_linear_parameters(rng)
+    model = random_linear_model_spec()
+    for name, value in params.items():
+        model.set_parameter(name, init=value, fixed=name not in ("b11", "c1", "s1", "a22"))
+    frames = [random_data(rng, N=25)[0], random_data(rng, N=25, missing=0.2)[0], random_data(rng, N=300)[0]]
+    together = model.likelihood(frames, steady_state=False)
+    x = np.array([params[name] for name in together.names])
+    assert len(x) == 4
+    f, g = together.value_and_grad(x)
+    parts = [model.likelihood(frame, steady_state=False) for frame in frames]
+    assert f == pytest.approx(sum(part.value(x) for part in parts), rel=1e-12)
+    np.testing.assert_allclose(g, sum(part.value_and_grad(x)[1] for part in parts), rtol=1e-10,
+                               atol=1e-12 * np.abs(g).max())
+    H = together.hessian(x)
+    np.testing.assert_allclose(H, sum(part.hessian(x) for part in parts), rtol=1e-9, atol=1e-12 * np.abs(H).max())
+    # The grouping itself: one call of the criterion per shape, the same sum.
+    calls = []
+
+    def criterion(theta, data):
+        calls.append(np.shape(data))
+        return theta * jnp.sum(data)
+
+    shaped = [jnp.ones(3), 2 * jnp.ones(3), jnp.ones(5)]
+    assert float(summed_over_datasets(criterion, 2.0, shaped)) == 2.0 * (3 + 6 + 5)
+    assert len(calls) == 2
 
 
 def test_unobserved_elements_are_skipped(linear_model):

@@ -104,6 +104,27 @@ def log_prior(theta, index, mean, chol):
     return -0.5 * (z @ z + 2 * jnp.sum(jnp.log(jnp.diag(chol))) + len(index) * jnp.log(2 * jnp.pi))
 
 
+def summed_over_datasets(criterion: Callable, theta, datasets):
+    """Σ_d criterion(θ, d) over the data sets (3.18 sums over independent experiments).
+
+    Data sets of the same shapes (the same length bucket) are evaluated together by
+    one vectorised filter (``jax.vmap``) rather than a copy of it per data set: a fit
+    to many data sets compiles one filter per shape, not one per data set.
+    """
+    groups: dict = {}
+    for data in datasets:
+        leaves, tree = jax.tree_util.tree_flatten(data)
+        groups.setdefault((tree, tuple((np.shape(leaf), jnp.result_type(leaf)) for leaf in leaves)), []).append(data)
+    total = 0.0
+    for group in groups.values():
+        if len(group) == 1:
+            total = total + criterion(theta, group[0])
+            continue
+        stacked = jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *group)
+        total = total + jnp.sum(jax.vmap(criterion, in_axes=(None, 0))(theta, stacked))
+    return total
+
+
 def criterion_functions(structure, problem: Problem, forward_only: bool = False):
     """``(terms, negative)``: θ, data ↦ the filter's per-step terms, and θ ↦ the negative log-criterion
     (3.18, or the robust or k-step criterion) summed over the data sets, minus the log-prior (MAP).
@@ -133,8 +154,12 @@ def criterion_functions(structure, problem: Problem, forward_only: bool = False)
         def criterion(theta, data):
             return log_criterion(terms(theta, data), problem.robust)
 
+    # The steady-state switch decides by lax.cond per data set: vectorised, both branches would run.
+    together = not (problem.long_series or problem.options.steady_state)
+
     def negative(theta, prior_mean, prior_chol, datasets):
-        total = sum(criterion(theta, d) for d in datasets)
+        total = summed_over_datasets(criterion, theta, datasets) if together else \
+            sum(criterion(theta, d) for d in datasets)
         if problem.prior is not None:
             total = total + log_prior(theta, problem.prior_index, prior_mean, prior_chol)
         return -total
