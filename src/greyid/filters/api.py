@@ -23,7 +23,7 @@ from ..errors import DataError, FilterWarning, ModelError, warn
 from ..model.structure import Structure
 from ..model.transforms import to_original
 from .accuracy import choose_substeps, chooses_substeps
-from .driver import filter_steps, make_ahead, make_filter
+from .driver import checked_horizon, filter_steps, make_ahead, make_filter
 from .gaussian import initial_state
 from ..model.distributions import check_method, check_observed
 from . import laplace
@@ -543,13 +543,6 @@ def _diffuse_smoothed(model, params, data, time, hold, method, time_unit, option
     return out
 
 
-def _horizon(steps) -> int:
-    """The prediction horizon, checked: a positive whole number of samples."""
-    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
-        raise ModelError(f"the prediction horizon must be a positive integer, got {steps!r}")
-    return int(steps)
-
-
 def predict_data(model, params, data, steps=1, time="t", hold="zoh", method=None, time_unit=None,
                  states=False, **options):
     """ŷ_{k|k−steps} and its standard deviation for every output (one DataFrame per data set).
@@ -561,7 +554,7 @@ def predict_data(model, params, data, steps=1, time="t", hold="zoh", method=None
     predicted all the same, so rows of future inputs appended to the data give
     forecasts past its end.
     """
-    steps = _horizon(steps)
+    steps = checked_horizon(steps)
     structure, theta, prepared = _prepare(model, params, data, time, hold, time_unit)
     opts = accurate_options(structure, theta, prepared, method, **options)[0]
     # The horizon an argument: one program predicts at every horizon (no derivative is taken here).
@@ -590,7 +583,7 @@ def predict_data(model, params, data, steps=1, time="t", hold="zoh", method=None
 def predict_draws(model, thetas, data, steps=1, time="t", hold="zoh", method=None, time_unit=None, **options):
     """``steps``-ahead output means (draws, N, outputs) and covariances (draws, N, outputs, outputs)
     of one data set at each parameter vector of ``thetas`` (draws, parameters), in one vectorised program."""
-    steps = _horizon(steps)
+    steps = checked_horizon(steps)
     structure = model.structure
     thetas = np.asarray(thetas, dtype=np.float64)
     prepared = prepare_datasets(structure, thetas[0], data, time, hold, time_unit)

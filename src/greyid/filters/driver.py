@@ -13,6 +13,7 @@ the driver switches to the steady-state form once the filter has settled
 
 from __future__ import annotations
 
+import numbers
 from typing import Callable, NamedTuple
 
 from .. import runtime  # noqa: F401  (64-bit JAX and greyid's cache folder before any JAX work)
@@ -404,6 +405,13 @@ class AheadOutput(NamedTuple):
     terms: StepTerms
 
 
+def checked_horizon(steps) -> int:
+    """The prediction horizon, checked: a positive whole number of samples."""
+    if isinstance(steps, bool) or not isinstance(steps, numbers.Integral) or steps < 1:
+        raise ModelError(f"the prediction horizon must be a positive integer, got {steps!r}")
+    return int(steps)
+
+
 def make_ahead(structure: Structure, options: FilterOptions, horizon: int | None):
     """A jitted ``run(theta, data) -> AheadOutput`` of ``horizon``-step predictions.
 
@@ -413,8 +421,8 @@ def make_ahead(structure: Structure, options: FilterOptions, horizon: int | None
     program predicts at every horizon, but its loop over the horizon's intervals
     has no reverse-mode derivative (the k-step criterion fixes the horizon).
     """
-    if horizon is not None and (not isinstance(horizon, int) or horizon < 1):
-        raise ModelError(f"the prediction horizon must be a positive integer, got {horizon!r}")
+    if horizon is not None:
+        horizon = checked_horizon(horizon)
     form = options.form
     build = filter_steps(structure, options)
 
