@@ -18,7 +18,7 @@ from common import print_table
 
 from greyid import design
 from greyid.datasets.thesis import TEST_CELL_DERIVED, TEST_CELL_PARAMETERS, test_cell_inputs, test_cell_model
-from greyid.estimate.montecarlo import run_study
+from greyid.fleet.study import run_study
 
 
 def main():

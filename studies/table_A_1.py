@@ -20,7 +20,7 @@ import time
 from common import print_table
 
 from greyid.datasets.thesis import LOTKA_VOLTERRA_PARAMETERS, lotka_volterra_model, lotka_volterra_times
-from greyid.estimate.montecarlo import run_study
+from greyid.fleet.study import run_study
 
 import pandas as pd
 

@@ -198,7 +198,7 @@ def test_the_docstrings_examples_run():
     import importlib
 
     for module in ("greyid.api", "greyid.model.model", "greyid.estimate.likelihood", "greyid.fleet.fit",
-                   "greyid.data.named", "greyid.design.information", "greyid.design.identifiability",
-                   "greyid.simulate.signals"):
+                   "greyid.fleet.study", "greyid.data.named", "greyid.design.information",
+                   "greyid.design.identifiability", "greyid.simulate.signals"):
         result = doctest.testmod(importlib.import_module(module), optionflags=doctest.ELLIPSIS)
         assert result.failed == 0, module

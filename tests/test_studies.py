@@ -6,7 +6,7 @@ import pytest
 from scipy import stats
 
 from greyid.datasets import thesis
-from greyid.estimate.montecarlo import run_study
+from greyid.fleet.study import run_study
 
 
 def check(study, alpha=0.01):
@@ -38,6 +38,21 @@ def test_test_cell_study_reduced():
     assert table.loc["UA", "x_sim"] == pytest.approx(11.082, abs=1e-3)
     assert table.loc["CI", "x_sim"] == pytest.approx(2.2862, abs=1e-3)
     assert abs(study.residual_acf1.mean()) < 0.05
+    # The series are fitted together as a fleet: each one's fit is the one model.fit gives alone
+    # (the same optimum; estimates and standard errors to the searches' tolerance).
+    from greyid.estimate.calls import simulate_at
+
+    model, inputs = thesis.test_cell_model(), thesis.test_cell_inputs()
+    simulated = simulate_at(model, dict(thesis.TEST_CELL_PARAMETERS), inputs, n_paths=6, seed=11, method="exact")
+    for i in (0, 5):
+        frame = inputs.copy()
+        for j, name in enumerate(model.output_names):
+            frame[name] = simulated.outputs[i, :, j]
+        alone = model.fit(frame)
+        names = ["Hi", "Hm", "Ci", "Cm", "s1i", "s1m", "s2"]
+        assert np.allclose(study.estimates.loc[i, names], [alone.values[n] for n in names], rtol=1e-5, atol=0)
+        assert np.allclose(study.variances.loc[i, names], alone.params.loc[names, "std_error"] ** 2, rtol=1e-4,
+                           atol=0)
 
 
 def test_lotka_volterra_study_reduced():
