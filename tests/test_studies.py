@@ -5,6 +5,7 @@ import pandas as pd
 import pytest
 from scipy import stats
 
+import greyid
 from greyid.datasets import thesis
 from greyid.fleet.study import run_study
 
@@ -53,6 +54,32 @@ def test_test_cell_study_reduced():
         assert np.allclose(study.estimates.loc[i, names], [alone.values[n] for n in names], rtol=1e-5, atol=0)
         assert np.allclose(study.variances.loc[i, names], alone.params.loc[names, "std_error"] ** 2, rtol=1e-4,
                            atol=0)
+
+
+def test_a_study_with_the_steady_state_fits_each_series_alone_and_not_on_a_cluster():
+    """steady_state=True (given, or the model's own setting) is a single fit's: the series are fitted one
+    after the other, equal to model.fit with it; with a cluster it is refused before anything is simulated."""
+    model = thesis.test_cell_model()
+    with pytest.raises(greyid.ModelError, match="steady_state=True fits the series one after the other"):
+        run_study(model, thesis.TEST_CELL_PARAMETERS, thesis.test_cell_inputs(), 2, report=["Hi"],
+                  fit={"steady_state": True}, scheduler=object())
+    model.set_options(steady_state=True)
+    with pytest.raises(greyid.ModelError, match="leave out scheduler"):
+        run_study(model, thesis.TEST_CELL_PARAMETERS, thesis.test_cell_inputs(), 2, report=["Hi"],
+                  scheduler=object())
+    inputs = thesis.test_cell_inputs()
+    study = run_study(model, thesis.TEST_CELL_PARAMETERS, inputs, 2, report=["Hi", "Ci"], seed=4,
+                      simulate={"method": "exact"})
+    from greyid.estimate.calls import simulate_at
+
+    simulated = simulate_at(model, dict(thesis.TEST_CELL_PARAMETERS), inputs, n_paths=2, seed=4, method="exact")
+    frame = inputs.copy()
+    for j, name in enumerate(model.output_names):
+        frame[name] = simulated.outputs[1, :, j]
+    alone = model.fit(frame)
+    assert alone.settings["steady_state"]
+    assert np.array_equal(study.estimates.loc[1, ["Hi", "Ci"]].to_numpy(dtype=float),
+                          [alone.values["Hi"], alone.values["Ci"]])
 
 
 def test_lotka_volterra_study_reduced():

@@ -23,6 +23,7 @@ from scipy import stats
 from ..errors import ModelError
 from ..estimate.calls import simulate_at
 from ..estimate.estimation import fit_model
+from ..model.options import resolve
 from ..progress import track
 from .fit import fit_many
 
@@ -155,7 +156,9 @@ def run_study(model, truth: Mapping[str, float], data: pd.DataFrame, n_series: i
     """
     simulate = dict(simulate or {})
     fit_options = dict(fit or {})
-    if fit_options.get("steady_state") and scheduler is not None:
+    # Given in ``fit``, else the model's own setting (a model file's ``steady_state = true``).
+    steady_state = bool(resolve(model._options, fit_options, ("steady_state",)).get("steady_state"))
+    if steady_state and scheduler is not None:
         raise ModelError("steady_state=True fits the series one after the other in this process; "
                          "leave out scheduler, or steady_state to fit them together on the cluster")
     sims = simulate_at(simulation_model or model, dict(truth), data, n_paths=n_series, seed=seed, **simulate)
@@ -165,7 +168,7 @@ def run_study(model, truth: Mapping[str, float], data: pd.DataFrame, n_series: i
         for j, name in enumerate(model.output_names):
             frame[name] = sims.outputs[i, :, j]
         frames.append(frame)
-    if fit_options.get("steady_state"):
+    if steady_state:
         # A single fit's setting (a fleet evaluates its members together, where each one's switch
         # would run both forms): the series are fitted one after the other.
         fits = [fit_model(model, frame, **fit_options) for frame in track(frames, n_series, "Monte Carlo fits",
