@@ -7,7 +7,7 @@ from scipy import stats
 
 import greyid
 from greyid.datasets import thesis
-from greyid.fleet.study import run_study
+from greyid.fleet.study import run_study, simulated_series
 
 
 def check(study, alpha=0.01):
@@ -41,15 +41,11 @@ def test_test_cell_study_reduced():
     assert abs(study.residual_acf1.mean()) < 0.05
     # The series are fitted together as a fleet: each one's fit is the one model.fit gives alone
     # (the same optimum; estimates and standard errors to the searches' tolerance).
-    from greyid.estimate.calls import simulate_at
-
-    model, inputs = thesis.test_cell_model(), thesis.test_cell_inputs()
-    simulated = simulate_at(model, dict(thesis.TEST_CELL_PARAMETERS), inputs, n_paths=6, seed=11, method="exact")
+    model = thesis.test_cell_model()
+    series = simulated_series(model, thesis.TEST_CELL_PARAMETERS, thesis.test_cell_inputs(), 6, seed=11,
+                              method="exact")
     for i in (0, 5):
-        frame = inputs.copy()
-        for j, name in enumerate(model.output_names):
-            frame[name] = simulated.outputs[i, :, j]
-        alone = model.fit(frame)
+        alone = model.fit(series[i])
         names = ["Hi", "Hm", "Ci", "Cm", "s1i", "s1m", "s2"]
         assert np.allclose(study.estimates.loc[i, names], [alone.values[n] for n in names], rtol=1e-5, atol=0)
         assert np.allclose(study.variances.loc[i, names], alone.params.loc[names, "std_error"] ** 2, rtol=1e-4,
@@ -70,13 +66,7 @@ def test_a_study_with_the_steady_state_fits_each_series_alone_and_not_on_a_clust
     inputs = thesis.test_cell_inputs()
     study = run_study(model, thesis.TEST_CELL_PARAMETERS, inputs, 2, report=["Hi", "Ci"], seed=4,
                       simulate={"method": "exact"})
-    from greyid.estimate.calls import simulate_at
-
-    simulated = simulate_at(model, dict(thesis.TEST_CELL_PARAMETERS), inputs, n_paths=2, seed=4, method="exact")
-    frame = inputs.copy()
-    for j, name in enumerate(model.output_names):
-        frame[name] = simulated.outputs[1, :, j]
-    alone = model.fit(frame)
+    alone = model.fit(simulated_series(model, thesis.TEST_CELL_PARAMETERS, inputs, 2, seed=4, method="exact")[1])
     assert alone.settings["steady_state"]
     assert np.array_equal(study.estimates.loc[1, ["Hi", "Ci"]].to_numpy(dtype=float),
                           [alone.values["Hi"], alone.values["Ci"]])

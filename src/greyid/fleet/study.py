@@ -97,6 +97,41 @@ class StudyResult:
         }
 
 
+def simulated_series(model, truth: Mapping[str, float], data: pd.DataFrame, n_series: int, seed: int = 0,
+                     **simulate) -> list[pd.DataFrame]:
+    """``data`` with its outputs replaced by each of ``n_series`` paths simulated at ``truth`` (the series
+    of [`run_study()`][greyid.fleet.study.run_study]).
+
+    Parameters
+    ----------
+    model : Model
+        The model that simulates.
+    truth : mapping
+        Its parameters.
+    data : pandas.DataFrame
+        The times and inputs; every other column is kept as it is.
+    n_series : int
+        How many paths.
+    seed : int
+        Seed of the simulation.
+    **simulate
+        Settings of [`Model.simulate()`][greyid.api.Model.simulate] (``method``, ``substeps``).
+
+    Returns
+    -------
+    list of pandas.DataFrame
+        One frame per path.
+    """
+    sims = simulate_at(model, dict(truth), data, n_paths=n_series, seed=seed, **simulate)
+    frames = []
+    for i in range(n_series):
+        frame = data.copy()
+        for j, name in enumerate(model.output_names):
+            frame[name] = sims.outputs[i, :, j]
+        frames.append(frame)
+    return frames
+
+
 def run_study(model, truth: Mapping[str, float], data: pd.DataFrame, n_series: int, report: list[str],
               derived: Mapping[str, str] | None = None, seed: int = 0, simulate: Mapping | None = None,
               fit: Mapping | None = None, progress: bool | Callable[[int, int], None] = False,
@@ -161,13 +196,7 @@ def run_study(model, truth: Mapping[str, float], data: pd.DataFrame, n_series: i
     if steady_state and scheduler is not None:
         raise ModelError("steady_state=True fits the series one after the other in this process; "
                          "leave out scheduler, or steady_state to fit them together on the cluster")
-    sims = simulate_at(simulation_model or model, dict(truth), data, n_paths=n_series, seed=seed, **simulate)
-    frames = []
-    for i in range(n_series):
-        frame = data.copy()
-        for j, name in enumerate(model.output_names):
-            frame[name] = sims.outputs[i, :, j]
-        frames.append(frame)
+    frames = simulated_series(simulation_model or model, truth, data, n_series, seed, **simulate)
     if steady_state:
         # A single fit's setting (a fleet evaluates its members together, where each one's switch
         # would run both forms): the series are fitted one after the other.
