@@ -234,3 +234,32 @@ def test_a_forces_hyperparameters_are_checked_for_units():
     m.set_units({**units, "lQ": "kW"})
     with pytest.raises(greyid.ModelError, match="not dimensionally consistent:\n  in lengthscale of latent force Q"):
         m.check_units()
+
+
+def test_the_default_optimizer_starts_the_library_matern_house_by_quasi_newton_steps():
+    """"auto" takes L-BFGS steps first where an exact Hessian of one block is large (rows × free² × states²
+    from QUASI_WORK on): the Armadillo house with a Matérn-3/2 force (233 rows, 9 free parameters, 4 states)
+    does, and reaches the optimum of Newton steps throughout; the plain house (7 parameters, 2 states), a
+    Hessian above SPLIT_WORK, scoring, and optimizer="newton" keep Newton steps."""
+    from greyid import library
+    from greyid.estimate.estimation import QUASI_WORK, SPLIT_WORK, uses_quasi_start
+
+    assert uses_quasi_start("auto", False, 233, 9, 4)
+    assert not uses_quasi_start("auto", False, 233, 7, 2)
+    assert not uses_quasi_start("auto", False, 1512, 9, 4)  # 1.2e5 ≥ SPLIT_WORK: Hessian split over threads
+    assert not uses_quasi_start("auto", True, 233, 9, 4)  # scoring steps first
+    assert not uses_quasi_start("newton", False, 233, 9, 4) and uses_quasi_start("quasi-newton", False, 233, 7, 2)
+    assert 233 * 7 ** 2 * 2 ** 2 < QUASI_WORK <= 233 * 9 ** 2 * 4 ** 2 and 233 * 9 ** 2 < SPLIT_WORK
+
+    model = library.load_model("armadillo_matern32")
+    data = greyid.datasets.fetch("armadillo")
+    events = []
+    auto = model.fit(data, progress=events.append)
+    stages = [e["stage"] for e in events if "iteration" in e]
+    assert stages[0] == "quasi-newton" and stages[-1] == "newton"
+    newton = model.fit(data, optimizer="newton")
+    assert auto.converged and newton.converged
+    assert auto.loglik == pytest.approx(newton.loglik, abs=1e-8)
+    shift = (auto.params["estimate"] - newton.params["estimate"]) / newton.params["std_error"]
+    assert np.max(np.abs(shift)) < 1e-3
+    np.testing.assert_allclose(auto.cov.to_numpy(), newton.cov.to_numpy(), rtol=1e-4)

@@ -109,7 +109,8 @@ class Model(ModelSpec):
             ``cov_type`` (``"hessian"``, the default for ML and MAP; ``"sandwich"``
             H⁻¹JH⁻¹, the default for k-step and robust criteria; ``"opg"``),
             ``optimizer`` (``"auto"``: Fisher scoring far from the optimum where a
-            Hessian is costly, then exact Newton steps; ``"scoring"``; ``"newton"``;
+            Hessian is costly, the quasi-Newton start where a Hessian of one block
+            carries many states, then exact Newton steps; ``"scoring"``; ``"newton"``;
             ``"quasi-newton"``: L-BFGS steps on the value and exact gradient, then
             Newton steps, the same optimum, faster compiled fits of small models, one
             program more to compile), ``steady_state`` (True: a regular series of 128

@@ -42,7 +42,8 @@ CRITERIA = ("ml", "map")
 #: "scoring": Fisher scoring far from the optimum, exact Newton near it (Gaussian
 #: criteria; robust and k-step criteria have no scoring matrix and use Newton only);
 #: "newton": exact Newton steps throughout; "auto": scoring where a Hessian costs
-#: much more than a gradient, rows × (free parameters)² ≥ SCORING_WORK; "quasi-newton":
+#: much more than a gradient, rows × (free parameters)² ≥ SCORING_WORK, the quasi-Newton start
+#: where a Hessian of one block is large (see QUASI_WORK), Newton steps otherwise; "quasi-newton":
 #: L-BFGS steps on value and exact gradient from each start run alone, then exact Newton
 #: steps ([`quasi_newton_start()`][greyid.estimate.lbfgs.quasi_newton_start]; a fit's starts run together take
 #: Newton steps).
@@ -58,6 +59,15 @@ SCORING_WORK = 150_000
 #: whatever the number of CPUs, the test cell (9 parameters) gains from the split from about 600 rows
 #: (``benchmarks/fit.py``).
 SPLIT_WORK = 40_000
+#: Where a Hessian is one block (rows × free parameters² below SPLIT_WORK), "auto" starts a search
+#: alone with quasi-Newton steps from rows × free parameters² × states² of this on: each exact
+#: Hessian's second-order directions then carry products of large state matrices, and L-BFGS steps
+#: on gradients repay the second program they compile within a few fits.  The Armadillo house
+#: with a Matérn-3/2 force (233 × 9² × 4², 3.0e5) fits compiled in 0.075 s against 0.154 s by Newton
+#: steps (first fit +0.56 s with an empty cache); the plain house (233 × 7² × 2², 4.6e4), whose first
+#: fit is most of what a user waits for, keeps Newton steps (quasi-Newton: 0.019 against 0.033 s
+#: compiled, +0.26 s cold, +0.41 s warm).  ``benchmarks/latent_forces.py``, docs/performance.md.
+QUASI_WORK = 150_000
 
 
 #: Starts asking for the same kind of evaluation that are evaluated by one vectorised
@@ -200,18 +210,24 @@ def uses_scoring(optimizer: str, rows: int, n_free: int) -> bool:
     return optimizer == "scoring" or (optimizer == "auto" and rows * n_free ** 2 >= SCORING_WORK)
 
 
-def uses_quasi_start(optimizer: str, scoring: bool) -> bool:
+def uses_quasi_start(optimizer: str, scoring: bool, rows: int = 0, n_free: int = 0, n_states: int = 0) -> bool:
     """Whether a search alone begins with a quasi-Newton start
     ([`quasi_newton_start()`][greyid.estimate.lbfgs.quasi_newton_start]).
 
-    Asked for by ``optimizer="quasi-newton"``.  It pays where an exact Hessian costs several
-    gradients: one block in one thread (padded rows × free parameters² below SPLIT_WORK), about
+    Asked for by ``optimizer="quasi-newton"``, and taken by ``"auto"`` where a Hessian is one
+    block whose work with the states, ``rows × n_free² × n_states²``, reaches QUASI_WORK.  It
+    pays where an exact Hessian costs several gradients: one block in one thread (padded rows ×
+    free parameters² below SPLIT_WORK), about
     n/2 forward gradients (``benchmarks/fit.py --against``).  Above it, split over the CPUs, an exact
     Hessian costs hardly two, and the L-BFGS steps of an ill-conditioned start cost more than
     the Newton steps they save (the test cell).  It compiles a second program, the value and
     gradient, so a first fit with an empty cache takes longer.
     """
-    return optimizer == "quasi-newton" and not scoring
+    if scoring:
+        return False
+    work = rows * n_free ** 2
+    return optimizer == "quasi-newton" or (optimizer == "auto" and work < SPLIT_WORK
+                                           and work * n_states ** 2 >= QUASI_WORK)
 
 
 def new_search(problem: Problem, z0, maxiter: int, report, scoring: bool, handover: float | None = None) -> Search:
@@ -472,7 +488,7 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
             """One search alone (one start, or the refit with more sub-steps)."""
             search = new_search(problem, z_start, maxiter, reporter(i), use_scoring and not exact_only)
             shown.begin_start(i)
-            quasi = start and uses_quasi_start(optimizer, search.scoring)
+            quasi = start and uses_quasi_start(optimizer, search.scoring, rows, len(free), structure.n_states)
             try:
                 optimum = alone.run(problem, search, quasi=quasi)
             except NotFiniteError:
