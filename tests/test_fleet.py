@@ -9,7 +9,7 @@ import pytest
 import greyid
 from greyid.datasets.building import TRUE_PARAMETERS, building_model, load_building_data
 from greyid.estimate.batch import drive, pad_series, prune_trailing
-from greyid.estimate.optimize import EXACT, run_alone
+from greyid.estimate.optimize import EXACT, SCORING, run_alone
 from greyid.estimate.trust_region import Search
 from greyid.filters.api import filter_inputs
 from greyid.data.prepare import prepare_series
@@ -59,6 +59,28 @@ def test_fleet_equals_separate_fits(fleet_model, houses, fleet):
         assert row["loglik"] == member.loglik and row["Ci"] == member.values["Ci"]
         assert row["Ci_se"] == member.params.loc["Ci", "std_error"] and row["error"] is None
         assert row["aic"] == pytest.approx(member.aic) and row["n_obs"] == member.n_obs
+
+
+def test_a_fleet_compiles_one_vectorised_size_as_its_members_converge(fleet_model):
+    """As members converge fewer ask each round; the program compiled for the first round serves them
+    (padded) rather than a new program per power of two, and each member reaches its own fit's optimum."""
+    model = building_model()  # a structure of its own: nothing compiled for it yet
+    model.set_parameter("p22", init=-4.0, fixed=True)
+    data = load_building_data().iloc[:200]
+    sim = model.simulate(TRUE_PARAMETERS, data, n_paths=6, seed=5)
+    same_shape = {f"house{k}": data.assign(yTi=sim.outputs[k, :, 0]) for k in range(6)}
+    fleet = greyid.fit_many(model, same_shape)
+    batched = [programs for key, programs in model.structure.cache.items()
+               if isinstance(key, tuple) and key[0] == "batched"]
+    sizes = {size for programs in batched for key, signatures in programs.items()
+             if isinstance(key, tuple) and key[0] == "compiled" for kind, size in signatures if kind == SCORING}
+    assert len(sizes) == 1
+    for name in ("house0", "house5"):
+        alone = fleet_model.fit(same_shape[name])
+        assert fleet.fits[name].loglik == pytest.approx(alone.loglik, rel=1e-6)
+        free = ~alone.params["fixed"]  # p11 is nearly flat in 200 rows: compared in its standard errors
+        gap = (fleet.fits[name].params["estimate"] - alone.params["estimate"])[free] / alone.params["std_error"][free]
+        np.testing.assert_allclose(gap, 0.0, atol=1e-3)
 
 
 def test_fleet_table_summary_and_plot(fleet):

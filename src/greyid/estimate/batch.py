@@ -78,7 +78,8 @@ class BatchedPrograms:
     with ``per_member=True``, a list with one stacked series (padded to a common
     length, see [`pad_series()`][greyid.estimate.batch.pad_series]) whose row ``data_index[member]`` a member
     uses (several starts of a fleet's data set share a row).  Calls are split over up to
-    ``workers`` threads, each a power-of-two number of members.  Exact Hessians, and
+    ``workers`` threads, each a power-of-two number of members, padded to a size already compiled
+    where one holds them ([`size_for()`][greyid.estimate.batch.BatchedPrograms.size_for]).  Exact Hessians, and
     every kind when fewer than ``vectorise_from`` members ask for it, are evaluated
     member by member with the single fit's programs.
     """
@@ -128,8 +129,19 @@ class BatchedPrograms:
         program = self.single.derivatives if kind == EXACT else self.single.scoring
         return jax.device_get(program(z, rows, *self.arguments, data))
 
-    def _call(self, kind: str, members: list[int], Z: np.ndarray):
-        size = batch_size(len(members))
+    def size_for(self, kind: str, count: int) -> int:
+        """Members per call for ``count`` requests of ``kind``: the smallest size this kind has compiled
+        for these data that holds them, else the power of two of [`batch_size()`][greyid.estimate.batch.batch_size].
+
+        A fleet's searches converge one by one, so the members that ask shrink from round to round; each
+        new size would compile its own program (about a second on two cores) to save milliseconds per
+        call, so the programs compiled for more members serve them, padded.
+        """
+        own = batch_size(count)
+        sizes = [size for signature_kind, size in self.compiled if signature_kind == kind and size != "alone"]
+        return min([size for size in sizes if size >= own], default=own)
+
+    def _call(self, kind: str, members: list[int], Z: np.ndarray, size: int):
         pad = size - len(members)
         Z = np.concatenate([Z, np.repeat(Z[:1], pad, axis=0)])
         data = self.data
@@ -172,9 +184,11 @@ class BatchedPrograms:
             else:
                 # Enough calls to keep every worker busy, none larger than MAX_BATCH.
                 count = max(-(-len(members) // MAX_BATCH), min(self.workers, len(members)))
-                for part in np.array_split(np.arange(len(members)), count):
-                    tasks.append((g, part, (kind, batch_size(len(part))), self._call,
-                                  (kind, [members[i] for i in part], Z[part])))
+                parts = np.array_split(np.arange(len(members)), count)
+                size = self.size_for(kind, len(parts[0]))  # the largest part: one size for all of them
+                for part in parts:
+                    tasks.append((g, part, (kind, size), self._call,
+                                  (kind, [members[i] for i in part], Z[part], size)))
         futures = []
         for _, _, signature, function, arguments in tasks:
             if signature in self.compiled:
