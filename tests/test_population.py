@@ -533,6 +533,48 @@ def test_population_report(nonlinear_problem, correlated_fit, tmp_path):
     assert '<section id="members">' not in again and '<section id="omega">' in again
 
 
+def test_member_programs_run_a_programs_first_call_on_one_chunk_then_side_by_side():
+    """A program's first call compiles it: it runs on one chunk before the threads take the others (threads
+    started together would each trace and compile the same program); later calls run the chunks side by
+    side, and the members come back in their order."""
+    import threading
+    import time
+
+    calls = []  # (kind, first member of the chunk, start, end)
+    lock = threading.Lock()
+
+    def recorded(kind):
+        def program(u, phi, x, base, data):
+            start = time.perf_counter()
+            time.sleep(0.2)
+            with lock:
+                calls.append((kind, int(x[0, 0]), start, time.perf_counter()))
+            return np.asarray(x)[:, 0] * 2.0
+        return program
+
+    programs = laplace.LaplacePrograms(value=recorded("value"), inner=recorded("inner"), gradient=None,
+                                       hessian=None)
+    x = np.arange(6.0)[:, None]
+    members = laplace.MemberPrograms(programs, x, (np.zeros(1),), {"y": np.zeros((6, 3))}, workers=3)
+    try:
+        for round_ in range(2):
+            calls.clear()
+            np.testing.assert_array_equal(members.value(np.zeros((6, 1)), np.zeros(2)), 2.0 * np.arange(6.0))
+            first = next(c for c in calls if c[1] == 0)
+            others = [c for c in calls if c[1] != 0]
+            assert len(calls) == 3
+            if round_ == 0:  # the others start once the first chunk has ended
+                assert all(start >= first[3] for _, _, start, _ in others)
+            else:  # side by side
+                assert max(start for _, _, start, _ in calls) < min(end for _, _, _, end in calls)
+        calls.clear()
+        members.inner(np.zeros((6, 1)), np.zeros(2))  # another program: its own first call
+        first = next(c for c in calls if c[1] == 0)
+        assert all(start >= first[3] for _, member, start, _ in calls if member != 0)
+    finally:
+        members.close()
+
+
 def test_a_lost_worker_loses_no_chunk(gain_problem):
     """A worker killed after the chunks were scattered: its chunk is sent again and the evaluation equals
     the in-process one."""

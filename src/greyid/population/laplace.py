@@ -311,25 +311,36 @@ class MemberPrograms:
         self.derivative_parts = _cut(x, data, -(-n // DERIVATIVE_MEMBERS))
         self.base = tuple(jax.device_put(np.asarray(b, dtype=float)) for b in base)
         self.pool = ThreadPoolExecutor(len(self.parts))
+        self.ran: set[str] = set()  # the programs called once already (compiled)
 
-    def _run(self, call, parts=None):
+    def _run(self, kind: str, call, parts=None):
+        """``call`` on every chunk, side by side on the threads.  A program's first call runs on one
+        chunk alone: it compiles the program once, where threads started together would each trace and
+        compile it."""
         parts = self.parts if parts is None else parts
-        futures = [self.pool.submit(call, part) for part in parts]
-        return _joined([jax.device_get(f.result()) for f in futures], parts)
+        first = None
+        if kind not in self.ran:
+            first = jax.device_get(call(parts[0]))
+            self.ran.add(kind)
+        futures = [self.pool.submit(call, part) for part in parts[0 if first is None else 1:]]
+        outs = [jax.device_get(f.result()) for f in futures]
+        return _joined(outs if first is None else [first, *outs], parts)
 
     def value(self, u, phi):
         phi = jnp.asarray(phi)
-        return self._run(lambda part: self.programs.value(np.asarray(u)[part[1]], phi, part[2], self.base, part[3]))
+        return self._run("value", lambda part: self.programs.value(np.asarray(u)[part[1]], phi, part[2], self.base,
+                                                                   part[3]))
 
     def inner(self, u, phi):
         phi = jnp.asarray(phi)
-        return self._run(lambda part: self.programs.inner(np.asarray(u)[part[1]], phi, part[2], self.base, part[3]))
+        return self._run("inner", lambda part: self.programs.inner(np.asarray(u)[part[1]], phi, part[2], self.base,
+                                                                   part[3]))
 
     def gradient(self, phi, u):
         """``(ℓ_i, ℓ_i', T_i, λ_i)`` per member at the modes ``u``; T and λ are what ``hessian`` takes."""
         phi = jnp.asarray(phi)
-        return self._run(lambda part: self.programs.gradient(phi, np.asarray(u)[part[1]], part[2], self.base,
-                                                             part[3]), self.derivative_parts)
+        return self._run("gradient", lambda part: self.programs.gradient(phi, np.asarray(u)[part[1]], part[2],
+                                                                         self.base, part[3]), self.derivative_parts)
 
     def compile_hessian(self, phi, u) -> None:
         """Compile the Hessian's program in the background (the arguments give only its shapes): it is the
@@ -359,7 +370,7 @@ class MemberPrograms:
                     part[2], self.base, part[3])
             return program.executable(*args)(*args)
 
-        return self._run(run, self.derivative_parts)
+        return self._run("hessian", run, self.derivative_parts)
 
     def close(self):
         self.pool.shutdown()
