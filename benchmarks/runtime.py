@@ -14,6 +14,14 @@ with it switched off (the variants take turns):
   without either that or keeping every program however quick (a process run
   as a user's script runs the command line).
 
+    python benchmarks/runtime.py --new-object [--repeats 3]
+
+times instead a fit of a model built anew in the process that fitted an equal
+one (a notebook cell run again): the Armadillo house, and the Laplace method on
+ctsmTMB's Ornstein2D example at 10³ rows (``benchmarks/laplace.py``), each with
+the compiled programs of the live model shared and without (``Program._shared``
+switched off), in fresh processes with a warm cache folder, taking turns.
+
 Prints the median and range of the wall times (seconds) per variant.
 """
 
@@ -53,6 +61,48 @@ sys.exit(cli.main(["demo", "-q", "--out", sys.argv[2]]))
 """
 
 
+#: A fit of a model built anew after an equal one's fit, in one process (``sys.argv[1:3]``: case, variant).
+NEW_OBJECT = """
+import sys, time
+sys.path.insert(0, sys.argv[3])
+if sys.argv[2] == "unshared":
+    from greyid.runtime.jit import Program
+    Program._shared = lambda self, signature: None
+import pandas as pd
+if sys.argv[1] == "armadillo":
+    from greyid.datasets.reference import armadillo_model as build
+    data, kwargs = pd.read_csv(sys.argv[4]).iloc[:-1], dict(time="Time", hold="foh")
+else:
+    from laplace import model as build, simulate
+    data, kwargs = simulate(1000, 20261127 + 1000), dict(method="laplace", scheme="ctsmtmb")
+first = build().fit(data, **kwargs)
+start = time.perf_counter()
+again = build().fit(data, **kwargs)
+print(time.perf_counter() - start, again.loglik == first.loglik)
+"""
+
+
+def new_object(repeats: int) -> None:
+    """The fit of a model built anew, with the live model's programs shared and without (see the module doc)."""
+    folder = tempfile.mkdtemp(prefix="greyid-runtime-")
+    env = dict(os.environ, GREYID_CACHE_DIR=folder)
+    times: dict = {}
+    for case in ("armadillo", "laplace"):
+        command = [sys.executable, "-c", NEW_OBJECT, case, "shared", str(Path(__file__).resolve().parent),
+                   str(bench.ARMADILLO)]
+        subprocess.run(command, env=env, check=True, capture_output=True)  # fills the cache folder
+        for _ in range(repeats):
+            for variant in ("shared", "unshared"):
+                command[4] = variant
+                out = subprocess.run(command, env=env, check=True, capture_output=True, text=True).stdout.split()
+                assert out[1] == "True", "the new model's fit differs"
+                times.setdefault((case, variant), []).append(float(out[0]))
+    shutil.rmtree(folder, ignore_errors=True)
+    for (case, variant), values in times.items():
+        print(f"{case} fit of a model built anew, {variant}: {statistics.median(values):.3f} s "
+              f"({min(values):.3f}–{max(values):.3f}, {len(values)} runs)")
+
+
 def timed(command: list[str], env: dict) -> float:
     start = time.perf_counter()
     out = subprocess.run(command, env=env, capture_output=True, text=True)
@@ -64,7 +114,11 @@ def timed(command: list[str], env: dict) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--repeats", type=int, default=3, help="fresh cache folders per variant")
+    parser.add_argument("--new-object", action="store_true", help="only the fit of a model built anew")
     args = parser.parse_args()
+    if args.new_object:
+        new_object(args.repeats)
+        return
     fits = {"everything": ("", {}), "no store": ("", {"GREYID_PROGRAMS": "off"}),
             "no compilation in a thread": (NO_THREAD, {})}
     demos = ("own process", "no-freeze", "user")

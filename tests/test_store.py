@@ -37,10 +37,19 @@ def ou_data():
     return times.assign(y=sim.outputs[0, :, 0])
 
 
+def as_in_a_new_process(monkeypatch):
+    """Forget the programs this process compiled for kept keys, as a new process would not have them: a new
+    model of equal equations otherwise takes them from a live one, without reading the store."""
+    import weakref
+
+    monkeypatch.setattr(compiler, "_compiled_by_key", weakref.WeakValueDictionary())
+
+
 @pytest.fixture
 def cache(tmp_path, monkeypatch):
     monkeypatch.setenv("GREYID_CACHE_DIR", str(tmp_path))
     monkeypatch.setenv("GREYID_PROGRAMS", "on")
+    as_in_a_new_process(monkeypatch)
     return tmp_path / "programs"
 
 
@@ -57,6 +66,7 @@ def test_a_later_fit_loads_the_kept_program_and_gets_the_same_answer(cache, ou_d
         raise AssertionError("exported again although a kept program matches")
 
     monkeypatch.setattr(programs.jax.export, "export", refuse)
+    as_in_a_new_process(monkeypatch)
     model = ou_model()
     loaded = model.fit(ou_data)
     assert kept_files(cache) == files
@@ -107,10 +117,11 @@ def test_python_function_models_and_switched_off_cache_keep_nothing(cache, tmp_p
     assert not programs.enabled()
 
 
-def test_an_unreadable_kept_program_is_traced_again_and_repaired(cache, ou_data):
+def test_an_unreadable_kept_program_is_traced_again_and_repaired(cache, ou_data, monkeypatch):
     first = ou_model().fit(ou_data)
     for path in kept_files(cache):
         path.write_bytes(b"not a program")
+    as_in_a_new_process(monkeypatch)
     again = ou_model().fit(ou_data)
     assert again.loglik == pytest.approx(first.loglik, abs=1e-9)
     for path in kept_files(cache):  # rewritten: readable again
@@ -149,6 +160,7 @@ def test_kept_programs_are_not_pickles_and_a_changed_byte_is_caught(cache, ou_da
         return real_export(*args, **kwargs)
 
     monkeypatch.setattr(programs.jax.export, "export", counting)
+    as_in_a_new_process(monkeypatch)
     again = ou_model().fit(ou_data)
     assert exported, "the damaged program was exported again"
     assert again.loglik == pytest.approx(first.loglik, abs=1e-9)
@@ -191,7 +203,44 @@ def test_greyids_named_tuples_travel_by_name_and_every_program_of_a_fit_is_kept(
     assert fallbacks == []
 
 
-def test_a_fit_does_not_depend_on_the_cache_state(cache, ou_data, compilations):
+def test_a_new_equal_model_in_the_process_takes_the_live_ones_programs_and_another_does_not(
+        cache, ou_data, compilations, monkeypatch):
+    """A model built anew from the same equations (a notebook cell run again) finds the programs of an equal
+    model that is alive compiled: it compiles nothing and gets the same answer to the last bit.  Another
+    equation, another filter or other shapes compile their own; once no model holds a program, it is gone;
+    ``GREYID_PROGRAMS=off`` shares nothing."""
+    import gc
+
+    monkeypatch.setenv("GREYID_CACHE_DIR", "off")  # sharing in the process needs no cache folder
+    first_model = ou_model()
+    first = first_model.fit(ou_data)
+    compiled = len(compilations)
+    assert compiled
+    again = ou_model().fit(ou_data)
+    assert len(compilations) == compiled
+    assert again.loglik == first.loglik and again.iterations == first.iterations
+    np.testing.assert_array_equal(again.params["estimate"], first.params["estimate"])
+    np.testing.assert_array_equal(again.params["std_error"], first.params["std_error"])
+    other = ou_model("dx = theta*(mu - x)*dt + exp(ls)*x*dw1").fit(ou_data)
+    assert len(compilations) > compiled
+    assert other.loglik != first.loglik
+    compiled = len(compilations)
+    ou_model().fit(ou_data, method="ekf")  # another filter: another key
+    assert len(compilations) > compiled
+    compiled = len(compilations)
+    ou_model().fit(ou_data.iloc[:150])  # other shapes
+    assert len(compilations) > compiled
+    assert len(compiler._compiled_by_key) > 0
+    monkeypatch.setenv("GREYID_PROGRAMS", "off")
+    compiled = len(compilations)
+    alone = ou_model().fit(ou_data)
+    assert len(compilations) > compiled and alone.loglik == first.loglik
+    del first_model, first, again, other
+    gc.collect()
+    assert len(compiler._compiled_by_key) == 0
+
+
+def test_a_fit_does_not_depend_on_the_cache_state(cache, ou_data, compilations, monkeypatch):
     """Every program compiles with the same options whichever process or cache state compiles it:
     a first fit (empty caches), a fit in the same process, and a new model's (a new process's) fit on
     the kept programs give the same estimates, and JAX's cache setting is never toggled."""
@@ -199,6 +248,7 @@ def test_a_fit_does_not_depend_on_the_cache_state(cache, ou_data, compilations):
     model = ou_model()
     first = model.fit(ou_data)
     again = model.fit(ou_data)
+    as_in_a_new_process(monkeypatch)
     later = ou_model().fit(ou_data)
     assert compilations  # every compilation went through compile_lowered, with greyid's options
     assert jax.config.jax_persistent_cache_min_compile_time_secs == setting

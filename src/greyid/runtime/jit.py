@@ -25,6 +25,7 @@ independent ones side by side, which a filter's small kernels gain nothing from
 from __future__ import annotations
 
 import functools
+import weakref
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Callable
 
@@ -56,6 +57,15 @@ def accepted(options: dict) -> bool:
     return True
 
 
+#: The compiled programs of kept keys in this process, by key and signature, held weakly: a model built
+#: anew (a notebook cell run again, a new model object for each fit) finds the programs of an equal model
+#: that is still alive compiled, instead of loading or compiling them again.  A key names everything its
+#: traced program depends on (it is the program's name on disk), so the executable is the one a compilation
+#: would give.  ``GREYID_PROGRAMS=off`` switches it off with the store (a process that replaces greyid's
+#: functions or constants at run time, as its tests do, must not be given programs built before).
+_compiled_by_key: weakref.WeakValueDictionary = weakref.WeakValueDictionary()
+
+
 def compile_lowered(lowered):
     """XLA's compilation of a traced and lowered program, with greyid's options."""
     options = compiler_options()
@@ -83,6 +93,7 @@ class Program:
         self.static_argnums = tuple(static_argnums)
         self.key = None if static_argnums else key  # static values would have to be in the key
         self.executables: dict = {}  # signature -> compiled program (see executable())
+        self._shared_key = None if self.key is None else repr(self.key)  # as on disk (store.path_for)
         self._top = None  # see top
 
     def __call__(self, *args):
@@ -136,8 +147,22 @@ class Program:
         signature = self.signature(args)
         found = self.executables.get(signature)
         if found is None:
-            found = self.executables[signature] = compile_lowered(self.lower(args))
+            found = self._shared(signature)
+            if found is None:
+                found = self._keep(signature, compile_lowered(self.lower(args)))
+            self.executables[signature] = found
         return found
+
+    def _shared(self, signature):
+        """The executable an equal program of this process compiled for ``signature``, if one is alive."""
+        if self._shared_key is None or not store.switched_on():
+            return None
+        return _compiled_by_key.get((self._shared_key, signature))
+
+    def _keep(self, signature, executable):
+        if self._shared_key is not None and store.switched_on():
+            _compiled_by_key[(self._shared_key, signature)] = executable
+        return executable
 
     def compile_in_background(self, *args) -> Future:
         """`executable()` as a future: traced and lowered now, compiled by XLA in a thread (which frees
@@ -149,14 +174,17 @@ class Program:
         (``benchmarks/runtime.py``, docs/performance.md).
         """
         signature = self.signature(args)
-        if signature in self.executables:
+        found = self.executables.get(signature)
+        found = self._shared(signature) if found is None else found
+        if found is not None:
+            self.executables[signature] = found
             done: Future = Future()
-            done.set_result(self.executables[signature])
+            done.set_result(found)
             return done
         lowered = self.lower(args)
 
         def compile_and_keep():
-            found = self.executables[signature] = compile_lowered(lowered)
+            found = self.executables[signature] = self._keep(signature, compile_lowered(lowered))
             return found
 
         pool = ThreadPoolExecutor(1)

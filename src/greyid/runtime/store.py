@@ -50,9 +50,15 @@ def folder() -> Path | None:
     return None if base is None or config.cache_folder_problem(base) else Path(base) / "programs"
 
 
+def switched_on() -> bool:
+    """Whether ``GREYID_PROGRAMS`` leaves programs kept by key: on disk where the cache folder is on, and
+    shared in the process ([`Program`][greyid.runtime.jit.Program])."""
+    return os.environ.get("GREYID_PROGRAMS", "on").lower() not in OFF
+
+
 def enabled() -> bool:
     """Whether programs are kept: greyid's cache is on and ``GREYID_PROGRAMS`` is not ``off``."""
-    return folder() is not None and os.environ.get("GREYID_PROGRAMS", "on").lower() not in OFF
+    return folder() is not None and switched_on()
 
 
 @functools.cache
