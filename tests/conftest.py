@@ -13,20 +13,37 @@ _SHARED_DATA = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "da
 if os.path.isdir(_SHARED_DATA):
     os.environ.setdefault("GREYID_DATA_MIRROR", os.path.abspath(_SHARED_DATA))
 
-# One compilation cache for the run, in a folder of its own (removed at exit; the user's cache folder
-# is neither read nor written): XLA's compilation of a program is most of a test's time, and the same
-# program is compiled again and again — by tests that build the same model anew, in a module after an
-# earlier one's programs were released (_release_memory), in the command line's and Dask's worker
-# processes (which inherit these variables).  Every program is kept, however quickly it compiled
-# (JAX keeps only those of a second or more by default), so that each is compiled once per run.
+# One compilation cache for the tests, in a folder of their own (the user's cache folder is neither
+# read nor written): XLA's compilation of a program is most of a test's time, and the same program is
+# compiled again and again — by tests that build the same model anew, in a module after an earlier
+# one's programs were released (_release_memory), in the command line's and Dask's worker processes
+# (which inherit these variables), and in the next run.  Every program is kept, however quickly it
+# compiled (JAX keeps only those of a second or more by default).  The folder is kept between runs
+# (GREYID_TEST_CACHE, default ~/.cache/greyid/tests), so that a later run compiles only the programs
+# a change made new: JAX's key is the program itself with XLA's options and versions, so a kept
+# program is the one XLA would compile.  It stays under TEST_CACHE_BYTES, the least recently used
+# programs removed first (JAX's LRU cache, which needs filelock).  GREYID_TEST_CACHE=run keeps them
+# for the run only, in a folder removed at exit, as on a clean machine.
+TEST_CACHE_BYTES = 4 * 10**9
 if "GREYID_CACHE_DIR" not in os.environ:
-    import atexit
-    import shutil
-    import tempfile
+    try:
+        import filelock  # noqa: F401  (JAX's LRU cache locks its folder with it)
+    except ImportError:
+        _KEPT = "run"
+    else:
+        _KEPT = os.environ.get("GREYID_TEST_CACHE", os.path.join(os.path.expanduser("~"), ".cache", "greyid",
+                                                                 "tests"))
+    if _KEPT == "run":
+        import atexit
+        import shutil
+        import tempfile
 
-    _RUN_CACHE = tempfile.mkdtemp(prefix="greyid-tests-")
-    atexit.register(shutil.rmtree, _RUN_CACHE, True)
-    os.environ["GREYID_CACHE_DIR"] = _RUN_CACHE
+        _KEPT = tempfile.mkdtemp(prefix="greyid-tests-")
+        atexit.register(shutil.rmtree, _KEPT, True)
+    else:
+        os.makedirs(_KEPT, exist_ok=True)
+        os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(TEST_CACHE_BYTES))
+    os.environ["GREYID_CACHE_DIR"] = _KEPT
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 
 import numpy as np  # noqa: E402
