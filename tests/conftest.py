@@ -21,18 +21,32 @@ if os.path.isdir(_SHARED_DATA):
 # compiled (JAX keeps only those of a second or more by default).  The folder is kept between runs
 # (GREYID_TEST_CACHE, default ~/.cache/greyid/tests), so that a later run compiles only the programs
 # a change made new: JAX's key is the program itself with XLA's options and versions, so a kept
-# program is the one XLA would compile.  It stays under TEST_CACHE_BYTES, the least recently used
-# programs removed first (JAX's LRU cache, which needs filelock).  GREYID_TEST_CACHE=run keeps them
-# for the run only, in a folder removed at exit, as on a clean machine.
+# program is the one XLA would compile.  A run starts by pruning it to TEST_CACHE_BYTES, the oldest
+# programs first (JAX's own limit would scan the folder at every program it keeps).
+# GREYID_TEST_CACHE=run keeps them for the run only, in a folder removed at exit, as on a clean machine.
 TEST_CACHE_BYTES = 4 * 10**9
-if "GREYID_CACHE_DIR" not in os.environ:
-    try:
-        import filelock  # noqa: F401  (JAX's LRU cache locks its folder with it)
-    except ImportError:
-        _KEPT = "run"
-    else:
-        _KEPT = os.environ.get("GREYID_TEST_CACHE", os.path.join(os.path.expanduser("~"), ".cache", "greyid",
-                                                                 "tests"))
+
+
+def prune_oldest(folder: str, limit: int) -> None:
+    """Remove the oldest files of ``folder`` until it holds at most ``limit`` bytes."""
+    kept = []
+    for entry in os.scandir(folder):
+        if entry.is_file():
+            status = entry.stat()
+            kept.append((status.st_mtime, status.st_size, entry.path))
+    total = sum(size for _, size, _ in kept)
+    for _, size, path in sorted(kept):
+        if total <= limit:
+            break
+        try:
+            os.remove(path)
+        except OSError:
+            pass
+        total -= size
+
+
+if "GREYID_CACHE_DIR" not in os.environ:  # the first process of the run (test workers inherit it)
+    _KEPT = os.environ.get("GREYID_TEST_CACHE", os.path.join(os.path.expanduser("~"), ".cache", "greyid", "tests"))
     if _KEPT == "run":
         import atexit
         import shutil
@@ -42,7 +56,7 @@ if "GREYID_CACHE_DIR" not in os.environ:
         atexit.register(shutil.rmtree, _KEPT, True)
     else:
         os.makedirs(_KEPT, exist_ok=True)
-        os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(TEST_CACHE_BYTES))
+        prune_oldest(_KEPT, TEST_CACHE_BYTES)
     os.environ["GREYID_CACHE_DIR"] = _KEPT
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 

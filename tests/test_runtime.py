@@ -134,3 +134,20 @@ def test_only_greyids_own_process_is_frozen_and_keeps_every_program(tmp_path):
     called = ("import gc; from greyid import cli; cli._load_layers(); "  # main([...]) from a user's script
               "assert gc.get_freeze_count() == 0 and 'greyid.api' not in __import__('sys').modules")
     subprocess.run([sys.executable, "-c", called], check=True, env=env)
+
+
+def test_the_tests_compilation_cache_is_pruned_oldest_first(tmp_path):
+    """The folder the tests keep compiled programs in between runs is pruned to its limit at a run's start,
+    the oldest files first, and left alone under it."""
+    import os
+
+    from conftest import prune_oldest
+
+    for age, name in enumerate(["newest", "newer", "older", "oldest"]):
+        path = tmp_path / name
+        path.write_bytes(b"x" * 100)
+        os.utime(path, (1_000_000 - age, 1_000_000 - age))
+    prune_oldest(str(tmp_path), 400)
+    assert len(list(tmp_path.iterdir())) == 4
+    prune_oldest(str(tmp_path), 250)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["newer", "newest"]
