@@ -19,8 +19,8 @@ with it switched off (the variants take turns):
 times instead a fit of a model built anew in the process that fitted an equal
 one (a notebook cell run again): the Armadillo house, and the Laplace method on
 ctsmTMB's Ornstein2D example at 10³ rows (``benchmarks/laplace.py``), each with
-the compiled programs of the live model shared and without (``Program._shared``
-switched off), in fresh processes with a warm cache folder, taking turns.
+the compiled programs of the live model shared and without (``Program._keep``
+offering none to the process), in fresh processes with a warm cache folder, taking turns.
 
 Prints the median and range of the wall times (seconds) per variant.
 """
@@ -67,7 +67,7 @@ import sys, time
 sys.path.insert(0, sys.argv[3])
 if sys.argv[2] == "unshared":
     from greyid.runtime.jit import Program
-    Program._shared = lambda self, signature: None
+    Program._keep = lambda self, signature, executable: executable
 import pandas as pd
 if sys.argv[1] == "armadillo":
     from greyid.datasets.reference import armadillo_model as build

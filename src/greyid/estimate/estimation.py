@@ -210,6 +210,12 @@ def uses_scoring(optimizer: str, rows: int, n_free: int) -> bool:
     return optimizer == "scoring" or (optimizer == "auto" and rows * n_free ** 2 >= SCORING_WORK)
 
 
+def one_block(rows: int, n_free: int) -> bool:
+    """Whether an exact Hessian is computed in one block (one thread): rows × free parameters² below
+    SPLIT_WORK."""
+    return rows * n_free ** 2 < SPLIT_WORK
+
+
 def uses_quasi_start(optimizer: str, scoring: bool, rows: int = 0, n_free: int = 0, n_states: int = 0) -> bool:
     """Whether a search alone begins with a quasi-Newton start
     ([`quasi_newton_start()`][greyid.estimate.lbfgs.quasi_newton_start]).
@@ -225,9 +231,8 @@ def uses_quasi_start(optimizer: str, scoring: bool, rows: int = 0, n_free: int =
     """
     if scoring:
         return False
-    work = rows * n_free ** 2
-    return optimizer == "quasi-newton" or (optimizer == "auto" and work < SPLIT_WORK
-                                           and work * n_states ** 2 >= QUASI_WORK)
+    return optimizer == "quasi-newton" or (optimizer == "auto" and one_block(rows, n_free)
+                                           and rows * n_free ** 2 * n_states ** 2 >= QUASI_WORK)
 
 
 def new_search(problem: Problem, z0, maxiter: int, report, scoring: bool, handover: float | None = None) -> Search:
@@ -259,7 +264,7 @@ def single_programs(structure, problem: Problem, arguments: tuple, stack: ExitSt
     # A small problem's Hessian is one block whatever the machine (SPLIT_WORK), so its answer
     # does not depend on how many CPUs there are either.
     steady = problem.options.steady_state and takes_steady_state(structure, problem.options)
-    workers = 1 if steady or rows * len(problem.free) ** 2 < SPLIT_WORK else None
+    workers = 1 if steady or one_block(rows, len(problem.free)) else None
     out = {}
     if gradient:
         pending = programs.value_and_grad.compile_in_background(np.zeros(len(problem.free)), *arguments)

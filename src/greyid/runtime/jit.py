@@ -145,19 +145,20 @@ class Program:
         would compile it again.
         """
         signature = self.signature(args)
-        found = self.executables.get(signature)
+        found = self._compiled(signature)
         if found is None:
-            found = self._shared(signature)
-            if found is None:
-                found = self._keep(signature, compile_lowered(self.lower(args)))
-            self.executables[signature] = found
+            found = self.executables[signature] = self._keep(signature, compile_lowered(self.lower(args)))
         return found
 
-    def _shared(self, signature):
-        """The executable an equal program of this process compiled for ``signature``, if one is alive."""
-        if self._shared_key is None or not store.switched_on():
-            return None
-        return _compiled_by_key.get((self._shared_key, signature))
+    def _compiled(self, signature):
+        """The executable for ``signature`` compiled already: this program's own, else that of an equal
+        program of this process that is still alive (then kept as its own); None if there is none."""
+        found = self.executables.get(signature)
+        if found is None and self._shared_key is not None and store.switched_on():
+            found = _compiled_by_key.get((self._shared_key, signature))
+            if found is not None:
+                self.executables[signature] = found
+        return found
 
     def _keep(self, signature, executable):
         if self._shared_key is not None and store.switched_on():
@@ -174,10 +175,8 @@ class Program:
         (``benchmarks/runtime.py``, docs/performance.md).
         """
         signature = self.signature(args)
-        found = self.executables.get(signature)
-        found = self._shared(signature) if found is None else found
+        found = self._compiled(signature)
         if found is not None:
-            self.executables[signature] = found
             done: Future = Future()
             done.set_result(found)
             return done
