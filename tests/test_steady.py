@@ -27,13 +27,31 @@ from test_correlated_noise import TRUE as CORRELATED_TRUE, correlated_model
 N_ROWS = 1400
 
 
+class SteadyCounts(collections.Counter):
+    """``["steady"]``: the calls of the steady-state form that ran (not only traced), counted by a host
+    callback in the programs traced until `stop()`; ``["traced"]``: the calls traced, always."""
+
+    counting = True
+
+    def stop(self):
+        """Trace no callback from now on, and forget the programs traced with one: JAX's cache of compiled
+        programs keeps no program with a host callback, so a derivative program traced with one would be
+        compiled again on every run of the tests.  Where the steady form runs is decided on the filter's
+        values, the same in a derivative's program as in the value's, so a test counts it on the value and
+        checks that its derivatives' programs trace the steady form (``["traced"]``)."""
+        self.counting = False
+        jax.clear_caches()
+
+
 def count_steady_rows(monkeypatch):
-    """Counts the calls of the steady-state form that ran (not only traced)."""
-    counts = collections.Counter()
+    """A [`SteadyCounts`] of the steady-state form's calls."""
+    counts = SteadyCounts()
     rows = steady.steady_rows
 
     def counted(*args, **kwargs):
-        jax.debug.callback(lambda: counts.update(["steady"]))
+        counts.update(["traced"])
+        if counts.counting:
+            jax.debug.callback(lambda: counts.update(["steady"]))
         return rows(*args, **kwargs)
 
     monkeypatch.setattr(steady, "steady_rows", counted)
@@ -158,9 +176,13 @@ def summed_criterion(model, params, frame, robust=None):
 def test_steady_state_derivatives_equal_the_ordinary_filter_s(monkeypatch, short_chunks):
     params, frame = linear_series(seed=4)
     theta, fast = summed_criterion(random_linear_model_spec(), params, frame)
+    fast(theta)
+    assert short_chunks["steady"] >= 10
+    short_chunks.stop()
+    traced = short_chunks["traced"]
     fast_value, fast_gradient = jax.value_and_grad(fast)(theta)
     fast_forward = jax.jacfwd(fast)(theta)
-    assert short_chunks["steady"] >= 10
+    assert short_chunks["traced"] > traced
     step_by_step(monkeypatch)
     _, exact = summed_criterion(random_linear_model_spec(), params, frame)
     value, gradient = jax.value_and_grad(exact)(theta)
@@ -181,8 +203,12 @@ def test_steady_state_hessian_equals_the_ordinary_filter_s(monkeypatch, short_ch
     def hessian_rows(f):  # rows u·H, forward over forward
         return jax.jit(jax.vmap(lambda u: jax.jvp(jax.jacfwd(f), (theta,), (u,))[1]))(directions)
 
-    rows = hessian_rows(fast)
+    fast(theta)
     assert short_chunks["steady"] >= 5
+    short_chunks.stop()
+    traced = short_chunks["traced"]
+    rows = hessian_rows(fast)
+    assert short_chunks["traced"] > traced
     step_by_step(monkeypatch)
     _, exact = summed_criterion(random_linear_model_spec(), params, frame)
     expected = hessian_rows(exact)
@@ -294,10 +320,16 @@ def test_shorter_series_derivatives_equal_the_ordinary_filter_s(counted_steady):
         return lambda th: -jnp.sum(run(th)[0].loglik)
 
     directions = jnp.asarray(np.random.default_rng(24).normal(size=(2, len(theta))))
+    total(fast)(theta)
+    assert counted_steady["steady"] == 1
+    counted_steady.stop()
+    traced = counted_steady["traced"]
     # The forward gradient comes with the Hessian's rows (forward over forward): one program, not two.
     forward, rows = jax.jit(jax.vmap(lambda u: jax.jvp(jax.jacfwd(total(fast)), (theta,), (u,))))(directions)
+    assert counted_steady["traced"] > traced
+    traced = counted_steady["traced"]
     reverse, expected = jax.grad(total(fast))(theta), jax.grad(total(exact))(theta)
-    assert counted_steady["steady"] >= 2
+    assert counted_steady["traced"] > traced
     scale = np.max(np.abs(expected))
     np.testing.assert_allclose(forward[0], expected, atol=1e-8 * scale)
     np.testing.assert_allclose(reverse, expected, atol=1e-8 * scale)
@@ -354,6 +386,8 @@ def test_forward_sums_switch_where_the_filter_settles(counted_steady, missing_at
     value, expected = float(fast(theta)), float(exact(theta))
     assert counted_steady["steady"] == 1
     assert abs(value - expected) < 1e-9
+    counted_steady.stop()
+    traced = counted_steady["traced"]
     directions = jnp.asarray(np.random.default_rng(25).normal(size=(2, len(theta))))
 
     def gradient_and_rows(f):  # the forward gradient comes with the Hessian's rows: one program
@@ -361,6 +395,7 @@ def test_forward_sums_switch_where_the_filter_settles(counted_steady, missing_at
         return gradients[0], rows
 
     (gradient, rows), (expected_gradient, expected_rows) = gradient_and_rows(fast), gradient_and_rows(exact)
+    assert counted_steady["traced"] > traced
     scale = np.max(np.abs(expected_gradient))
     np.testing.assert_allclose(gradient, expected_gradient, atol=1e-8 * scale)
     np.testing.assert_allclose(rows, expected_rows, atol=1e-6 * np.max(np.abs(expected_rows)))
