@@ -255,6 +255,35 @@ def compilations(monkeypatch):
     return seen
 
 
+def release_memory() -> None:
+    """Drop the programs JAX keeps for the functions it traced, collect, and hand the freed heap back."""
+    import gc
+
+    import jax
+
+    jax.clear_caches()
+    gc.collect()
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):  # not glibc: nothing to hand back this way
+        pass
+
+
+#: Resident memory (GiB) above which a test's programs are released at its end rather than at its module's:
+#: the few modules whose programs are large (nested derivatives of population fits) would otherwise hold
+#: each test's on top of the last; below it a module's tests share what JAX traced.
+RELEASE_ABOVE_GIB = 2.5
+
+
+@pytest.fixture(autouse=True)
+def _release_memory_after_a_large_test():
+    yield
+    if _resident_gib() > RELEASE_ABOVE_GIB:
+        release_memory()
+
+
 @pytest.fixture(scope="module", autouse=True)
 def _release_memory(request):
     """After each test module, drop the programs JAX keeps for the functions it traced and hand
@@ -266,19 +295,8 @@ def _release_memory(request):
 
     started = time.monotonic()
     yield
-    import gc
-
-    import jax
-
     before = _resident_gib()
-    jax.clear_caches()
-    gc.collect()
-    try:
-        import ctypes
-
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):  # not glibc: nothing to hand back this way
-        pass
+    release_memory()
     log = os.environ.get("GREYID_TEST_MEMORY_LOG")
     if log:
         compiling = {name: _COMPILE_SECONDS.pop(event, 0.0) for event, name in _COMPILE_EVENTS.items()}
