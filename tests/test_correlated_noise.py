@@ -129,6 +129,7 @@ def rosenblatt(result):
     return z
 
 
+@pytest.mark.slow
 def test_laplace_method_with_correlated_noise(simulated):
     """The Laplace method on a linear Gaussian model is the exact likelihood; its one-step residuals (each output given
     the rows before and the row's outputs before it, as ctsmTMB's) are the Kalman filter's innovations whitened within

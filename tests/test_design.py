@@ -226,6 +226,7 @@ def _two_sine_values(model, params, points, omegas, weights=np.linspace(0, 1, 41
     return -np.linalg.slogdet(M)[1]  # (points, weights, pairs)
 
 
+@pytest.mark.slow
 def test_bayesian_multisine_beats_every_two_sine_design(scalar_example):
     model, params = scalar_example
     a = np.linspace(0.5, 1.1, 7)

@@ -172,6 +172,7 @@ def grid_transforms(counts, uniforms, a=0.5, mu=2.0, s=0.5, points=3000):
     return np.array(out)
 
 
+@pytest.mark.slow
 def test_laplace_one_step_residuals_match_the_kalman_filter_and_the_grid_filter():
     """ctsmTMB's one-step-ahead residuals (each tail of y_k given the past by Laplace's method): on a linear
     Gaussian model within 0.06 of the Kalman filter's standardized innovations (the tails' Laplace error,
@@ -193,6 +194,7 @@ def test_laplace_one_step_residuals_match_the_kalman_filter_and_the_grid_filter(
     assert stats.kstest(wrong, "norm").pvalue < 1e-3
 
 
+@pytest.mark.slow
 def test_a_laplace_fit_validates_on_its_one_step_residuals():
     m, data = poisson_model(), poisson_data(150, seed=8)
     fit = m.fit(data, method="laplace")
@@ -212,6 +214,7 @@ def test_a_laplace_fit_validates_on_its_one_step_residuals():
 
 
 @pytest.mark.filterwarnings("ignore:.*at a bound")  # the EKF takes the observation noise to its bound here
+@pytest.mark.slow
 def test_the_report_flags_an_ekf_fit_whose_likelihood_the_particle_filter_contradicts():
     """A double well (bimodal predictive densities): at the EKF fit's estimates its log-likelihood lies far from the
     particle filter's, and the report's approximation section says so."""

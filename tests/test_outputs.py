@@ -187,6 +187,7 @@ sys.exit(main(sys.argv[1:-1]))
 """
 
 
+@pytest.mark.slow
 def test_a_killed_fit_leaves_one_generation(tmp_path):
     """`greyid fit --out DIR` killed while it writes its files: DIR holds the previous run's files, whole,
     as anyone who opens it sees them (no greyid command needs to read it first), and a later run

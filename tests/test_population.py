@@ -196,6 +196,7 @@ def nonlinear_problem():
     return m, data, covariates, spec, Outer(programs, members, spec)
 
 
+@pytest.mark.slow
 def test_outer_gradient_and_hessian_against_central_differences(nonlinear_problem):
     """The envelope-theorem gradient (with the mode's implicit derivative in the log-determinant) and
     the exact Hessian equal central differences of the Laplace value, its modes solved anew."""
@@ -258,6 +259,7 @@ def test_population_fit_recovers_a_correlated_nonlinear_population(nonlinear_pro
     assert fit.bic == pytest.approx(-2 * fit.loglik + 8 * np.log(7 * 40))
 
 
+@pytest.mark.slow
 def test_likelihood_ratio_with_a_variance_on_the_boundary(nonlinear_problem, correlated_fit):
     """Adding b's random effect (its variance and correlation) is tested against ½χ²₁ + ½χ²₂."""
     from greyid.population import likelihood_ratio
@@ -418,6 +420,7 @@ def test_saved_fit_loads_with_the_same_tables(gain_problem, gain_fit, tmp_path):
         load_population(tmp_path / "missing.json")
 
 
+@pytest.mark.slow
 def test_command_line_population(nonlinear_problem, tmp_path, capsys):
     """`greyid population MODEL FOLDER --random ... --covariates ... --effect ...`: the summary, the files
     of --out; bad input exits 2 with the problem named."""
@@ -484,6 +487,7 @@ def test_predict_a_new_data_set_with_the_population_as_prior(gain_problem, gain_
         gain_fit.predict(datasets["unit2"].drop(columns="u1"))
 
 
+@pytest.mark.slow
 def test_population_on_a_dask_cluster_equals_the_local_fit(gain_problem, gain_fit, capsys):
     """Chunks of members on a LocalCluster of two worker processes: the same estimates and loglik."""
     distributed = pytest.importorskip("distributed")
@@ -575,6 +579,7 @@ def test_member_programs_run_a_programs_first_call_on_one_chunk_then_side_by_sid
         members.close()
 
 
+@pytest.mark.slow
 def test_a_lost_worker_loses_no_chunk(gain_problem):
     """A worker killed after the chunks were scattered: its chunk is sent again and the evaluation equals
     the in-process one."""

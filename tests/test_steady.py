@@ -173,6 +173,7 @@ def summed_criterion(model, params, frame, robust=None):
     return jnp.asarray(theta), lambda th: run(th, inputs)
 
 
+@pytest.mark.slow
 def test_steady_state_derivatives_equal_the_ordinary_filter_s(monkeypatch, short_chunks):
     params, frame = linear_series(seed=4)
     theta, fast = summed_criterion(random_linear_model_spec(), params, frame)
@@ -310,6 +311,7 @@ def test_shorter_series_switch_after_their_first_rows(counted_steady, hold, form
         np.testing.assert_allclose(getattr(fast_out, name)[:rows], getattr(out, name)[:rows], atol=1e-10)
 
 
+@pytest.mark.slow
 def test_shorter_series_derivatives_equal_the_ordinary_filter_s(counted_steady):
     """Forward and reverse mode through the switch: the gradient of the ordinary filter to 1e-8 of its
     scale (the carried covariance's derivatives stand for P∞'s), the Hessian to 1e-6."""
@@ -376,6 +378,7 @@ def forward_sums(model, params, frame):
 
 
 @pytest.mark.parametrize("missing_at", [None, 200])
+@pytest.mark.slow
 def test_forward_sums_switch_where_the_filter_settles(counted_steady, missing_at):
     """The loop stops where the filter has settled and the later rows are regular and observed — after
     a missing value at row 200, at the next test after it, where the single test after HEAD rows steps

@@ -77,6 +77,7 @@ def test_a_later_fit_loads_the_kept_program_and_gets_the_same_answer(cache, ou_d
     np.testing.assert_allclose(loaded.params["std_error"], first.params["std_error"], rtol=1e-7)
 
 
+@pytest.mark.slow
 def test_another_equation_or_setting_is_another_program(cache, ou_data):
     ou_model().fit(ou_data)
     count = len(kept_files(cache))
@@ -203,6 +204,7 @@ def test_greyids_named_tuples_travel_by_name_and_every_program_of_a_fit_is_kept(
     assert fallbacks == []
 
 
+@pytest.mark.slow
 def test_a_new_equal_model_in_the_process_takes_the_live_ones_programs_and_another_does_not(
         cache, ou_data, compilations, monkeypatch):
     """A model built anew from the same equations (a notebook cell run again) finds the programs of an equal
