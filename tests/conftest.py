@@ -279,6 +279,7 @@ RELEASE_ABOVE_GIB = 2.5
 
 @pytest.fixture(autouse=True)
 def _release_memory_after_a_large_test():
+    """After a test that leaves its process above RELEASE_ABOVE_GIB, release what JAX keeps (release_memory)."""
     yield
     if _resident_gib() > RELEASE_ABOVE_GIB:
         release_memory()
