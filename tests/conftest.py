@@ -4,36 +4,41 @@ from __future__ import annotations
 
 import os
 
-# Tests replace greyid's functions and constants at run time, which the keys of programs kept
-# on disk do not see (greyid.runtime.store): keep none, except where test_store.py switches it on.
-os.environ["GREYID_PROGRAMS"] = "off"
 # Data sets named in model files and examples (greyid.datasets.fetch) are read from the project's
 # shared/data beside the checkout, where it is, instead of downloaded.
 _SHARED_DATA = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data")
 if os.path.isdir(_SHARED_DATA):
     os.environ.setdefault("GREYID_DATA_MIRROR", os.path.abspath(_SHARED_DATA))
 
-# One compilation cache for the tests, in a folder of their own (the user's cache folder is neither
-# read nor written): XLA's compilation of a program is most of a test's time, and the same program is
-# compiled again and again — by tests that build the same model anew, in a module after an earlier
-# one's programs were released (_release_memory), in the command line's and Dask's worker processes
-# (which inherit these variables), and in the next run.  Every program is kept, however quickly it
-# compiled (JAX keeps only those of a second or more by default).  The folder is kept between runs
-# (GREYID_TEST_CACHE, default ~/.cache/greyid/tests), so that a later run compiles only the programs
-# a change made new: JAX's key is the program itself with XLA's options and versions, so a kept
-# program is the one XLA would compile.  A run starts by pruning it to TEST_CACHE_BYTES, the oldest
-# programs first (JAX's own limit would scan the folder at every program it keeps).
-# GREYID_TEST_CACHE=run keeps them for the run only, in a folder removed at exit, as on a clean machine.
+# One cache folder for the tests, of their own (the user's cache folder is neither read nor written),
+# holding both what greyid keeps of a program: its traced program (greyid.runtime.store, on as for a
+# user; the file's name hashes greyid's source files, so a change to them traces anew) and XLA's
+# compilation of it (JAX's persistent cache).  Tracing and compiling are most of a test's time, and
+# the same program is made again and again — by tests that build the same model anew, in a module
+# after an earlier one's programs were released (_release_memory), in the command line's and Dask's
+# worker processes (which inherit these variables), and in the next run.  Every program is kept,
+# however quickly it compiled (JAX keeps only those of a second or more by default).  The folder is
+# kept between runs (GREYID_TEST_CACHE, default ~/.cache/greyid/tests), so that a later run traces and
+# compiles only the programs a change made new: both keys name the program's whole content, so a kept
+# program is the one tracing and XLA would give.  A test that replaces part of greyid at run time
+# (the monkeypatch fixture below) keeps and loads no traced program.  A run starts by pruning the
+# folder to TEST_CACHE_BYTES, the oldest files first (JAX's own limit would scan the folder at every
+# program it keeps).  GREYID_TEST_CACHE=run keeps them for the run only, in a folder removed at exit,
+# as on a clean machine.
 TEST_CACHE_BYTES = 4 * 10**9
 
 
 def prune_oldest(folder: str, limit: int) -> None:
-    """Remove the oldest files of ``folder`` until it holds at most ``limit`` bytes."""
+    """Remove the oldest files of ``folder`` and its subfolders until they hold at most ``limit`` bytes."""
     kept = []
-    for entry in os.scandir(folder):
-        if entry.is_file():
-            status = entry.stat()
-            kept.append((status.st_mtime, status.st_size, entry.path))
+    for parent, _, names in os.walk(folder):
+        for name in names:
+            path = os.path.join(parent, name)
+            try:
+                status = os.stat(path)
+            except OSError:  # removed meanwhile
+                continue
+            kept.append((status.st_mtime, status.st_size, path))
     total = sum(size for _, size, _ in kept)
     for _, size, path in sorted(kept):
         if total <= limit:
@@ -236,6 +241,31 @@ def demo_run(tmp_path_factory):
     with contextlib.redirect_stdout(printed):
         code = main(["demo", "--out", str(folder), "--quiet"])
     return code, printed.getvalue(), folder
+
+
+@pytest.fixture
+def monkeypatch(monkeypatch, request):
+    """pytest's ``monkeypatch``, whose ``setattr``, ``setitem``, ``delattr`` and ``delitem`` first switch
+    greyid's kept traced programs off for the test (``GREYID_PROGRAMS=off``): what a test replaces (a
+    function, a constant) changes programs whose keys do not name it ([`greyid.runtime.store`][greyid.runtime.store]),
+    so such a test neither loads a program traced without its change nor keeps one traced with it.  A
+    test that only changes folder or environment keeps them, and one marked ``own_program_store``
+    (test_store.py) sets the store itself."""
+    if request.node.get_closest_marker("own_program_store"):
+        return monkeypatch
+    plain = {name: getattr(monkeypatch, name) for name in ("setattr", "setitem", "delattr", "delitem")}
+
+    def switching_off(name):
+        def replace(*args, **kwargs):
+            # setenv and delenv go through setitem and delitem on os.environ: an environment changes no program
+            if not (name.endswith("item") and args and args[0] is os.environ):
+                plain["setitem"](os.environ, "GREYID_PROGRAMS", "off")
+            return plain[name](*args, **kwargs)
+        return replace
+
+    for name in plain:  # on this test's instance only (pytest makes one per test)
+        vars(monkeypatch)[name] = switching_off(name)
+    return monkeypatch
 
 
 @pytest.fixture

@@ -137,17 +137,22 @@ def test_only_greyids_own_process_is_frozen_and_keeps_every_program(tmp_path):
 
 
 def test_the_tests_compilation_cache_is_pruned_oldest_first(tmp_path):
-    """The folder the tests keep compiled programs in between runs is pruned to its limit at a run's start,
-    the oldest files first, and left alone under it."""
+    """The folder the tests keep programs in between runs (XLA's at its top, traced ones in ``programs/``) is
+    pruned to its limit at a run's start, the oldest files first wherever they are, and left alone under it."""
     import os
 
     from conftest import prune_oldest
 
-    for age, name in enumerate(["newest", "newer", "older", "oldest"]):
+    (tmp_path / "programs").mkdir()
+    for age, name in enumerate(["newest", "programs/newer", "older", "programs/oldest"]):
         path = tmp_path / name
         path.write_bytes(b"x" * 100)
         os.utime(path, (1_000_000 - age, 1_000_000 - age))
+
+    def left():
+        return sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*") if p.is_file())
+
     prune_oldest(str(tmp_path), 400)
-    assert len(list(tmp_path.iterdir())) == 4
+    assert len(left()) == 4
     prune_oldest(str(tmp_path), 250)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["newer", "newest"]
+    assert left() == ["newest", "programs/newer"]

@@ -13,6 +13,10 @@ import greyid
 from greyid.runtime import jit as compiler
 from greyid.runtime import store as programs
 
+# These tests switch the store on and off themselves, in a cache folder of their own (the cache fixture),
+# and replace its parts to watch them: conftest's monkeypatch leaves GREYID_PROGRAMS to them.
+pytestmark = pytest.mark.own_program_store
+
 SPEC = "dx = theta*(mu - x)*dt + exp(ls)*dw1"
 
 

@@ -62,7 +62,7 @@ def accepted(options: dict) -> bool:
 #: that is still alive compiled, instead of loading or compiling them again.  A key names everything its
 #: traced program depends on (it is the program's name on disk), so the executable is the one a compilation
 #: would give.  ``GREYID_PROGRAMS=off`` switches it off with the store (a process that replaces greyid's
-#: functions or constants at run time, as its tests do, must not be given programs built before).
+#: functions or constants at run time, as some of its tests do, must not be given programs built before).
 _compiled_by_key: weakref.WeakValueDictionary = weakref.WeakValueDictionary()
 
 

@@ -13,8 +13,9 @@ wrong: its file name is a hash of the key (the model's equations and every setti
 the program closes over, see
 [`greyid.model.structure.Structure.fingerprint`][greyid.model.structure.Structure.fingerprint]), the
 arguments' shapes and types, greyid's source files and JAX's version and backend.
-A process that replaces greyid's functions or constants at run time (the test suite
-does) must switch the store off: the key does not see such changes.  A program
+A process that replaces greyid's functions or constants at run time must switch the
+store off: the key does not see such changes (the test suite does so for each test
+that replaces one).  A program
 that cannot be exported, or a file that cannot be read or written, is traced, as
 without the store.
 
