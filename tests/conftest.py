@@ -303,8 +303,9 @@ def release_memory() -> None:
 
 #: Resident memory (GiB) above which a test's programs are released at its end rather than at its module's:
 #: the few modules whose programs are large (nested derivatives of population fits) would otherwise hold
-#: each test's on top of the last; below it a module's tests share what JAX traced.
-RELEASE_ABOVE_GIB = 2.5
+#: each test's on top of the last; below it a module's tests share what JAX traced.  With the traced programs
+#: kept (the store), a released program comes back from the folder rather than being traced again.
+RELEASE_ABOVE_GIB = 1.6
 
 
 @pytest.fixture(autouse=True)
