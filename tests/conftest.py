@@ -259,7 +259,7 @@ def monkeypatch(monkeypatch, request):
         def replace(*args, **kwargs):
             # setenv and delenv go through setitem and delitem on os.environ: an environment changes no program
             if not (name.endswith("item") and args and args[0] is os.environ):
-                plain["setitem"](os.environ, "GREYID_PROGRAMS", "off")
+                monkeypatch.setenv("GREYID_PROGRAMS", "off")
             return plain[name](*args, **kwargs)
         return replace
 

@@ -156,3 +156,23 @@ def test_the_tests_compilation_cache_is_pruned_oldest_first(tmp_path):
     assert len(left()) == 4
     prune_oldest(str(tmp_path), 250)
     assert left() == ["newest", "programs/newer"]
+
+
+def test_a_test_that_replaces_part_of_greyid_runs_with_the_store_off(monkeypatch, tmp_path):
+    """conftest's monkeypatch: changing the environment or the folder keeps greyid's kept traced programs on;
+    replacing an attribute or an item (other than the environment's) switches them off for the test, as its
+    change is in no program's key."""
+    import os
+
+    from greyid.runtime import store
+
+    monkeypatch.setenv("GREYID_PROGRAMS", "on")
+    monkeypatch.setenv("GREYID_SOME_SETTING", "1")
+    monkeypatch.delenv("GREYID_SOME_SETTING")
+    monkeypatch.chdir(tmp_path)
+    assert store.switched_on()
+    monkeypatch.setitem({}, "key", 1)
+    assert not store.switched_on()
+    monkeypatch.setenv("GREYID_PROGRAMS", "on")
+    monkeypatch.setattr(store, "FORMAT", store.FORMAT)
+    assert not store.switched_on() and os.environ["GREYID_PROGRAMS"] == "off"
