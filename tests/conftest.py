@@ -63,18 +63,33 @@ if "GREYID_CACHE_DIR" not in os.environ:  # the first process of the run (test w
         os.makedirs(_KEPT, exist_ok=True)
         prune_oldest(_KEPT, TEST_CACHE_BYTES)
     os.environ["GREYID_CACHE_DIR"] = _KEPT
+    import tempfile
+
+    # The lock files by which a test marked "alone" runs while no other test does (_take_turns below).
+    _TURNS = tempfile.mkdtemp(prefix="greyid-test-turns-")
+    import atexit
+    import shutil
+
+    atexit.register(shutil.rmtree, _TURNS, True)
+    os.environ["GREYID_TEST_TURNS"] = _TURNS
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+
+# greyid (with JAX) and SciPy are imported where a helper or fixture needs them, not here: pytest-xdist's
+# controller process loads this file too and runs no test, and would hold them (about 0.3 GB) all run long.
+import contextlib  # noqa: E402
+from typing import TYPE_CHECKING  # noqa: E402
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
-import scipy.linalg as sl  # noqa: E402
-from scipy.stats import multivariate_normal  # noqa: E402
 
-import greyid  # noqa: E402
+if TYPE_CHECKING:
+    import greyid
 
 
 def random_linear_model_spec(n=3, nu=2, ny=2, nw=2):
     """Equations of a general linear model with every coefficient a parameter."""
+    import greyid
+
     m = greyid.Model(f"linear{n}{nu}{ny}{nw}")
     for i in range(1, n + 1):
         drift = " + ".join([f"a{i}{j}*x{j}" for j in range(1, n + 1)]
@@ -124,6 +139,8 @@ def random_linear_parameters(rng, n=3, nu=2, ny=2, nw=2):
 
 def van_loan(A, Q, tau):
     """Φ, ∫e^{As}ds, (1/τ)∫e^{As}(τ−s)ds and Λ by plain block exponentials (SciPy)."""
+    import scipy.linalg as sl
+
     n = A.shape[0]
     Z, I = np.zeros((n, n)), np.eye(n)
     E = sl.expm(np.block([[A, I, Z], [Z, Z, I], [Z, Z, Z]]) * tau)
@@ -134,6 +151,8 @@ def van_loan(A, Q, tau):
 
 def dense_moments(mats, t, U, foh):
     """Mean and covariance of the stacked states and observations, from the discretized model."""
+    import scipy.linalg as sl
+
     A, B, c, G, H, D, S = (mats[k] for k in "A B c G H D S".split())
     N, n = len(t), A.shape[0]
     b = U @ B.T + c  # affine drift term at each row
@@ -166,6 +185,8 @@ def dense_reference(mats, t, U, Y, foh):
 
     Built from the mean and covariance of all stacked observations (:func:`dense_moments`).
     """
+    from scipy.stats import multivariate_normal
+
     mean, Xcov, Hbig, ymean, ycov = dense_moments(mats, t, U, foh)
     obs = ~np.isnan(Y.reshape(-1))
     ll = multivariate_normal(ymean[obs], ycov[np.ix_(obs, obs)]).logpdf(Y.reshape(-1)[obs])
@@ -190,6 +211,8 @@ def matrices_from_parameters(p, n=3, nu=2, ny=2, nw=2):
 
 def product_model(init: dict, lower=None) -> greyid.Model:
     """dx = (−a·b·x + u)dt + s dω, y = x + e: the output depends on a and b only through a·b."""
+    import greyid
+
     m = greyid.Model("product")
     m.add_system("dx = (-a*b*x + u)*dt + s*dw1")
     m.add_inputs("u")
@@ -381,3 +404,44 @@ def pytest_xdist_auto_num_workers(config) -> int:
     except (ValueError, OSError, AttributeError):  # not a POSIX system that says: one worker
         memory = 0
     return 2 if (os.cpu_count() or 1) >= 2 and memory >= TWO_WORKERS_MEMORY else 1
+
+
+@contextlib.contextmanager
+def taking_turns(folder: str, alone: bool, waiting=None):
+    """Run the block while no other block runs (``alone``) or beside other blocks that are not alone,
+    across processes: every block holds a shared lock on ``folder``/turns, an ``alone`` block an exclusive
+    one.  ``folder``/gate is held by an ``alone`` block while it waits, so that no block starts meanwhile
+    (else two processes could take turns and keep it waiting for good); a block that finds the gate
+    held calls ``waiting()`` before it waits."""
+    import fcntl
+
+    with open(os.path.join(folder, "gate"), "a") as gate, open(os.path.join(folder, "turns"), "a") as turns:
+        try:
+            fcntl.flock(gate, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            if waiting is not None:
+                waiting()
+            fcntl.flock(gate, fcntl.LOCK_EX)
+        if alone:
+            fcntl.flock(turns, fcntl.LOCK_EX)  # once the blocks that run have ended
+        fcntl.flock(gate, fcntl.LOCK_UN)
+        if not alone:
+            fcntl.flock(turns, fcntl.LOCK_SH)
+        yield  # the locks end with the files
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    """A test marked ``alone`` (one that starts worker processes of its own: a Dask cluster) runs while the
+    other test worker waits between its tests, both with their programs released, so that the memory of the run's
+    processes together stays low (taking_turns: for the test's setup, call and teardown, its fixtures'
+    too).  Without the folder (GREYID_TEST_TURNS, made by the run's first process) tests run as they come."""
+    folder = os.environ.get("GREYID_TEST_TURNS")
+    if not folder or not os.path.isdir(folder):
+        yield
+        return
+    alone = item.get_closest_marker("alone") is not None
+    with taking_turns(folder, alone, waiting=release_memory):
+        if alone:  # its worker processes make their own programs: this one's can go meanwhile
+            release_memory()
+        yield

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -235,8 +237,15 @@ def test_relate_recovers_a_linear_relation_and_ranks_subsets():
     assert len(relation.subsets) == 8
     with pytest.raises(greyid.DataError, match="covariate 'air'"):
         relate(table, covariates, "X", candidates=["air"])
+    # A fleet of six: statsmodels' residual normality tests need eight, the summary says nan without a warning.
+    few = relate(table.iloc[:6], covariates.iloc[:6], "X", candidates=["speed"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        text = few.summary()
+    assert "best subset ['speed']" in text and "Omnibus:" in text
 
 
+@pytest.mark.alone
 def test_dask_local_cluster_equals_in_process(fleet_model, houses, fleet):
     """Chunks fitted on a real LocalCluster of two worker processes give the in-process table."""
     distributed = pytest.importorskip("distributed")
@@ -275,6 +284,7 @@ def test_batched_starts_equal_the_same_starts_run_alone(fleet_model, houses):
     assert f"{pruned} pruned" in together.start_spread() and "several optima" not in together.start_spread()
 
 
+@pytest.mark.alone
 def test_a_cluster_that_loses_every_worker_returns_failed_rows(fleet_model, houses):
     """Every worker of a LocalCluster killed (no nanny brings them back): fit_many must not wait for
     good.  The members whose chunks could not be computed come back as failed rows that say why, and

@@ -22,6 +22,54 @@ from greyid.filters.api import filter_options
 from greyid.datasets.reference import theophylline_model
 
 
+# ---------------------------------------------------------------- methods of each member's likelihood
+# First in the module: their programs are the largest (nested derivatives of the Laplace method over the
+# states and of the ensemble filter), and they hold no fixture, so they run before the module's fixtures
+# keep the fitted models' programs (a process's peak memory).
+@pytest.mark.slow
+def test_a_population_by_the_ensemble_kalman_filter_approaches_the_exact_one_and_particles_are_refused():
+    """The EnKF's fixed random numbers make each member's likelihood smooth in θ, so the random effects integrate by
+    Laplace's method as with the exact filter: on a linear Gaussian population the two fits agree to the ensemble's
+    error. The particle filter's estimate is not smooth (resampling): refused, naming what to use."""
+    from test_particle import ou_data, ou_gaussian
+
+    m = ou_gaussian()
+    data = {f"m{i}": ou_data(60, seed=20 + i) for i in range(5)}
+    exact = greyid.fit_population(m, data, random={"mu": "normal"}, method="kalman")
+    ensemble = greyid.fit_population(m, data, random={"mu": "normal"}, method="enkf", particles=1000)
+    assert ensemble.converged
+    assert ensemble.loglik == pytest.approx(exact.loglik, abs=1.0)
+    for name in ("a", "mu", "s", "r"):
+        estimate, error = exact.params.loc[name, "estimate"], exact.params.loc[name, "std_error"]
+        assert abs(ensemble.params.loc[name, "estimate"] - estimate) < 0.5 * error, name
+    with pytest.raises(greyid.ModelError, match="particle filter's estimate has none.*'laplace', 'enkf'"):
+        greyid.fit_population(m, data, random={"mu": "normal"}, method="particle")
+
+
+@pytest.mark.slow
+def test_a_population_by_the_laplace_method_over_the_states_equals_the_kalman_filters():
+    """Laplace's method over the states (exact transitions of a linear Gaussian model) gives each member the
+    Kalman filter's likelihood exactly, so the nested Laplace over the random effects must reproduce the
+    Kalman population fit: log-likelihood to 1e-6, estimates and standard errors to 1e-4 relative."""
+    from test_particle import ou_data, ou_gaussian
+
+    m = ou_gaussian()
+    m.set_initial_state(mean={"x": 1.0}, covariance=[[4.0]])  # the members start near their own levels
+    data = {}
+    for i, level in enumerate((-0.8, 0.0, 0.9)):
+        frame = ou_data(60, seed=30 + i)
+        data[f"m{i}"] = frame.assign(y=frame["y"] + level)
+    exact = greyid.fit_population(m, data, random={"mu": "normal"}, method="kalman")
+    marginal = greyid.fit_population(m, data, random={"mu": "normal"}, method="laplace")
+    assert exact.converged and marginal.converged
+    assert exact.params.loc["omega_mu", "estimate"] > 0.1  # a real random effect, not one at its bound
+    assert marginal.loglik == pytest.approx(exact.loglik, abs=1e-6)
+    for column in ("estimate", "std_error"):
+        np.testing.assert_allclose(marginal.params[column], exact.params[column], rtol=1e-4)
+    np.testing.assert_allclose(marginal.random_effects.to_numpy(float), exact.random_effects.to_numpy(float),
+                               rtol=1e-4, atol=1e-8)
+
+
 # ---------------------------------------------------------------- exact case: an input gain
 FREE = ("b11", "c1", "s1")
 
@@ -165,6 +213,57 @@ def test_random_effects_are_the_conditional_means(gain_problem, gain_fit):
         assert row["b11_se"] == pytest.approx(np.sqrt(variance), rel=1e-6)
 
 
+# The fits on a Dask cluster: early in the module, while its process holds the gain model's programs alone
+# (with the cluster's worker process, the run's peak memory), and on one worker process each.
+@pytest.mark.slow
+@pytest.mark.alone
+def test_population_on_a_dask_cluster_equals_the_local_fit(gain_problem, gain_fit, capsys):
+    """Chunks of members (three, of two) on a LocalCluster's worker process: the same estimates and loglik."""
+    distributed = pytest.importorskip("distributed")
+    model, _, datasets = gain_problem
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        fit = fit_population(model, datasets, {"b11": "normal"}, scheduler=client, chunk_size=2, progress=True)
+    assert fit.loglik == pytest.approx(gain_fit.loglik, rel=1e-10)
+    np.testing.assert_allclose(fit.params["estimate"], gain_fit.params["estimate"], rtol=1e-7)
+    np.testing.assert_allclose(fit.params["std_error"], gain_fit.params["std_error"], rtol=1e-6)
+    assert "population step 1: log-likelihood" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+@pytest.mark.alone
+def test_a_lost_worker_loses_no_chunk(gain_problem):
+    """The worker killed after the chunks were scattered (its nanny starts a fresh one): its chunks are sent
+    again and the evaluation equals the in-process one."""
+    import os
+    import signal
+
+    distributed = pytest.importorskip("distributed")
+    from greyid.filters.api import filter_options
+    from greyid.population.distributed import ClusterEvaluator, evaluate
+
+    model, _, datasets = gain_problem
+    names = list(datasets)
+    spec, raw = make_spec(model, {"b11": "normal"}, None, None, "diagonal", names)
+    members = prepare_members(model, names, list(datasets.values()), spec, raw, "t", "zoh", None, None)
+    options = filter_options(model.structure, None)
+    local = laplace.MemberPrograms(laplace.build(model.structure, spec, options), members.x, spec.base(),
+                                   members.data, 1)
+    phi, u0 = spec.phi0(), np.zeros((len(names), 1))
+    expected = evaluate(local, phi, u0, "gradient")
+    local.close()
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        evaluator = ClusterEvaluator(client, model, spec, options, members, 2, 60.0)
+        holders = client.who_has([future for _, future in evaluator.chunks])
+        victim = next(iter(holders.values()))[0]
+        pid = client.run(os.getpid, workers=[victim])[victim]
+        os.kill(pid, signal.SIGKILL)  # the nanny starts a fresh worker, without the chunk's data
+        _, values, gradients, _, path = evaluator(phi, u0, "gradient")
+    np.testing.assert_allclose(values, laplace.laplace_values(expected[0]), rtol=1e-12)
+    np.testing.assert_allclose(gradients, expected[2], rtol=1e-10)
+    for chunked, alone in zip(path, expected[4]):  # the Hessian's T and λ, put together in the members' order
+        np.testing.assert_allclose(chunked, alone, rtol=1e-10, atol=1e-14)
 # ---------------------------------------------------------------- derivatives of the general case
 @pytest.fixture(scope="module")
 def nonlinear_problem():
@@ -487,20 +586,6 @@ def test_predict_a_new_data_set_with_the_population_as_prior(gain_problem, gain_
         gain_fit.predict(datasets["unit2"].drop(columns="u1"))
 
 
-@pytest.mark.slow
-def test_population_on_a_dask_cluster_equals_the_local_fit(gain_problem, gain_fit, capsys):
-    """Chunks of members on a LocalCluster of two worker processes: the same estimates and loglik."""
-    distributed = pytest.importorskip("distributed")
-    model, _, datasets = gain_problem
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
-        fit = fit_population(model, datasets, {"b11": "normal"}, scheduler=client, progress=True)
-    assert fit.loglik == pytest.approx(gain_fit.loglik, rel=1e-10)
-    np.testing.assert_allclose(fit.params["estimate"], gain_fit.params["estimate"], rtol=1e-7)
-    np.testing.assert_allclose(fit.params["std_error"], gain_fit.params["std_error"], rtol=1e-6)
-    assert "population step 1: log-likelihood" in capsys.readouterr().err
-
-
 def test_population_report(nonlinear_problem, correlated_fit, tmp_path):
     """The report holds every section; its tables are the fit's (Ω, β, random effects); the members' test
     table holds each member's own residual tests; it survives save/load with the data given back."""
@@ -579,80 +664,3 @@ def test_member_programs_run_a_programs_first_call_on_one_chunk_then_side_by_sid
         members.close()
 
 
-@pytest.mark.slow
-def test_a_lost_worker_loses_no_chunk(gain_problem):
-    """A worker killed after the chunks were scattered: its chunk is sent again and the evaluation equals
-    the in-process one."""
-    import os
-    import signal
-
-    distributed = pytest.importorskip("distributed")
-    from greyid.filters.api import filter_options
-    from greyid.population.distributed import ClusterEvaluator, evaluate
-
-    model, _, datasets = gain_problem
-    names = list(datasets)
-    spec, raw = make_spec(model, {"b11": "normal"}, None, None, "diagonal", names)
-    members = prepare_members(model, names, list(datasets.values()), spec, raw, "t", "zoh", None, None)
-    options = filter_options(model.structure, None)
-    local = laplace.MemberPrograms(laplace.build(model.structure, spec, options), members.x, spec.base(),
-                                   members.data, 1)
-    phi, u0 = spec.phi0(), np.zeros((len(names), 1))
-    expected = evaluate(local, phi, u0, "gradient")
-    local.close()
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
-        evaluator = ClusterEvaluator(client, model, spec, options, members, None, 60.0)
-        holders = client.who_has([future for _, future in evaluator.chunks])
-        victim = next(iter(holders.values()))[0]
-        pid = client.run(os.getpid, workers=[victim])[victim]
-        os.kill(pid, signal.SIGKILL)  # the nanny starts a fresh worker, without the chunk's data
-        _, values, gradients, _, path = evaluator(phi, u0, "gradient")
-    np.testing.assert_allclose(values, laplace.laplace_values(expected[0]), rtol=1e-12)
-    np.testing.assert_allclose(gradients, expected[2], rtol=1e-10)
-    for chunked, alone in zip(path, expected[4]):  # the Hessian's T and λ, put together in the members' order
-        np.testing.assert_allclose(chunked, alone, rtol=1e-10, atol=1e-14)
-
-
-@pytest.mark.slow
-def test_a_population_by_the_ensemble_kalman_filter_approaches_the_exact_one_and_particles_are_refused():
-    """The EnKF's fixed random numbers make each member's likelihood smooth in θ, so the random effects integrate by
-    Laplace's method as with the exact filter: on a linear Gaussian population the two fits agree to the ensemble's
-    error. The particle filter's estimate is not smooth (resampling): refused, naming what to use."""
-    from test_particle import ou_data, ou_gaussian
-
-    m = ou_gaussian()
-    data = {f"m{i}": ou_data(60, seed=20 + i) for i in range(5)}
-    exact = greyid.fit_population(m, data, random={"mu": "normal"}, method="kalman")
-    ensemble = greyid.fit_population(m, data, random={"mu": "normal"}, method="enkf", particles=1000)
-    assert ensemble.converged
-    assert ensemble.loglik == pytest.approx(exact.loglik, abs=1.0)
-    for name in ("a", "mu", "s", "r"):
-        estimate, error = exact.params.loc[name, "estimate"], exact.params.loc[name, "std_error"]
-        assert abs(ensemble.params.loc[name, "estimate"] - estimate) < 0.5 * error, name
-    with pytest.raises(greyid.ModelError, match="particle filter's estimate has none.*'laplace', 'enkf'"):
-        greyid.fit_population(m, data, random={"mu": "normal"}, method="particle")
-
-
-@pytest.mark.slow
-def test_a_population_by_the_laplace_method_over_the_states_equals_the_kalman_filters():
-    """Laplace's method over the states (exact transitions of a linear Gaussian model) gives each member the
-    Kalman filter's likelihood exactly, so the nested Laplace over the random effects must reproduce the
-    Kalman population fit: log-likelihood to 1e-6, estimates and standard errors to 1e-4 relative."""
-    from test_particle import ou_data, ou_gaussian
-
-    m = ou_gaussian()
-    m.set_initial_state(mean={"x": 1.0}, covariance=[[4.0]])  # the members start near their own levels
-    data = {}
-    for i, level in enumerate((-0.8, 0.0, 0.9)):
-        frame = ou_data(60, seed=30 + i)
-        data[f"m{i}"] = frame.assign(y=frame["y"] + level)
-    exact = greyid.fit_population(m, data, random={"mu": "normal"}, method="kalman")
-    marginal = greyid.fit_population(m, data, random={"mu": "normal"}, method="laplace")
-    assert exact.converged and marginal.converged
-    assert exact.params.loc["omega_mu", "estimate"] > 0.1  # a real random effect, not one at its bound
-    assert marginal.loglik == pytest.approx(exact.loglik, abs=1e-6)
-    for column in ("estimate", "std_error"):
-        np.testing.assert_allclose(marginal.params[column], exact.params[column], rtol=1e-4)
-    np.testing.assert_allclose(marginal.random_effects.to_numpy(float), exact.random_effects.to_numpy(float),
-                               rtol=1e-4, atol=1e-8)

@@ -158,6 +158,44 @@ def test_the_tests_compilation_cache_is_pruned_oldest_first(tmp_path):
     assert left() == ["newest", "programs/newer"]
 
 
+def test_a_test_marked_alone_runs_while_no_other_test_does(tmp_path):
+    """conftest's taking_turns (run around every test): a block marked alone waits for the block that runs
+    to end, and a block that comes while it waits is told to wait (its memory released) and starts after it."""
+    import threading
+    import time
+
+    from conftest import taking_turns
+
+    events, lock = [], threading.Lock()
+
+    def note(what):
+        with lock:
+            events.append(what)
+
+    def block(name, alone, hold, started=None):
+        with taking_turns(str(tmp_path), alone, waiting=lambda: note(f"{name} waits")):
+            note(f"{name} in")
+            if started is not None:
+                started.set()
+            time.sleep(hold)
+            note(f"{name} out")
+
+    first_in = threading.Event()
+    first = threading.Thread(target=block, args=("first", False, 0.6, first_in))
+    first.start()
+    first_in.wait()
+    alone = threading.Thread(target=block, args=("alone", True, 0.3))
+    alone.start()
+    time.sleep(0.2)  # the alone block holds the gate, waiting for the first to end
+    later = threading.Thread(target=block, args=("later", False, 0.0))
+    later.start()
+    for thread in (first, alone, later):
+        thread.join(10)
+    assert events == ["first in", "later waits", "first out", "alone in", "alone out", "later in", "later out"]
+    with taking_turns(str(tmp_path), True):  # alone and nobody else: no wait
+        pass
+
+
 def test_a_test_that_replaces_part_of_greyid_runs_with_the_store_off(monkeypatch, tmp_path):
     """conftest's monkeypatch: changing the environment or the folder keeps greyid's kept traced programs on;
     replacing an attribute or an item (other than the environment's) switches them off for the test, as its

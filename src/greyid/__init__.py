@@ -8,7 +8,7 @@ compilation cache (see [`greyid.runtime`][greyid.runtime]; ``GREYID_CACHE_DIR=of
 
 import sys
 
-from .errors import DataError, ModelError, UndeterminedWarning
+from .errors import DataError, FitWarning, ModelError, UndeterminedWarning
 
 __version__ = "0.1.0"
 __all__ = ["Model", "FitResult", "FitWarning", "load_fit", "fit_many", "FleetResult", "fit_population",
@@ -17,7 +17,7 @@ __all__ = ["Model", "FitResult", "FitWarning", "load_fit", "fit_many", "FleetRes
 if "jax" in sys.modules:  # JAX is in use already: make it 64-bit now, as before any work
     from . import runtime  # noqa: F401
 
-_LAZY = {"Model": "api", "FitResult": "api", "FitWarning": "estimate", "load_fit": "api",
+_LAZY = {"Model": "api", "FitResult": "api", "load_fit": "api",
          "fit_many": "fleet", "FleetResult": "fleet", "fit_population": "population",
          "PopulationResult": "population"}
 

@@ -13,6 +13,15 @@ class DataError(ValueError):
     """Data that cannot be used with a model (names the column or the row)."""
 
 
+class FitWarning(UserWarning):
+    """A fit finished with something to look at: an active bound, an ill-determined
+    direction, no convergence.  The message is also in ``fit.warnings``."""
+
+
+class PopulationWarning(UserWarning):
+    """A member left out of a population fit, or a fit that did not converge."""
+
+
 class UndeterminedWarning(UserWarning):
     """An information matrix that does not determine some direction of the parameters (names it)."""
 

@@ -21,7 +21,7 @@ from scipy import special
 
 from ..data.files import named_dataset, read_data
 from ..data.prepare import as_frames
-from ..errors import DataError, ModelError
+from ..errors import DataError, FitWarning, ModelError  # noqa: F401  (FitWarning: re-exported)
 from ..model.equations import parse_expression
 from ..model.options import rename_columns
 from ..model.parameters import tests_against_zero
@@ -34,11 +34,6 @@ from .settings import FitSettings, filter_settings
 
 #: A Laplace fit's filter() and predict() run the particle filter with this many particles.
 LAPLACE_FILTER_PARTICLES = 1000
-
-
-class FitWarning(UserWarning):
-    """A fit finished with something to look at: an active bound, an ill-determined
-    direction, no convergence.  The message is also in ``fit.warnings``."""
 
 
 def p_value_text(p: float) -> str:

@@ -28,8 +28,15 @@ class Relation:
     best: object  # statsmodels RegressionResults
 
     def summary(self) -> str:
+        import warnings
+
+        with warnings.catch_warnings():
+            # statsmodels' table holds normality tests of the residuals that need 8 data sets or more; it
+            # prints them as nan below that and warns, which a fleet of a few data sets always would.
+            warnings.filterwarnings("ignore", message="omni_normtest is not valid")
+            table = self.best.summary()
         return (f"{self.parameter}: best subset {list(self.best.model.exog_names[1:])} by Mallows' C_p\n"
-                f"{self.subsets.to_string()}\n\n{self.best.summary()}")
+                f"{self.subsets.to_string()}\n\n{table}")
 
 
 def relate(fleet, covariates: pd.DataFrame, parameter: str, candidates=None, weighted: bool = True,

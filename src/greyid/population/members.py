@@ -15,7 +15,7 @@ import numpy as np
 
 from ..data.files import read_source
 from ..data.prepare import as_frames
-from ..errors import DataError, ModelError, warn
+from ..errors import DataError, ModelError, PopulationWarning, warn  # noqa: F401  (PopulationWarning: re-exported)
 from ..estimate.batch import pad_series
 from ..estimate.estimation import check_observed
 from ..filters.accuracy import needs_substeps
@@ -23,10 +23,6 @@ from ..filters.api import accurate_options, check_at_parameters, filter_options,
 from ..model.options import FILTER_KEYS, rename_columns
 from . import laplace
 from .spec import PopulationSpec
-
-
-class PopulationWarning(UserWarning):
-    """A member left out of a population fit, or a fit that did not converge."""
 
 
 #: The filter's settings a population fit takes besides ``method``, as model.fit does.
