@@ -218,12 +218,12 @@ def test_random_effects_are_the_conditional_means(gain_problem, gain_fit):
 @pytest.mark.slow
 @pytest.mark.alone
 def test_population_on_a_dask_cluster_equals_the_local_fit(gain_problem, gain_fit, capsys):
-    """Chunks of members (three, of two) on a LocalCluster's worker process: the same estimates and loglik."""
+    """Chunks of members (two, of three) on a LocalCluster's worker process: the same estimates and loglik."""
     distributed = pytest.importorskip("distributed")
     model, _, datasets = gain_problem
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
                                   dashboard_address=None) as cluster, distributed.Client(cluster) as client:
-        fit = fit_population(model, datasets, {"b11": "normal"}, scheduler=client, chunk_size=2, progress=True)
+        fit = fit_population(model, datasets, {"b11": "normal"}, scheduler=client, chunk_size=3, progress=True)
     assert fit.loglik == pytest.approx(gain_fit.loglik, rel=1e-10)
     np.testing.assert_allclose(fit.params["estimate"], gain_fit.params["estimate"], rtol=1e-7)
     np.testing.assert_allclose(fit.params["std_error"], gain_fit.params["std_error"], rtol=1e-6)
@@ -254,7 +254,7 @@ def test_a_lost_worker_loses_no_chunk(gain_problem):
     local.close()
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
                                   dashboard_address=None) as cluster, distributed.Client(cluster) as client:
-        evaluator = ClusterEvaluator(client, model, spec, options, members, 2, 60.0)
+        evaluator = ClusterEvaluator(client, model, spec, options, members, 3, 60.0)
         holders = client.who_has([future for _, future in evaluator.chunks])
         victim = next(iter(holders.values()))[0]
         pid = client.run(os.getpid, workers=[victim])[victim]
