@@ -432,10 +432,11 @@ def taking_turns(folder: str, alone: bool, waiting=None):
 
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item, nextitem):
-    """A test marked ``alone`` (one that starts worker processes of its own: a Dask cluster) runs while the
-    other test worker waits between its tests, both with their programs released, so that the memory of the run's
-    processes together stays low (taking_turns: for the test's setup, call and teardown, its fixtures'
-    too).  Without the folder (GREYID_TEST_TURNS, made by the run's first process) tests run as they come."""
+    """A test marked ``alone`` (one that starts worker processes of its own, a Dask cluster, or whose programs
+    take gigabytes) runs while the other test worker waits between its tests, both with their programs
+    released, so that the memory of the run's processes together stays low (taking_turns: for the test's
+    setup, call and teardown, its fixtures' too).  Without the folder (GREYID_TEST_TURNS, made by the run's
+    first process) tests run as they come."""
     folder = os.environ.get("GREYID_TEST_TURNS")
     if not folder or not os.path.isdir(folder):
         yield

@@ -23,10 +23,11 @@ from greyid.datasets.reference import theophylline_model
 
 
 # ---------------------------------------------------------------- methods of each member's likelihood
-# First in the module: their programs are the largest (nested derivatives of the Laplace method over the
-# states and of the ensemble filter), and they hold no fixture, so they run before the module's fixtures
-# keep the fitted models' programs (a process's peak memory).
+# First in the module and alone: their programs are the largest (nested derivatives of the Laplace method
+# over the states and of the ensemble filter), and they hold no fixture, so they run before the module's
+# fixtures keep the fitted models' programs, while the other test worker waits (a run's peak memory).
 @pytest.mark.slow
+@pytest.mark.alone
 def test_a_population_by_the_ensemble_kalman_filter_approaches_the_exact_one_and_particles_are_refused():
     """The EnKF's fixed random numbers make each member's likelihood smooth in θ, so the random effects integrate by
     Laplace's method as with the exact filter: on a linear Gaussian population the two fits agree to the ensemble's
@@ -47,6 +48,7 @@ def test_a_population_by_the_ensemble_kalman_filter_approaches_the_exact_one_and
 
 
 @pytest.mark.slow
+@pytest.mark.alone
 def test_a_population_by_the_laplace_method_over_the_states_equals_the_kalman_filters():
     """Laplace's method over the states (exact transitions of a linear Gaussian model) gives each member the
     Kalman filter's likelihood exactly, so the nested Laplace over the random effects must reproduce the
