@@ -51,25 +51,20 @@ def prune_oldest(folder: str, limit: int) -> None:
 
 
 if "GREYID_CACHE_DIR" not in os.environ:  # the first process of the run (test workers inherit it)
+    import atexit
+    import shutil
+    import tempfile
+
     _KEPT = os.environ.get("GREYID_TEST_CACHE", os.path.join(os.path.expanduser("~"), ".cache", "greyid", "tests"))
     if _KEPT == "run":
-        import atexit
-        import shutil
-        import tempfile
-
         _KEPT = tempfile.mkdtemp(prefix="greyid-tests-")
         atexit.register(shutil.rmtree, _KEPT, True)
     else:
         os.makedirs(_KEPT, exist_ok=True)
         prune_oldest(_KEPT, TEST_CACHE_BYTES)
     os.environ["GREYID_CACHE_DIR"] = _KEPT
-    import tempfile
-
-    # The lock files by which a test marked "alone" runs while no other test does (_take_turns below).
+    # The lock files by which a test marked "alone" runs while no other test does (taking_turns below).
     _TURNS = tempfile.mkdtemp(prefix="greyid-test-turns-")
-    import atexit
-    import shutil
-
     atexit.register(shutil.rmtree, _TURNS, True)
     os.environ["GREYID_TEST_TURNS"] = _TURNS
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")

@@ -266,6 +266,8 @@ def test_a_lost_worker_loses_no_chunk(gain_problem):
     np.testing.assert_allclose(gradients, expected[2], rtol=1e-10)
     for chunked, alone in zip(path, expected[4]):  # the Hessian's T and λ, put together in the members' order
         np.testing.assert_allclose(chunked, alone, rtol=1e-10, atol=1e-14)
+
+
 # ---------------------------------------------------------------- derivatives of the general case
 @pytest.fixture(scope="module")
 def nonlinear_problem():
@@ -664,5 +666,3 @@ def test_member_programs_run_a_programs_first_call_on_one_chunk_then_side_by_sid
         assert all(start >= first[3] for _, member, start, _ in calls if member != 0)
     finally:
         members.close()
-
-

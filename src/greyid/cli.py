@@ -156,8 +156,8 @@ def load_data(model, data: Optional[Path], fit=None, time: Optional[str] = None)
 
 
 def _fit_warning():
-    """FitWarning, whose module imports JAX (and with it sets up the cache): imported inside ``_run``'s
-    handling of warnings, so that the cache's own warning is handled too."""
+    """FitWarning (greyid.errors), taken from estimate.results, whose import loads JAX (and with it sets up
+    the cache): imported inside ``_run``'s handling of warnings, so that the cache's own warning is handled too."""
     from .estimate.results import FitWarning
 
     return FitWarning
