@@ -72,6 +72,7 @@ os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 # greyid (with JAX) and SciPy are imported where a helper or fixture needs them, not here: pytest-xdist's
 # controller process loads this file too and runs no test, and would hold them (about 0.3 GB) all run long.
 import contextlib  # noqa: E402
+import functools  # noqa: E402
 from typing import TYPE_CHECKING  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -303,12 +304,18 @@ def compilations(monkeypatch):
     return seen
 
 
-def release_memory() -> None:
-    """Drop the programs JAX keeps for the functions it traced, collect, and hand the freed heap back."""
+def release_memory(models_too: bool = False) -> None:
+    """Drop the programs JAX keeps for the functions it traced, collect, and hand the freed heap back;
+    ``models_too``: also those the models still alive keep (release_compiled()), which a later call of
+    theirs loads again from the cache folder (seconds for a population's)."""
     import gc
 
     import jax
 
+    if models_too:
+        from greyid.runtime.jit import release_compiled
+
+        release_compiled()
     jax.clear_caches()
     gc.collect()
     try:
@@ -346,7 +353,7 @@ def _release_memory(request):
     started = time.monotonic()
     yield
     before = _resident_gib()
-    release_memory()
+    release_memory(models_too=True)
     log = os.environ.get("GREYID_TEST_MEMORY_LOG")
     if log:
         compiling = {name: _COMPILE_SECONDS.pop(event, 0.0) for event, name in _COMPILE_EVENTS.items()}
@@ -437,7 +444,7 @@ def pytest_runtest_protocol(item, nextitem):
         yield
         return
     alone = item.get_closest_marker("alone") is not None
-    with taking_turns(folder, alone, waiting=release_memory):
+    with taking_turns(folder, alone, waiting=functools.partial(release_memory, models_too=True)):
         if alone:  # its worker processes make their own programs: this one's can go meanwhile
-            release_memory()
+            release_memory(models_too=True)
         yield

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import matplotlib
 import pytest
+from conftest import release_memory
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = sorted([ROOT / "README.md", *(ROOT / "docs").rglob("*.md")])
@@ -73,19 +74,25 @@ def test_a_pages_code_runs_as_written(page, tmp_path, monkeypatch):
         (tmp_path / name).symlink_to(ROOT / name)
     monkeypatch.chdir(tmp_path)
     namespace = {"__name__": "__docs__"}
-    for block in blocks(page):
-        if block["language"] == "toml" and block["file"]:
-            (tmp_path / block["file"]).write_text(block["code"], encoding="utf-8")
-        if block["language"] != "python" or block["not_run"] is not None:
-            continue
-        try:
-            exec(compile(block["code"], f"{_name(page)}:{block['line']}", "exec"), namespace)
-        except Exception as error:  # the page and line of the block that failed, with the error
-            raise AssertionError(f"{_name(page)}, the block at line {block['line']}: "
-                                 f"{type(error).__name__}: {error}") from error
-    import matplotlib.pyplot as plt
+    try:
+        for block in blocks(page):
+            if block["language"] == "toml" and block["file"]:
+                (tmp_path / block["file"]).write_text(block["code"], encoding="utf-8")
+            if block["language"] != "python" or block["not_run"] is not None:
+                continue
+            try:
+                exec(compile(block["code"], f"{_name(page)}:{block['line']}", "exec"), namespace)
+            except Exception as error:  # the page and line of the block that failed, with the error
+                raise AssertionError(f"{_name(page)}, the block at line {block['line']}: "
+                                     f"{type(error).__name__}: {error}") from error
+    finally:
+        import matplotlib.pyplot as plt
 
-    plt.close("all")
+        plt.close("all")
+        # A page's models end with it: their programs go too, rather than add to the next page's (the
+        # pages run one after another in one process, beside the other test worker's tests).
+        namespace.clear()
+        release_memory(models_too=True)
 
 
 #: The public API whose every argument the reference documents, in NumPy style (Parameters, Returns).

@@ -72,6 +72,52 @@ def test_a_population_by_the_laplace_method_over_the_states_equals_the_kalman_fi
                                rtol=1e-4, atol=1e-8)
 
 
+# ---------------------------------------------------------------- real data: theophylline
+# Early too, before the fixtures below keep their models' programs: its own take 0.5-0.7 GB.
+def closed_form_laplace(frame, lke, lka, lcl, s2, omega_ka, omega_cl):
+    """The Laplace approximation written out with the closed-form concentration (SSfol), modes by SciPy,
+    the Hessian by central differences: a reference independent of greyid's filter and derivatives."""
+    total = 0.0
+    for _, subject in frame.groupby("Subject", sort=False):
+        t, dose, y = subject["Time"].to_numpy(), subject["Dose"].to_numpy(), subject["conc"].to_numpy()
+
+        def g(u):
+            ke, ka, cl = np.exp(lke), np.exp(lka + omega_ka * u[0]), np.exp(lcl + omega_cl * u[1])
+            c = dose * ke * ka / (cl * (ka - ke)) * (np.exp(-ke * t) - np.exp(-ka * t))
+            return 0.5 * np.sum(np.log(2 * np.pi * s2) + (y - c) ** 2 / s2) + 0.5 * u @ u
+
+        u = optimize.minimize(g, np.zeros(2), method="BFGS", options=dict(gtol=1e-10)).x
+        u = optimize.minimize(g, u, method="Nelder-Mead", options=dict(xatol=1e-12, fatol=1e-14)).x
+        h, E = 1e-4, np.eye(2)
+        H = np.array([[(g(u + h * (E[i] + E[j])) - g(u + h * (E[i] - E[j])) - g(u - h * (E[i] - E[j]))
+                        + g(u - h * (E[i] + E[j]))) / (4 * h * h) for j in range(2)] for i in range(2)])
+        total += g(u) + 0.5 * np.log(np.linalg.det(H))
+    return -total
+
+
+def test_theophylline_laplace_equals_the_closed_form_reference():
+    """On the classic data set, at R nlme's ML estimates (run side by side, docs/population.md), greyid's
+    Laplace marginal equals the same approximation computed from the closed-form solution."""
+    frame = pd.read_csv(shared("theophylline/Theoph.csv"))
+    model = theophylline_model()
+    data = {str(k): g[["Time", "Dose", "conc"]].reset_index(drop=True)
+            for k, g in frame.groupby("Subject", sort=False)}
+    nlme = dict(lKe=-2.4547026, lKa=0.4657295, lCl=-3.2272222, s2=0.7092536 ** 2, omega_ka=0.643583,
+                omega_cl=0.166928)
+    spec, raw = make_spec(model, {"lKa": "normal", "lCl": "normal"}, None, None, "diagonal", list(data))
+    members = prepare_members(model, list(data), list(data.values()), spec, raw, "Time", "zoh", None, None)
+    options = population_filter(model, spec, members, None, "Time", "zoh", None, {})
+    outer = Outer(population_programs(model.structure, spec, options), members, spec)
+    assert spec.phi_names() == ["lCl", "lKa", "lKe", "s2", "omega_lKa", "omega_lCl"]
+    phi = np.array([nlme["lCl"], nlme["lKa"], nlme["lKe"], np.log(nlme["s2"]), np.log(nlme["omega_ka"]),
+                    np.log(nlme["omega_cl"])])
+    ours = -outer.value(phi)[0]
+    reference = closed_form_laplace(frame, nlme["lKe"], nlme["lKa"], nlme["lCl"], nlme["s2"], nlme["omega_ka"],
+                                    nlme["omega_cl"])
+    outer.close()
+    assert ours == pytest.approx(reference, abs=2e-4)
+
+
 # ---------------------------------------------------------------- exact case: an input gain
 FREE = ("b11", "c1", "s1")
 
@@ -453,51 +499,6 @@ def test_a_member_that_cannot_be_fitted_is_left_out_with_a_warning(gain_problem)
         fit = fit_population(model, broken, {"b11": "normal"})
     assert "empty" in fit.left_out and "empty" not in fit.random_effects.index
     assert "left out: data set 'empty'" in fit.summary()
-
-
-# ---------------------------------------------------------------- real data: theophylline
-def closed_form_laplace(frame, lke, lka, lcl, s2, omega_ka, omega_cl):
-    """The Laplace approximation written out with the closed-form concentration (SSfol), modes by SciPy,
-    the Hessian by central differences: a reference independent of greyid's filter and derivatives."""
-    total = 0.0
-    for _, subject in frame.groupby("Subject", sort=False):
-        t, dose, y = subject["Time"].to_numpy(), subject["Dose"].to_numpy(), subject["conc"].to_numpy()
-
-        def g(u):
-            ke, ka, cl = np.exp(lke), np.exp(lka + omega_ka * u[0]), np.exp(lcl + omega_cl * u[1])
-            c = dose * ke * ka / (cl * (ka - ke)) * (np.exp(-ke * t) - np.exp(-ka * t))
-            return 0.5 * np.sum(np.log(2 * np.pi * s2) + (y - c) ** 2 / s2) + 0.5 * u @ u
-
-        u = optimize.minimize(g, np.zeros(2), method="BFGS", options=dict(gtol=1e-10)).x
-        u = optimize.minimize(g, u, method="Nelder-Mead", options=dict(xatol=1e-12, fatol=1e-14)).x
-        h, E = 1e-4, np.eye(2)
-        H = np.array([[(g(u + h * (E[i] + E[j])) - g(u + h * (E[i] - E[j])) - g(u - h * (E[i] - E[j]))
-                        + g(u - h * (E[i] + E[j]))) / (4 * h * h) for j in range(2)] for i in range(2)])
-        total += g(u) + 0.5 * np.log(np.linalg.det(H))
-    return -total
-
-
-def test_theophylline_laplace_equals_the_closed_form_reference():
-    """On the classic data set, at R nlme's ML estimates (run side by side, docs/population.md), greyid's
-    Laplace marginal equals the same approximation computed from the closed-form solution."""
-    frame = pd.read_csv(shared("theophylline/Theoph.csv"))
-    model = theophylline_model()
-    data = {str(k): g[["Time", "Dose", "conc"]].reset_index(drop=True)
-            for k, g in frame.groupby("Subject", sort=False)}
-    nlme = dict(lKe=-2.4547026, lKa=0.4657295, lCl=-3.2272222, s2=0.7092536 ** 2, omega_ka=0.643583,
-                omega_cl=0.166928)
-    spec, raw = make_spec(model, {"lKa": "normal", "lCl": "normal"}, None, None, "diagonal", list(data))
-    members = prepare_members(model, list(data), list(data.values()), spec, raw, "Time", "zoh", None, None)
-    options = population_filter(model, spec, members, None, "Time", "zoh", None, {})
-    outer = Outer(population_programs(model.structure, spec, options), members, spec)
-    assert spec.phi_names() == ["lCl", "lKa", "lKe", "s2", "omega_lKa", "omega_lCl"]
-    phi = np.array([nlme["lCl"], nlme["lKa"], nlme["lKe"], np.log(nlme["s2"]), np.log(nlme["omega_ka"]),
-                    np.log(nlme["omega_cl"])])
-    ours = -outer.value(phi)[0]
-    reference = closed_form_laplace(frame, nlme["lKe"], nlme["lKa"], nlme["lCl"], nlme["s2"], nlme["omega_ka"],
-                                    nlme["omega_cl"])
-    outer.close()
-    assert ours == pytest.approx(reference, abs=2e-4)
 
 
 def test_saved_fit_loads_with_the_same_tables(gain_problem, gain_fit, tmp_path):

@@ -246,6 +246,33 @@ def test_a_new_equal_model_in_the_process_takes_the_live_ones_programs_and_anoth
     assert len(compiler._compiled_by_key) == 0
 
 
+def test_released_programs_of_a_live_model_are_freed_and_its_next_fit_is_the_same(cache, ou_data, compilations):
+    """release_compiled() drops the executables a live model's programs keep (jax.clear_caches() alone
+    leaves them): none is left alive in the process; the model's next fit compiles its programs again
+    (from the kept ones) and gives the same answer to the last bit."""
+    import gc
+
+    from jax.stages import Compiled
+
+    def alive():
+        gc.collect()
+        return sum(isinstance(thing, Compiled) for thing in gc.get_objects())
+
+    model = ou_model()
+    first = model.fit(ou_data)
+    jax.clear_caches()
+    assert alive() > 0 and any(program.executables for program in compiler._programs)
+    compiler.release_compiled()
+    assert alive() == 0
+    assert not any(program.executables for program in compiler._programs) and len(compiler._compiled_by_key) == 0
+    compiled = len(compilations)
+    again = model.fit(ou_data)
+    assert len(compilations) > compiled
+    assert again.loglik == first.loglik and again.iterations == first.iterations
+    np.testing.assert_array_equal(again.params["estimate"], first.params["estimate"])
+    np.testing.assert_array_equal(again.params["std_error"], first.params["std_error"])
+
+
 def test_a_fit_does_not_depend_on_the_cache_state(cache, ou_data, compilations, monkeypatch):
     """Every program compiles with the same options whichever process or cache state compiles it:
     a first fit (empty caches), a fit in the same process, and a new model's (a new process's) fit on

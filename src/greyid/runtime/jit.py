@@ -65,6 +65,10 @@ def accepted(options: dict) -> bool:
 #: functions or constants at run time, as some of its tests do, must not be given programs built before).
 _compiled_by_key: weakref.WeakValueDictionary = weakref.WeakValueDictionary()
 
+#: Every [`Program`][greyid.runtime.jit.Program] of this process, held weakly, for
+#: [`release_compiled()`][greyid.runtime.jit.release_compiled].
+_programs: weakref.WeakSet = weakref.WeakSet()
+
 
 def compile_lowered(lowered):
     """XLA's compilation of a traced and lowered program, with greyid's options."""
@@ -95,6 +99,7 @@ class Program:
         self.executables: dict = {}  # signature -> compiled program (see executable())
         self._shared_key = None if self.key is None else repr(self.key)  # as on disk (store.path_for)
         self._top = None  # see top
+        _programs.add(self)
 
     def __call__(self, *args):
         if any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves(args)):
@@ -216,3 +221,22 @@ def kept_key(structure, key: tuple):
     """The key on disk of a program of ``structure`` with settings ``key``: None for models of
     Python functions (no fingerprint), whose programs are never kept."""
     return None if structure.fingerprint is None else ("structure", structure.fingerprint, key)
+
+
+def release_compiled() -> None:
+    """Drop the compiled programs this process holds: JAX's (``jax.clear_caches()``) and those greyid's
+    programs keep for the models still alive, whose memory ``jax.clear_caches()`` alone does not free.
+
+    A long session (a notebook that has fitted many models, a test suite) gets the memory back; a later
+    call of a model's program loads it again from the cache folder (or compiles it where none is kept),
+    with the same results.
+
+    Examples
+    --------
+    >>> from greyid.runtime.jit import release_compiled
+    >>> release_compiled()
+    """
+    for program in list(_programs):
+        program.executables.clear()
+        program._top = None
+    jax.clear_caches()
