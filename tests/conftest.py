@@ -413,22 +413,28 @@ def taking_turns(folder: str, alone: bool, waiting=None):
     """Run the block while no other block runs (``alone``) or beside other blocks that are not alone,
     across processes: every block holds a shared lock on ``folder``/turns, an ``alone`` block an exclusive
     one.  ``folder``/gate is held by an ``alone`` block while it waits, so that no block starts meanwhile
-    (else two processes could take turns and keep it waiting for good); a block that finds the gate
-    held calls ``waiting()`` before it waits."""
+    (else two processes could take turns and keep it waiting for good); a block that finds the gate held,
+    or an ``alone`` block running, calls ``waiting()`` (once) before it waits."""
     import fcntl
 
-    with open(os.path.join(folder, "gate"), "a") as gate, open(os.path.join(folder, "turns"), "a") as turns:
+    told = []
+
+    def take(file, lock):
         try:
-            fcntl.flock(gate, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(file, lock | fcntl.LOCK_NB)
         except BlockingIOError:
-            if waiting is not None:
+            if waiting is not None and not told:
+                told.append(True)
                 waiting()
-            fcntl.flock(gate, fcntl.LOCK_EX)
+            fcntl.flock(file, lock)
+
+    with open(os.path.join(folder, "gate"), "a") as gate, open(os.path.join(folder, "turns"), "a") as turns:
+        take(gate, fcntl.LOCK_EX)
         if alone:
             fcntl.flock(turns, fcntl.LOCK_EX)  # once the blocks that run have ended
         fcntl.flock(gate, fcntl.LOCK_UN)
         if not alone:
-            fcntl.flock(turns, fcntl.LOCK_SH)
+            take(turns, fcntl.LOCK_SH)  # at once, unless an alone block runs
         yield  # the locks end with the files
 
 

@@ -160,7 +160,7 @@ def test_the_tests_compilation_cache_is_pruned_oldest_first(tmp_path):
 
 def test_a_test_marked_alone_runs_while_no_other_test_does(tmp_path):
     """conftest's taking_turns (run around every test): a block marked alone waits for the block that runs
-    to end, and a block that comes while it waits is told to wait (its memory released) and starts after it."""
+    to end, and a block that comes while it waits or runs is told to wait (its memory released) and starts after it."""
     import threading
     import time
 
@@ -172,26 +172,32 @@ def test_a_test_marked_alone_runs_while_no_other_test_does(tmp_path):
         with lock:
             events.append(what)
 
-    def block(name, alone, hold, started=None):
+    def block(name, alone, hold, started):
         with taking_turns(str(tmp_path), alone, waiting=lambda: note(f"{name} waits")):
             note(f"{name} in")
-            if started is not None:
-                started.set()
+            started.set()
             time.sleep(hold)
             note(f"{name} out")
 
-    first_in = threading.Event()
-    first = threading.Thread(target=block, args=("first", False, 0.6, first_in))
-    first.start()
-    first_in.wait()
-    alone = threading.Thread(target=block, args=("alone", True, 0.3))
-    alone.start()
+    def start(name, alone, hold, until_in=False):
+        started = threading.Event()
+        thread = threading.Thread(target=block, args=(name, alone, hold, started))
+        thread.start()
+        if until_in:
+            started.wait()
+        return thread
+
+    threads = [start("first", False, 0.6, until_in=True), start("alone", True, 0.3)]
     time.sleep(0.2)  # the alone block holds the gate, waiting for the first to end
-    later = threading.Thread(target=block, args=("later", False, 0.0))
-    later.start()
-    for thread in (first, alone, later):
+    threads.append(start("later", False, 0.0))
+    for thread in threads:
         thread.join(10)
     assert events == ["first in", "later waits", "first out", "alone in", "alone out", "later in", "later out"]
+    events.clear()  # a block that comes while the alone block runs (the gate free again) is told to wait too
+    threads = [start("alone", True, 0.4, until_in=True), start("after", False, 0.0)]
+    for thread in threads:
+        thread.join(10)
+    assert events == ["alone in", "after waits", "alone out", "after in", "after out"]
     with taking_turns(str(tmp_path), True):  # alone and nobody else: no wait
         pass
 

@@ -156,6 +156,18 @@ def test_forward_selection_stops_where_lr_stops(models, two_state_data):
     step1 = result.table[result.table["step"] == 1].set_index("model")
     assert step1.loc["TiTe", "chosen"] and not step1.loc["Ti_solar", "chosen"]
     assert step1.loc["TiTe", "p_value"] < 0.05
+    # The models not chosen hold no compiled program (released as the selection went on), the chosen one
+    # does; a released model computes again, from the kept programs, what its fit found.
+    from greyid.runtime.jit import _programs_in
+
+    def compiled(fit):
+        return sum(len(program.executables) for program in _programs_in(fit.model.structure.cache))
+
+    assert compiled(result.chosen) > 0
+    released = result.fits["Ti_solar"]
+    assert compiled(released) == 0 and compiled(result.fits["Ti"]) == 0
+    at = released.params["estimate"].to_dict()
+    assert released.model.loglik(at, two_state_data) == pytest.approx(released.loglik, rel=1e-12, abs=0)
 
 
 def test_laplace_marginal_likelihood_is_exact_for_a_gaussian_mean():

@@ -223,20 +223,46 @@ def kept_key(structure, key: tuple):
     return None if structure.fingerprint is None else ("structure", structure.fingerprint, key)
 
 
-def release_compiled() -> None:
-    """Drop the compiled programs this process holds: JAX's (``jax.clear_caches()``) and those greyid's
-    programs keep for the models still alive, whose memory ``jax.clear_caches()`` alone does not free.
+def release_compiled(model=None) -> None:
+    """Drop compiled programs this process holds: JAX's (``jax.clear_caches()``) and those greyid's programs
+    keep for the models still alive, whose memory ``jax.clear_caches()`` alone does not free; or only those
+    of ``model``.
 
-    A long session (a notebook that has fitted many models, a test suite) gets the memory back; a later
-    call of a model's program loads it again from the cache folder (or compiles it where none is kept),
-    with the same results.
+    A long session (a notebook that has fitted many models, a model selection, a test suite) gets the
+    memory back; a later call of a model's program loads it again from the cache folder (or compiles it
+    where none is kept), with the same results.
+
+    Parameters
+    ----------
+    model : greyid.Model, optional
+        Release only the programs of this model's structure (and not JAX's caches); all when None.
 
     Examples
     --------
+    >>> import greyid
     >>> from greyid.runtime.jit import release_compiled
-    >>> release_compiled()
+    >>> model = greyid.library.load_model("Ti")
+    >>> release_compiled(model)  # this model's programs only
+    >>> release_compiled()  # every program of the process
     """
-    for program in list(_programs):
+    if model is None:
+        programs = list(_programs)
+    else:
+        programs = list(_programs_in(getattr(model, "structure", model).cache))
+    for program in programs:
         program.executables.clear()
         program._top = None
-    jax.clear_caches()
+    if model is None:
+        jax.clear_caches()
+
+
+def _programs_in(held):
+    """The programs in ``held``: a structure's cache of programs, alone or in tuples, lists and dicts."""
+    if isinstance(held, Program):
+        yield held
+    elif isinstance(held, dict):
+        for value in held.values():
+            yield from _programs_in(value)
+    elif isinstance(held, (tuple, list)):
+        for value in held:
+            yield from _programs_in(value)

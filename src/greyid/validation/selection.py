@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import pandas as pd
 
 from ..errors import ModelError
+from ..runtime.jit import release_compiled
 from .structure import lr_test
 
 
@@ -43,7 +44,12 @@ def select_forward(candidates, data, level: float = 0.05, **fit_options) -> Forw
 
     Each extension is fitted from the chosen model's fit (``init_from``, where the
     extension reduces to it) as well as from the usual starts; an extension that
-    still ends below the model it extends is reported with the reason.
+    still ends below the model it extends is reported with the reason.  The compiled
+    programs of a model that is no longer the one chosen so far are released as the
+    selection goes on ([`release_compiled()`][greyid.runtime.jit.release_compiled]), so
+    that a selection over many candidates holds the programs of one step, not of all;
+    a released model's fit keeps its results, and a later call that needs its programs
+    loads them again from the cache folder.
 
     Parameters
     ----------
@@ -82,6 +88,7 @@ def select_forward(candidates, data, level: float = 0.05, **fit_options) -> Forw
         return max(out, key=lambda f: f.loglik), out
 
     current, first = fit_all(steps[0])
+    _release_all_but(current, first)
     nan = float("nan")
     for f in first:
         rows.append(dict(step=0, model=f.model.name, loglik=f.loglik, n_params=f.n_params, compared_with=None,
@@ -105,6 +112,15 @@ def select_forward(candidates, data, level: float = 0.05, **fit_options) -> Forw
                              df=nan if t is None else t.df, p_value=nan if t is None else t.p_value,
                              chosen=chosen, note=note))
         if not accepted:
+            _release_all_but(current, tried)
             break
+        _release_all_but(best, [*tried, current])
         current = best
     return ForwardSelection(pd.DataFrame(rows), fits, current)
+
+
+def _release_all_but(kept, fits) -> None:
+    """Release the compiled programs of the models of ``fits`` but ``kept``'s (the model chosen so far)."""
+    for fit in fits:
+        if fit is not kept and fit.model.structure is not kept.model.structure:
+            release_compiled(fit.model)
