@@ -395,7 +395,7 @@ def _resident_gib() -> float:
 
 
 #: Physical memory from which the suite runs in two worker processes (``-n auto`` in pyproject.toml):
-#: in two, the suite's processes together peak at about 7.9 GB (one process: 6.4 GB, before RELEASE_ABOVE_GIB).
+#: in two, the suite's processes together peak at about 3.4 GiB (docs/install.md).
 TWO_WORKERS_MEMORY = 12 * 2**30
 
 
