@@ -206,6 +206,6 @@ def test_the_docstrings_examples_run():
 
     for module in ("greyid.api", "greyid.model.model", "greyid.estimate.likelihood", "greyid.fleet.fit",
                    "greyid.fleet.study", "greyid.data.named", "greyid.design.information",
-                   "greyid.design.identifiability", "greyid.simulate.signals"):
+                   "greyid.design.identifiability", "greyid.simulate.signals", "greyid.runtime.jit"):
         result = doctest.testmod(importlib.import_module(module), optionflags=doctest.ELLIPSIS)
         assert result.failed == 0, module
