@@ -315,8 +315,9 @@ def release_memory(models_too: bool = False) -> None:
     if models_too:
         from greyid.runtime.jit import release_compiled
 
-        release_compiled()
-    jax.clear_caches()
+        release_compiled()  # JAX's caches with them
+    else:
+        jax.clear_caches()
     gc.collect()
     try:
         import ctypes
