@@ -628,43 +628,56 @@ def test_population_report(nonlinear_problem, correlated_fit, tmp_path):
     assert '<section id="members">' not in again and '<section id="omega">' in again
 
 
-def test_member_programs_run_a_programs_first_call_on_one_chunk_then_side_by_side():
-    """A program's first call compiles it: it runs on one chunk before the threads take the others (threads
-    started together would each trace and compile the same program); later calls run the chunks side by
-    side, and the members come back in their order."""
+def test_member_programs_compile_a_program_once_then_run_the_chunks_side_by_side():
+    """A program is compiled once, for the first chunk, before the chunks run (threads started together would
+    each trace and compile it); then the chunks run side by side on the threads, on the first call as on later
+    ones (a chunk run alone first kept one core idle in every fit), and the members come back in their order."""
     import threading
     import time
 
-    calls = []  # (kind, first member of the chunk, start, end)
-    lock = threading.Lock()
+    class Recorded:
+        """A program whose ``executable`` compiles once per signature (0.2 s), its runs recorded."""
 
-    def recorded(kind):
-        def program(u, phi, x, base, data):
+        def __init__(self, kind):
+            self.kind, self.executables, self.compiled, self.runs = kind, {}, [], []
+            self.lock = threading.Lock()
+
+        def dynamic(self, args):
+            return args
+
+        def __call__(self, *args):  # as a Program's call
+            return self.executable(*args)(*self.dynamic(args))
+
+        def executable(self, u, phi, x, base, data):
+            signature = (np.shape(u), np.shape(x))
+            if signature not in self.executables:  # no lock: threads asking together would each compile
+                start = time.perf_counter()
+                time.sleep(0.2)
+                self.compiled.append((threading.get_ident(), start, time.perf_counter()))
+                self.executables[signature] = self.run
+            return self.executables[signature]
+
+        def run(self, u, phi, x, base, data):
             start = time.perf_counter()
             time.sleep(0.2)
-            with lock:
-                calls.append((kind, int(x[0, 0]), start, time.perf_counter()))
+            with self.lock:
+                self.runs.append((int(x[0, 0]), start, time.perf_counter()))
             return np.asarray(x)[:, 0] * 2.0
-        return program
 
-    programs = laplace.LaplacePrograms(value=recorded("value"), inner=recorded("inner"), gradient=None,
-                                       hessian=None)
+    value, inner = Recorded("value"), Recorded("inner")
+    programs = laplace.LaplacePrograms(value=value, inner=inner, gradient=None, hessian=None)
     x = np.arange(6.0)[:, None]
     members = laplace.MemberPrograms(programs, x, (np.zeros(1),), {"y": np.zeros((6, 3))}, workers=3)
     try:
-        for round_ in range(2):
-            calls.clear()
+        for _ in range(2):  # the first call, then a later one
+            value.runs.clear()
             np.testing.assert_array_equal(members.value(np.zeros((6, 1)), np.zeros(2)), 2.0 * np.arange(6.0))
-            first = next(c for c in calls if c[1] == 0)
-            others = [c for c in calls if c[1] != 0]
-            assert len(calls) == 3
-            if round_ == 0:  # the others start once the first chunk has ended
-                assert all(start >= first[3] for _, _, start, _ in others)
-            else:  # side by side
-                assert max(start for _, _, start, _ in calls) < min(end for _, _, _, end in calls)
-        calls.clear()
-        members.inner(np.zeros((6, 1)), np.zeros(2))  # another program: its own first call
-        first = next(c for c in calls if c[1] == 0)
-        assert all(start >= first[3] for _, member, start, _ in calls if member != 0)
+            assert len(value.compiled) == 1 and value.compiled[0][0] == threading.get_ident()  # once, here
+            assert sorted(member for member, _, _ in value.runs) == [0, 2, 4]  # three chunks of two
+            assert min(start for _, start, _ in value.runs) >= value.compiled[0][2]  # after the compilation
+            assert max(start for _, start, _ in value.runs) < min(end for _, _, end in value.runs)  # side by side
+        np.testing.assert_array_equal(members.inner(np.zeros((6, 1)), np.zeros(2)), 2.0 * np.arange(6.0))
+        assert len(inner.compiled) == 1  # another program: compiled once too
+        assert max(start for _, start, _ in inner.runs) < min(end for _, _, end in inner.runs)
     finally:
         members.close()

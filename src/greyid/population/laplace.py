@@ -311,36 +311,33 @@ class MemberPrograms:
         self.derivative_parts = _cut(x, data, -(-n // DERIVATIVE_MEMBERS))
         self.base = tuple(jax.device_put(np.asarray(b, dtype=float)) for b in base)
         self.pool = ThreadPoolExecutor(len(self.parts))
-        self.ran: set[str] = set()  # the programs called once already (compiled)
 
-    def _run(self, kind: str, call, parts=None):
-        """``call`` on every chunk, side by side on the threads.  A program's first call runs on one
-        chunk alone: it compiles the program once, where threads started together would each trace and
-        compile it."""
+    def _run(self, program, arguments, parts=None):
+        """``program`` on every chunk (``arguments(part)``: its arguments for a chunk), side by side on the
+        threads.  Its executable is fetched first, here, for the first chunk (the chunks are of one size):
+        compiled or loaded once, where threads started together would each trace and compile it, and
+        then every chunk runs at once, on the first call as on later ones."""
         parts = self.parts if parts is None else parts
-        first = None
-        if kind not in self.ran:
-            first = jax.device_get(call(parts[0]))
-            self.ran.add(kind)
-        futures = [self.pool.submit(call, part) for part in parts[0 if first is None else 1:]]
-        outs = [jax.device_get(f.result()) for f in futures]
-        return _joined(outs if first is None else [first, *outs], parts)
+        executable = program.executable(*arguments(parts[0]))
+
+        def run(part):
+            return jax.device_get(executable(*program.dynamic(arguments(part))))
+
+        return _joined(list(self.pool.map(run, parts)), parts)
 
     def value(self, u, phi):
-        phi = jnp.asarray(phi)
-        return self._run("value", lambda part: self.programs.value(np.asarray(u)[part[1]], phi, part[2], self.base,
-                                                                   part[3]))
+        phi, u = jnp.asarray(phi), np.asarray(u)
+        return self._run(self.programs.value, lambda part: (u[part[1]], phi, part[2], self.base, part[3]))
 
     def inner(self, u, phi):
-        phi = jnp.asarray(phi)
-        return self._run("inner", lambda part: self.programs.inner(np.asarray(u)[part[1]], phi, part[2], self.base,
-                                                                   part[3]))
+        phi, u = jnp.asarray(phi), np.asarray(u)
+        return self._run(self.programs.inner, lambda part: (u[part[1]], phi, part[2], self.base, part[3]))
 
     def gradient(self, phi, u):
         """``(ℓ_i, ℓ_i', T_i, λ_i)`` per member at the modes ``u``; T and λ are what ``hessian`` takes."""
-        phi = jnp.asarray(phi)
-        return self._run("gradient", lambda part: self.programs.gradient(phi, np.asarray(u)[part[1]], part[2],
-                                                                         self.base, part[3]), self.derivative_parts)
+        phi, u = jnp.asarray(phi), np.asarray(u)
+        return self._run(self.programs.gradient, lambda part: (phi, u[part[1]], part[2], self.base, part[3]),
+                         self.derivative_parts)
 
     def compile_hessian(self, phi, u) -> None:
         """Compile the Hessian's program in the background (the arguments give only its shapes): it is the
@@ -362,15 +359,10 @@ class MemberPrograms:
         over the threads as the gradient's."""
         if getattr(self, "_hessian_compiled", None) is not None:
             self._hessian_compiled.result()  # compiled in the background (an error there is raised here)
-        phi = jnp.asarray(phi)
-        program = self.programs.hessian
-
-        def run(part):
-            args = (phi, np.asarray(u)[part[1]], np.asarray(tangents)[part[1]], np.asarray(multipliers)[part[1]],
-                    part[2], self.base, part[3])
-            return program.executable(*args)(*args)
-
-        return self._run("hessian", run, self.derivative_parts)
+        phi, u, tangents, multipliers = jnp.asarray(phi), np.asarray(u), np.asarray(tangents), np.asarray(multipliers)
+        return self._run(self.programs.hessian, lambda part: (phi, u[part[1]], tangents[part[1]],
+                                                              multipliers[part[1]], part[2], self.base, part[3]),
+                         self.derivative_parts)
 
     def close(self):
         self.pool.shutdown()
