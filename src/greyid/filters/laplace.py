@@ -367,16 +367,17 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
         last = X + block_solve(factor, couplings, gradient(X))
         return jnp.where(jnp.all(jnp.isfinite(last)), last, X)
 
-    # The mode is found once per evaluation, but each level of forward differentiation asks for it
-    # again (its rule below calls it): jitted, it is traced once and the later requests reuse the trace.
-    newton_traced_once = jax.jit(newton)
-    blocks_traced_once = jax.jit(lambda theta, data, X: blocks(pieces(theta, data), X))
-    mixed_traced_once = jax.jit(lambda theta, dtheta, data, X: jax.jvp(
+    # Each level of forward differentiation asks for the mode, and for the blocks and mixed derivative
+    # of its rule below, again: as jitted functions the levels reuse their traces instead of tracing
+    # them anew (JAX still traces the search twice, in the mode's primal and in its rule).
+    newton_search = jax.jit(newton)
+    hessian_blocks = jax.jit(lambda theta, data, X: blocks(pieces(theta, data), X))
+    mixed_derivative = jax.jit(lambda theta, dtheta, data, X: jax.jvp(
         lambda th: jax.grad(joint, argnums=1)(pieces(th, data), X), (theta,), (dtheta,))[1])
 
     @jax.custom_jvp
     def mode(theta, data):
-        return newton_traced_once(jax.lax.stop_gradient(theta), data)
+        return newton_search(jax.lax.stop_gradient(theta), data)
 
     @mode.defjvp
     def mode_jvp(primals, tangents):
@@ -384,8 +385,8 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
         dtheta, _ = tangents
         X = mode(theta, data)
         # ∂J/∂X (X̂(θ), θ) = 0:  H dX̂ = −∂²J/∂X∂θ dθ, with −H = A block-tridiagonal.
-        mixed = mixed_traced_once(theta, dtheta, data, X)
-        diagonal, lower = blocks_traced_once(theta, data, X)
+        mixed = mixed_derivative(theta, dtheta, data, X)
+        diagonal, lower = hessian_blocks(theta, data, X)
         factor, couplings = block_cholesky(diagonal, lower)
         dX = jax.lax.custom_linear_solve(lambda v: block_matvec(diagonal, lower, v), mixed,
                                          lambda _, b: block_solve(factor, couplings, b), symmetric=True)
