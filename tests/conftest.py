@@ -396,7 +396,8 @@ def _resident_gib() -> float:
 
 
 #: Physical memory from which the suite runs in two worker processes (``-n auto`` in pyproject.toml):
-#: in two, the suite's processes together peak at about 3.4 GiB (docs/install.md).
+#: in two, the suite's processes together peak at 3.4–3.5 GiB on a later run, 3.9–4.0 GiB on one that traces every
+#: program again (docs/install.md).
 TWO_WORKERS_MEMORY = 12 * 2**30
 
 
