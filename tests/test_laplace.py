@@ -1,6 +1,8 @@
 """The Laplace method over the states, against independent references: the exact Kalman filter, the dense
 Gaussian likelihood of the Euler–Maruyama discretization, a point-mass filter on a grid, central differences."""
 
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -287,3 +289,31 @@ def test_the_laplace_smoother_is_the_rauch_tung_striebel_smoother_of_a_linear_ga
     mean = np.array(mean[::-1])
     mode = counts_model.smooth(dict(a=0.5, mu=2.0, s=0.5), counts, method="laplace").smoothed["l"].to_numpy()
     assert np.max(np.abs(mode - mean)) < 0.05, np.max(np.abs(mode - mean))
+
+
+def test_the_derivatives_trace_the_mode_search_once(monkeypatch):
+    """Each level of forward differentiation asks for the mode: the Hessian (forward over forward) traces its
+    Newton search once, not once in the mode's value and again in its derivative's rule, and gives the Kalman
+    filter's Hessian (linear model)."""
+    import traceback
+
+    from greyid.filters import laplace
+
+    searches = []
+    factor = laplace.block_cholesky
+
+    def counting(*args):
+        callers = [frame.name for frame in traceback.extract_stack()[:-1]
+                   if frame.filename.endswith(str(Path("filters", "laplace.py")))]
+        searches.append("improve" in callers)
+        return factor(*args)
+
+    monkeypatch.setattr(laplace, "block_cholesky", counting)  # (switches the kept programs off: it traces)
+    m = ou_model()
+    m.set_initial_state(mean={"x": 1.25}, covariance=[[0.1]])  # a model no other test has traced in this process
+    data = ou_data(n=20)
+    x = np.array([PARAMS[n] for n in m.likelihood(data).names])
+    hessian = m.likelihood(data, method="laplace").hessian(x)
+    assert sum(searches) == 1
+    kalman = m.likelihood(data, method="kalman").hessian(x)
+    np.testing.assert_allclose(hessian, kalman, rtol=1e-7, atol=1e-8)

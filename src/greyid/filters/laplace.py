@@ -51,6 +51,10 @@ from .updates import observed_root, whiten
 #: Newton steps at most, and the largest step (relative to the states' size) that ends the search.
 NEWTON_STEPS = 50
 NEWTON_TOLERANCE = 1e-10
+#: No devices named: the abstract mesh JAX traces a jitted function's body under (see ``mode`` in
+#: [`build()`][greyid.filters.laplace.build]).
+EMPTY_MESH = jax.sharding.AbstractMesh((), ())
+
 #: ctsmTMB's jitter of G Gᵀ in its Laplace method.
 CTSMTMB_JITTER = 1e-8
 #: The shortest step along a Newton direction tried before the search stops, and the smallest curvature
@@ -369,7 +373,7 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
 
     # Each level of forward differentiation asks for the mode, and for the blocks and mixed derivative
     # of its rule below, again: as jitted functions the levels reuse their traces instead of tracing
-    # them anew (JAX still traces the search twice, in the mode's primal and in its rule).
+    # them anew.
     newton_search = jax.jit(newton)
     hessian_blocks = jax.jit(lambda theta, data, X: blocks(pieces(theta, data), X))
     mixed_derivative = jax.jit(lambda theta, dtheta, data, X: jax.jvp(
@@ -377,7 +381,11 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
 
     @jax.custom_jvp
     def mode(theta, data):
-        return newton_search(jax.lax.stop_gradient(theta), data)
+        # JAX keys a jitted function's trace on the abstract mesh in force too: none where it traces this
+        # primal, the empty one inside the rule's calls.  Naming the empty one here lets the rule reuse the
+        # search's trace instead of tracing the search a second time (the largest part of a first fit).
+        with jax.sharding.use_abstract_mesh(EMPTY_MESH):
+            return newton_search(jax.lax.stop_gradient(theta), data)
 
     @mode.defjvp
     def mode_jvp(primals, tangents):
