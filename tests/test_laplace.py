@@ -293,8 +293,8 @@ def test_the_laplace_smoother_is_the_rauch_tung_striebel_smoother_of_a_linear_ga
 
 def test_the_derivatives_trace_the_mode_search_once(monkeypatch):
     """Each level of forward differentiation asks for the mode: the Hessian (forward over forward) traces its
-    Newton search once, not once in the mode's value and again in its derivative's rule, and gives the Kalman
-    filter's Hessian (linear model)."""
+    Newton search once, not once in the mode's value and again in its derivative's rule (its value is
+    test_gradient_and_hessian_are_those_of_the_kalman_filter_for_a_linear_model's)."""
     import traceback
 
     from greyid.filters import laplace
@@ -313,7 +313,5 @@ def test_the_derivatives_trace_the_mode_search_once(monkeypatch):
     m.set_initial_state(mean={"x": 1.25}, covariance=[[0.1]])  # a model no other test has traced in this process
     data = ou_data(n=20)
     x = np.array([PARAMS[n] for n in m.likelihood(data).names])
-    hessian = m.likelihood(data, method="laplace").hessian(x)
+    m.likelihood(data, method="laplace").hessian(x)
     assert sum(searches) == 1
-    kalman = m.likelihood(data, method="kalman").hessian(x)
-    np.testing.assert_allclose(hessian, kalman, rtol=1e-7, atol=1e-8)
