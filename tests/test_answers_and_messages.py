@@ -151,6 +151,25 @@ def test_a_parameter_run_so_far_to_its_bound_that_its_derivatives_vanish_is_judg
     assert "the data do not determine 'b'" in fit.message
 
 
+def test_a_parameter_the_likelihood_does_not_depend_on_is_named_wherever_the_search_leaves_it():
+    """Data of ordinary size, u = 0 in every row: b's slope and curvature are exactly 0, and the search leaves it
+    inside its bounds or at one (where depends on the rounding of the other parameters' steps, so on the CPU):
+    either way the fit names b as what the data do not determine, once, and the other estimates stand."""
+    model = _flat_model()
+    times = pd.DataFrame({"t": np.arange(200) * 0.1, "u": 0.0})
+    simulated = model.simulate({"a": 1.0, "b": 1.0, "s": 0.3, "e": 0.1, "x0": 0.0}, times, seed=1).frame(0)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        fit = model.fit(simulated[["t", "u", "y"]])
+    assert not fit.converged
+    assert fit.message == "the data do not determine 'b' (the likelihood does not depend on it)"
+    said = [str(w.message) for w in caught]
+    assert sum("the likelihood does not depend on 'b'" in w for w in said) == 1
+    assert not any("the Hessian is singular" in w for w in said)
+    assert fit.params.loc["b", "std_error"] == np.inf and not fit.params.loc["b", "reliable"]
+    assert fit.params.loc[["a", "s", "e"], "reliable"].all()
+
+
 def test_a_parameter_the_likelihood_does_not_depend_on_is_no_converged_estimate(undetermined_fit):
     fit, _ = undetermined_fit
     assert not fit.converged

@@ -103,20 +103,23 @@ def build_result(model, frames, theta, problem, best, optima, settings, scores=N
     Hz = 0.5 * (best.hessian + best.hessian.T)
     Jinv = 1.0 / d1[inner]
     H = Hz[np.ix_(inner, inner)] * np.outer(Jinv, Jinv)
-    # At a bound, a criterion that does not depend on a parameter at all has exactly zero slope and
-    # curvature in it (JAX differentiates an absent term to 0.0): the bound did not hold it back, the
-    # data simply do not determine it.  Where dθ/dz has underflowed, z's derivatives are 0 whatever
-    # θ's are, and only the equations can tell (the constant inputs that leave the parameter out).
+    # A criterion that does not depend on a parameter at all has exactly zero slope and curvature in
+    # it (JAX differentiates an absent term to 0.0): wherever the search left it (at a bound, or
+    # inside where rounding in the other parameters' steps moved it), the data simply do not
+    # determine it.  Where dθ/dz has underflowed, z's derivatives are 0 whatever θ's are, and only
+    # the equations can tell (the constant inputs that leave the parameter out).
     flat_in_z = (best.gradient == 0.0) & np.all(best.hessian == 0.0, axis=1)
-    why = {i: why_undetermined(model, free_names[i], frames) for i in np.flatnonzero(at_bound & flat_in_z)}
+    why = {i: why_undetermined(model, free_names[i], frames) for i in np.flatnonzero(flat_in_z)}
     independent = np.array([i in why and (abs(d1[i]) > 0 or bool(why[i])) for i in range(len(free))], dtype=bool)
+    explained = {free_names[i] for i in np.flatnonzero(independent)}
     for i in np.flatnonzero(at_bound & ~independent):
         warn.append(f"parameter '{free_names[i]}' is at a bound ({theta_free[i]:.6g}); "
                     "its standard error is not given")
     for i in np.flatnonzero(independent):
+        where = ", at a bound" if at_bound[i] else ""
         warn.append(f"the likelihood does not depend on '{free_names[i]}' (its slope and curvature are 0)"
-                    f"{why[i]}: the data do not determine it, and its estimate ({theta_free[i]:.6g}, at a "
-                    "bound) means nothing")
+                    f"{why[i]}: the data do not determine it, and its estimate ({theta_free[i]:.6g}{where}) "
+                    "means nothing")
 
     k = int(inner.sum())
     cov_inner = np.full((k, k), np.nan)
@@ -137,6 +140,8 @@ def build_result(model, frames, theta, problem, best, optima, settings, scores=N
             ill.append({"eigenvalue": float(w[j]), "direction": loading})
             for name in loading:
                 reliable[free_names.index(name)] = False
+            if set(loading) <= explained:
+                continue  # said above: the likelihood does not depend on it
             desc = ", ".join(f"{v:+.3f}·{n}" for n, v in loading.items())
             why = why_undetermined(model, next(iter(loading)), frames) if len(loading) == 1 else ""
             warn.append(f"the Hessian is {'singular' if w[j] > -1e-12 else 'not positive definite'} in the "
@@ -178,11 +183,14 @@ def build_result(model, frames, theta, problem, best, optima, settings, scores=N
     with np.errstate(divide="ignore", invalid="ignore"):  # a zero standard error: no test
         tval = np.where(se > 0, theta_free / np.where(se > 0, se, 1.0), np.nan)
     pval = 2 * special.stdtr(dof, -np.abs(tval))  # two-sided Student-t p-value
-    converged, message = honest_convergence(best, ill, free_names, inner, g_theta, se)
-    if converged and independent.any():
+    # A flat direction in parameters the likelihood does not depend on is explained by that alone.
+    unexplained = [d for d in ill if not set(d["direction"]) <= explained]
+    converged, message = honest_convergence(best, unexplained, free_names, inner, g_theta, se)
+    if independent.any():
+        said = ("the data do not determine " + ", ".join(f"'{free_names[i]}'" for i in np.flatnonzero(independent))
+                + " (the likelihood does not depend on it)")
+        message = said if converged else f"{said}; {message}"
         converged = False
-        message = ("the data do not determine " + ", ".join(f"'{free_names[i]}'" for i in np.flatnonzero(independent))
-                   + " (the likelihood does not depend on it)")
     if not converged:
         warn.append(f"the fit did not converge: {message}")
     if settings.get("substeps_accurate") is False:
