@@ -87,7 +87,8 @@ def test_a_compile_without_options_compiles_with_none(monkeypatch):
 def test_one_jit_serves_nested_and_top_level_calls_with_the_options(compilations):
     """A program called inside another traced function runs as that program's part (XLA takes options
     only for the outermost one).  At top level a kept program (one with a key) runs an executable
-    compiled with greyid's options, one per signature (tree, shapes, types, weak types, static values);
+    compiled with greyid's options, one per signature (tree, shapes, kinds, weak types, static values;
+    a NumPy array or scalar and a JAX array are one kind);
     one without a key runs JAX's own dispatch of the function jitted with those options."""
     import jax
 
@@ -105,6 +106,16 @@ def test_one_jit_serves_nested_and_top_level_calls_with_the_options(compilations
     kept(0.7, 1.0)  # the same signature as the first call: no new compilation
     kept(np.float64(0.7), 1.0)  # a NumPy scalar is strongly typed: another program
     assert len(kept.executables) == 3 and len(compilations) == 3
+    # A JAX array of a NumPy array's shape and dtype runs the program compiled for the NumPy one, and
+    # the other way round (a fleet's members bring NumPy arrays to a program compiled for device arrays).
+    np.testing.assert_allclose(np.asarray(kept(jnp.asarray(np.full(3, 0.3)), 2.0)), 2 * np.sin(np.full(3, 0.3)))
+    np.testing.assert_allclose(np.asarray(kept(np.ones((2, 2)), jnp.asarray(np.float64(2.0)))),
+                               2 * np.sin(np.ones((2, 2))))
+    np.testing.assert_allclose(np.asarray(kept(jnp.ones((2, 2)), np.asarray(3.0))), 3 * np.sin(np.ones((2, 2))))
+    kept(np.float64(0.5), 2.0)  # a NumPy scalar: as a 0-dimensional array (the program of np.float64(0.7))
+    assert len(kept.executables) == 4 and len(compilations) == 4
+    kept(np.ones(3, dtype=np.float32), 2.0)  # another dtype: another program
+    assert len(kept.executables) == 5 and len(compilations) == 5
     powers = compiler.Program(lambda x, n: x ** n, key=("test", "powers"), static_argnums=(1,))
     assert float(powers(2.0, 3)) == 8.0 and float(powers(2.0, 2)) == 4.0 and float(powers(3.0, 2)) == 9.0
     unkept_powers = compiler.jit(lambda x, n: x ** n, static_argnums=(1,))

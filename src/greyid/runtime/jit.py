@@ -30,6 +30,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Callable
 
 import jax
+import numpy as np
 
 from . import store
 
@@ -74,6 +75,18 @@ def compile_lowered(lowered):
     """XLA's compilation of a traced and lowered program, with greyid's options."""
     options = compiler_options()
     return lowered.compile(options) if options else lowered.compile()
+
+
+#: The kind of a NumPy or JAX array (or NumPy scalar) leaf in a signature.
+ARRAY = "array"
+#: Whether a leaf's type is a NumPy or JAX array's (or a NumPy scalar's), by type: looked up per call.
+_array_types: dict = {}
+
+
+def _is_array_type(kind: type) -> bool:
+    """Whether ``kind`` is a NumPy or JAX array's type (or a NumPy scalar's), noted in ``_array_types``."""
+    array = _array_types[kind] = issubclass(kind, (np.ndarray, np.generic, jax.Array))
+    return array
 
 
 class Program:
@@ -126,14 +139,20 @@ class Program:
         return tuple(a for i, a in enumerate(args) if i not in self.static_argnums)
 
     def signature(self, args: tuple) -> tuple:
-        """What a compiled program is specific to: the arguments' tree, each leaf's type, shape, dtype
+        """What a compiled program is specific to: the arguments' tree, each leaf's kind, shape, dtype
         and weak type (a Python float is weakly typed, a NumPy one is not), and the static values.
 
-        Read from the leaves' attributes rather than ``jax.typeof``, which costs several times as
-        much per leaf on every call; a compiled program checks its arguments again itself.
+        A NumPy array (or scalar) and a JAX array of the same shape and dtype are one kind: a compiled
+        program takes either (a fleet's members bring their series as NumPy arrays to the program a fit of
+        one of them compiled for its arrays on the device).  Read from the leaves' attributes rather
+        than ``jax.typeof``, which costs several times as much per leaf on every call; a compiled
+        program checks its arguments again itself.
         """
         leaves, tree = jax.tree_util.tree_flatten(self.dynamic(args))
-        kinds = tuple((type(a), getattr(a, "shape", None), getattr(a, "dtype", None), getattr(a, "weak_type", None))
+        known = _array_types
+        kinds = tuple((ARRAY, a.shape, a.dtype, getattr(a, "weak_type", False))
+                      if known.get(type(a)) or (type(a) not in known and _is_array_type(type(a))) else
+                      (type(a), getattr(a, "shape", None), getattr(a, "dtype", None), getattr(a, "weak_type", None))
                       for a in leaves)
         return tree, kinds, tuple(args[i] for i in self.static_argnums)
 
