@@ -278,9 +278,8 @@ def _cut(x, data, count: int) -> list[tuple]:
         index = np.arange(start, min(start + size, n))
         padded = np.concatenate([index, np.full(size - len(index), index[0])])
         # Indexed on the host: a device array's indexing is an operation JAX compiles for each shape.
-        parts.append((index, padded, jax.device_put(np.asarray(x)[padded]),
-                      jax.tree_util.tree_map(lambda leaf, padded=padded: jax.device_put(np.asarray(leaf)[padded]),
-                                             data)))
+        chunk = jax.tree_util.tree_map(lambda leaf, padded=padded: jax.device_put(np.asarray(leaf)[padded]), (x, data))
+        parts.append((index, padded, *chunk))
     return parts
 
 
