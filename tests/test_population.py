@@ -381,6 +381,59 @@ def test_outer_gradient_and_hessian_against_central_differences(nonlinear_proble
     np.testing.assert_allclose(H_kept, H, rtol=1e-7, atol=1e-9 * np.abs(H).max())
 
 
+def _derivatives_through_z(m, spec):
+    """``(phi, u, x, base, data) -> (ℓ_i', T_i, λ_i)`` of one member by forward derivatives of g_i(u, φ) itself,
+    through θ_i(φ, u), in z = (u, φ) (laplace's module doc, first part): the reference for the gradient's
+    program, which takes the filter's derivatives in the member's parameter scales ψ instead."""
+    import jax
+
+    from greyid.estimate.criteria import log_criterion
+    from greyid.filters.api import compiled_filter
+
+    run = compiled_filter(m.structure, filter_options(m.structure, None), keep_outputs=False)
+    q = spec.n_random
+
+    def derivatives(phi, u_hat, x, base, data):
+        def g(u, ph):
+            return -log_criterion(run(spec.theta(ph, u, x, base), data)[0]) + 0.5 * jnp.sum(u ** 2)
+
+        def parts(z):
+            u, ph = z[:q], z[q:]
+            H = jax.jacfwd(jax.jacfwd(g))(u, ph)
+            return g(u, ph) + 0.5 * jnp.linalg.slogdet(H)[1], jax.jacfwd(g)(u, ph)
+
+        Fz, Gz = jax.jacfwd(parts)(jnp.concatenate([u_hat, phi]))
+        H = Gz[:, :q]
+        T = jnp.concatenate([-jnp.linalg.solve(H, Gz[:, q:]), jnp.eye(len(phi))])
+        return Fz @ T, T, -jnp.linalg.solve(H, Fz[:q])
+
+    return jax.jit(derivatives)
+
+
+def test_outer_gradient_through_the_parameter_scales_equals_that_through_z(nonlinear_problem):
+    """The gradient program's ℓ_i', T_i and λ_i (the filter differentiated in the member's free parameters'
+    scales ψ, F and G from P(ψ) = (K, ∇_R K, ∇²_R K) and its first derivatives) equal forward derivatives of
+    g_i itself in (u, φ), for a lognormal and a normal random effect, a covariate effect and a full Ω.  (The
+    Hessian's program, which adds P's second derivatives, is checked against central differences of this
+    gradient in test_outer_gradient_and_hessian_against_central_differences.)"""
+    m, _, _, spec, outer = nonlinear_problem
+    phi = spec.phi0() + np.array([0.05, -0.1, 0.02, -0.03, 0.2, 0.1, -0.2, 0.3])
+    u = outer.modes(phi).u
+    _, gradients, tangents, multipliers = outer.programs.gradient(phi, u)
+    members, reference = outer.members, _derivatives_through_z(m, spec)
+    for i in (0, 3, 6):
+        expected = reference(jnp.asarray(phi), jnp.asarray(u[i]), jnp.asarray(members.x[i]),
+                             tuple(jnp.asarray(b) for b in spec.base()), jax_tree_index(members.data, i))
+        for got, want in zip((gradients[i], tangents[i], multipliers[i]), map(np.asarray, expected)):
+            np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-10 * np.abs(want).max())
+
+
+def jax_tree_index(tree, i: int):
+    import jax
+
+    return jax.tree_util.tree_map(lambda leaf: jnp.asarray(np.asarray(leaf)[i]), tree)
+
+
 def test_parameter_map_by_hand(nonlinear_problem):
     """θ_i from φ, u and the standardised covariate, written out: a lognormal, b normal + β·area, Ω = LLᵀ."""
     *_, spec, _ = nonlinear_problem

@@ -24,14 +24,26 @@ along z(φ) = (û(φ), φ) with T = dz/dφ = [û'; I] and û' = −H⁻¹ G_φ:
 (At the mode F_u is the log-determinant's slope alone: the envelope theorem for
 g_i.)  With λ = −H⁻¹F_uᵀ the second term is λᵀG_zz[T, T], so
 
-    ℓ_i'' = ∂²/∂ψ² [F + λᵀG](z + Tψ) at ψ = 0,
+    ℓ_i'' = ∂²/∂s² [F + λᵀG](z + Ts) at s = 0,
 
-the second derivatives of one scalar along T's p columns.  F_z and G_z come from
-forward derivatives in z of the one function z ↦ (F, G) — a few random effects
-and a handful of population parameters, so forward mode is cheap; the gradient's
-program returns T and λ with ℓ_i', and the Hessian's program takes them, so
-that it holds the fourth derivatives of the filter alone (p² tangents), not
-also the third ones that give T.
+the second derivatives of one scalar along T's p columns; the gradient's program
+returns T and λ with ℓ_i', and the Hessian's program takes them.
+
+The filter enters all of this through one function of few arguments.  The member's
+parameters are θ_i = θ(ψ_i), ψ_i = spec.scale(φ, u, x) the free parameters' scales
+(log θ for a lognormal random effect), where u moves only the random effects'
+scales ψ_R, by L u.  With K(ψ) = −log p(y_i | θ(ψ)) and
+
+    P(ψ) = (K, ∇_R K, ∇²_R K):   g = K + ½uᵀu,  G = Lᵀ∇_R K + u,  H = Lᵀ∇²_R K L + I,
+
+so F and G are closed-form functions of P and z.  Their first (second)
+derivatives in z at a point are exact from P's Taylor polynomial of degree 1 (2)
+in ψ there: the gradient's program takes P and its derivatives along the n free
+parameters' scales (forward mode), the Hessian's its second derivatives too, and
+everything else is differentiated in closed form.  The filter's derivatives are
+thus taken along n directions rather than the q + p of z (p counts the covariate
+effects and the random effects' spread too; the figures are in docs/performance.md,
+``benchmarks/population.py``).
 """
 
 from __future__ import annotations
@@ -99,15 +111,36 @@ def build(structure, spec, options) -> LaplacePrograms:
     def inner(u, phi, x, base, data):
         return value_gradient_hessian(lambda v: member(v, phi, x, base, data))(u)
 
-    def parts(z, x, base, data):
-        """(F, G) at z = (u, φ): the Laplace value at u and the inner gradient ∇_u g_i."""
+    # The outer derivatives go through the member's likelihood K(ψ) = −log p(y | θ(ψ)) as a function of
+    # its free parameters' scales ψ = spec.scale(φ, u, x) (module doc): what the filter contributes is
+    # P(ψ) = (K, ∇_R K, ∇²_R K), R the random effects' scales, and its derivatives in ψ.
+    R = jnp.asarray(spec.random_in_scale, dtype=int)
+
+    def on_random(psi, base, data):
+        """P(ψ) = (K, ∇_R K, ∇²_R K) at ψ."""
+        def at(v):
+            return negative_loglik(spec.theta_at_scale(psi.at[R].set(v), base), data)
+        return value_gradient_hessian(at)(psi[R])
+
+    def parts(P, z):
+        """(F, G) at z = (u, φ) from P at the member's ψ: F = g + ½ log det H, G = ∇_u g, with
+        g = K + ½uᵀu, ∇_u g = Lᵀ∇_R K + u and H = Lᵀ∇²_R K L + I (ψ_R moves with L u)."""
+        K, K_R, K_RR = P
         u, phi = z[:q], z[q:]
-        v, g, H = inner(u, phi, x, base, data)
-        return v + 0.5 * _log_det(H), g
+        L = spec.cholesky(phi)
+        return K + 0.5 * jnp.sum(u ** 2) + 0.5 * _log_det(L.T @ K_RR @ L + jnp.eye(q)), L.T @ K_R + u
+
+    def taylor(P0, P1, P2, z, psi, x, base):
+        """P at ψ(z) by its Taylor polynomial at ``psi`` of degree 1 (without P2) or 2: exact in value and
+        in derivatives up to that degree at the z where ψ(z) = ``psi``."""
+        step = spec.scale(z[q:], z[:q], x, base) - psi
+        if P2 is None:
+            return jax.tree_util.tree_map(lambda a, b: a + b @ step, P0, P1)
+        return jax.tree_util.tree_map(lambda a, b, c: a + b @ step + 0.5 * (c @ step) @ step, P0, P1, P2)
 
     def with_aux(fun):
-        def wrapped(z):
-            out = fun(z)
+        def wrapped(*args):
+            out = fun(*args)
             return out, out
         return wrapped
 
@@ -120,7 +153,10 @@ def build(structure, spec, options) -> LaplacePrograms:
     def gradient(phi, u_hat, x, base, data):
         """ℓ_i, ℓ_i' = F_z T, and the path's tangents T and multipliers λ = −H⁻¹F_uᵀ for the Hessian."""
         z = jnp.concatenate([jax.lax.stop_gradient(u_hat), phi])
-        (Fz, Gz), (F, _) = jax.jacfwd(with_aux(lambda z: parts(z, x, base, data)), has_aux=True)(z)
+        psi = spec.scale(phi, z[:q], x, base)
+        P1, P0 = jax.jacfwd(with_aux(on_random), has_aux=True)(psi, base, data)
+        (Fz, Gz), (F, _) = jax.jacfwd(with_aux(lambda v: parts(taylor(P0, P1, None, v, psi, x, base), v)),
+                                      has_aux=True)(z)
         T, H = path(Gz)
         return F, Fz @ T, T, -jnp.linalg.solve(H, Fz[:q])
 
@@ -128,12 +164,20 @@ def build(structure, spec, options) -> LaplacePrograms:
         """ℓ_i'' = ∂²/∂ψ² [F + λᵀG](z + Tψ) at 0: second derivatives along the path's tangents only
         (p² tangents rather than (q + p)²), T and λ from ``gradient`` at the same φ and modes."""
         z = jnp.concatenate([jax.lax.stop_gradient(u_hat), phi])
+        psi = spec.scale(phi, z[:q], x, base)
 
-        def along(psi):
-            F, G = parts(z + T @ psi, x, base, data)
+        def first(psi):
+            P1, P0 = jax.jacfwd(with_aux(on_random), has_aux=True)(psi, base, data)
+            return P1, (P0, P1)
+
+        P2, (P0, P1) = jax.jacfwd(first, has_aux=True)(psi)
+
+        def along(step):
+            v = z + T @ step
+            F, G = parts(taylor(P0, P1, P2, v, psi, x, base), v)
             return F + lam @ G
 
-        return jax.jacfwd(jax.jacfwd(along))(jnp.zeros(T.shape[1]))
+        return jax.hessian(along)(jnp.zeros(T.shape[1]))
 
     over_members = (0, None, 0, None, 0)
     over_members_phi_first = (None, 0, 0, None, 0)

@@ -159,26 +159,39 @@ class PopulationSpec:
         return (self.names, self.free, self.log_scale, tuple(self.transform.kind.tolist()), self.random,
                 self.effects, self.full)
 
-    def theta(self, phi, u, x, base, xp=jnp):
-        """θ_i at the standardised random effects ``u`` and standardised covariates ``x``."""
+    def scale(self, phi, u, x, base, xp=jnp):
+        """ψ_i, the free parameters' scales of member i (log θ for a lognormal random effect, θ otherwise),
+        at the standardised random effects ``u`` and standardised covariates ``x``."""
         psi = self.typical_scale(phi, base, xp)
         beta = phi[self.slices["beta"]]
         eta = self.cholesky(phi, xp) @ u if self.n_random else None
-        position = {index: j for j, index in enumerate(self.free)}
         shifts: dict[int, list] = {}
         for k, (i, c) in enumerate(self.effects):
             shifts.setdefault(i, []).append(beta[k] * x[c])
         for r, i in enumerate(self.random):
             shifts.setdefault(i, []).append(eta[r])
+        return xp.stack([psi[j] + sum(shifts.get(i, [])) for j, i in enumerate(self.free)])
+
+    def theta_at_scale(self, scale, base, xp=jnp):
+        """θ of a member from its free parameters' ``scale`` (see `scale()`) and the fixed values in ``base``."""
+        position = {index: j for j, index in enumerate(self.free)}
         out = []
         for i in range(len(self.names)):
             if i not in position:
                 out.append(base[0][i])
                 continue
             j = position[i]
-            value = psi[j] + sum(shifts.get(i, []))
-            out.append(xp.exp(value) if self.log_scale[j] else value)
+            out.append(xp.exp(scale[j]) if self.log_scale[j] else scale[j])
         return xp.stack(out)
+
+    def theta(self, phi, u, x, base, xp=jnp):
+        """θ_i at the standardised random effects ``u`` and standardised covariates ``x``."""
+        return self.theta_at_scale(self.scale(phi, u, x, base, xp), base, xp)
+
+    @property
+    def random_in_scale(self) -> tuple[int, ...]:
+        """Where the random effects' parameters sit in `scale()`'s vector (ψ_i moves with u_i there alone)."""
+        return tuple(self.free.index(i) for i in self.random)
 
     def standardise(self, table: pd.DataFrame | None) -> np.ndarray:
         """Covariates of data sets (rows of ``table``) standardised as in the fit."""
