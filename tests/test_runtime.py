@@ -23,6 +23,18 @@ def test_the_estimation_package_loads_its_results_module_only_when_used():
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
+def test_fit_many_after_a_fit_imports_no_statistics_library():
+    """A script that fits a model and then a fleet: ``greyid.fit_many`` loads the fleet modules without
+    scipy.stats (half a second to import, and a fleet fit uses none of it); ``run_study``'s critical
+    values still work."""
+    code = ("import sys, greyid, greyid.api; assert 'scipy.stats' not in sys.modules, 'before'; greyid.fit_many; "
+            "assert 'scipy.stats' not in sys.modules, 'fit_many'; "
+            "from greyid.fleet.study import StudyResult; import pandas as pd; "
+            "r = StudyResult.__new__(StudyResult); r.estimates = pd.DataFrame({'a': [1.0, 2.0, 3.0]}); "
+            "v = r.critical_values(0.1); assert 1.0 < v['t'] < 3.0, v")
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
 def ou_model():
     m = greyid.Model("ou_fixed_p0")
     m.add_system("dx = theta*(mu - x)*dt + exp(ls)*dw1")

@@ -18,7 +18,6 @@ from typing import Callable, Mapping
 
 import numpy as np
 import pandas as pd
-from scipy import stats
 
 from ..errors import ModelError
 from ..estimate.calls import simulate_at
@@ -90,6 +89,8 @@ class StudyResult:
         dict
             ``{"F": (lower, upper), "t": upper}``.
         """
+        from scipy import stats  # here: scipy.stats costs half a second to import, and fit_many needs none
+
         n = len(self.estimates)
         return {
             "F": (stats.f.ppf(alpha / 2, n - 1, 1e9), stats.f.ppf(1 - alpha / 2, n - 1, 1e9)),
