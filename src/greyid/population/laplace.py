@@ -95,9 +95,9 @@ def _log_det(H):
 def build(structure, spec, options) -> LaplacePrograms:
     """The programs of one population problem: the model's filter (``options``) inside g_i.
 
-    The outer derivatives are taken forward (a handful of population parameters):
-    reverse mode through the nested derivatives of the filter's scan compiles several
-    times slower and runs no faster.
+    The outer derivatives are taken forward (along the members' free parameters' scales,
+    module doc): reverse mode through the nested derivatives of the filter's scan compiles
+    several times slower and runs no faster.
     """
     run = compiled_filter(structure, options, keep_outputs=False).__wrapped__
     q = spec.n_random
@@ -161,13 +161,14 @@ def build(structure, spec, options) -> LaplacePrograms:
         return F, Fz @ T, T, -jnp.linalg.solve(H, Fz[:q])
 
     def hessian(phi, u_hat, T, lam, x, base, data):
-        """ℓ_i'' = ∂²/∂ψ² [F + λᵀG](z + Tψ) at 0: second derivatives along the path's tangents only
-        (p² tangents rather than (q + p)²), T and λ from ``gradient`` at the same φ and modes."""
+        """ℓ_i'' = ∂²/∂s² [F + λᵀG](z + Ts) at s = 0: second derivatives along the path's tangents only
+        (p² tangents rather than (q + p)²), T and λ from ``gradient`` at the same φ and modes; P's
+        second derivatives in ψ make F and G exact to second order."""
         z = jnp.concatenate([jax.lax.stop_gradient(u_hat), phi])
         psi = spec.scale(phi, z[:q], x, base)
 
-        def first(psi):
-            P1, P0 = jax.jacfwd(with_aux(on_random), has_aux=True)(psi, base, data)
+        def first(at):
+            P1, P0 = jax.jacfwd(with_aux(on_random), has_aux=True)(at, base, data)
             return P1, (P0, P1)
 
         P2, (P0, P1) = jax.jacfwd(first, has_aux=True)(psi)
