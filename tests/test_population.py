@@ -17,6 +17,7 @@ from greyid.population import PopulationWarning, fit_population
 from greyid.population.fit import Outer
 from greyid.population.members import population_filter, population_programs, prepare_members
 from greyid.population import laplace
+from greyid.estimate.batch import _member
 from greyid.population.spec import make_spec
 from greyid.filters.api import filter_options
 from greyid.datasets.reference import theophylline_model
@@ -423,15 +424,9 @@ def test_outer_gradient_through_the_parameter_scales_equals_that_through_z(nonli
     members, reference = outer.members, _derivatives_through_z(m, spec)
     for i in (0, 3, 6):
         expected = reference(jnp.asarray(phi), jnp.asarray(u[i]), jnp.asarray(members.x[i]),
-                             tuple(jnp.asarray(b) for b in spec.base()), jax_tree_index(members.data, i))
+                             tuple(jnp.asarray(b) for b in spec.base()), _member(members.data, i))
         for got, want in zip((gradients[i], tangents[i], multipliers[i]), map(np.asarray, expected)):
             np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-10 * np.abs(want).max())
-
-
-def jax_tree_index(tree, i: int):
-    import jax
-
-    return jax.tree_util.tree_map(lambda leaf: jnp.asarray(np.asarray(leaf)[i]), tree)
 
 
 def test_parameter_map_by_hand(nonlinear_problem):

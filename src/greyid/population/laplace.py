@@ -116,11 +116,22 @@ def build(structure, spec, options) -> LaplacePrograms:
     # P(ψ) = (K, ∇_R K, ∇²_R K), R the random effects' scales, and its derivatives in ψ.
     R = jnp.asarray(spec.random_in_scale, dtype=int)
 
+    def with_aux(fun):
+        def wrapped(*args):
+            out = fun(*args)
+            return out, out
+        return wrapped
+
     def on_random(psi, base, data):
         """P(ψ) = (K, ∇_R K, ∇²_R K) at ψ."""
         def at(v):
             return negative_loglik(spec.theta_at_scale(psi.at[R].set(v), base), data)
         return value_gradient_hessian(at)(psi[R])
+
+    def with_slopes(psi, base, data):
+        """(P, ∂P/∂ψ) at ψ, forward along the n free parameters' scales."""
+        P1, P0 = jax.jacfwd(with_aux(on_random), has_aux=True)(psi, base, data)
+        return P0, P1
 
     def parts(P, z):
         """(F, G) at z = (u, φ) from P at the member's ψ: F = g + ½ log det H, G = ∇_u g, with
@@ -138,12 +149,6 @@ def build(structure, spec, options) -> LaplacePrograms:
             return jax.tree_util.tree_map(lambda a, b: a + b @ step, P0, P1)
         return jax.tree_util.tree_map(lambda a, b, c: a + b @ step + 0.5 * (c @ step) @ step, P0, P1, P2)
 
-    def with_aux(fun):
-        def wrapped(*args):
-            out = fun(*args)
-            return out, out
-        return wrapped
-
     def path(Gz):
         """T = dz/dφ along the mode, and H = ∂G/∂u."""
         H = Gz[:, :q]
@@ -154,21 +159,21 @@ def build(structure, spec, options) -> LaplacePrograms:
         """ℓ_i, ℓ_i' = F_z T, and the path's tangents T and multipliers λ = −H⁻¹F_uᵀ for the Hessian."""
         z = jnp.concatenate([jax.lax.stop_gradient(u_hat), phi])
         psi = spec.scale(phi, z[:q], x, base)
-        P1, P0 = jax.jacfwd(with_aux(on_random), has_aux=True)(psi, base, data)
+        P0, P1 = with_slopes(psi, base, data)
         (Fz, Gz), (F, _) = jax.jacfwd(with_aux(lambda v: parts(taylor(P0, P1, None, v, psi, x, base), v)),
                                       has_aux=True)(z)
         T, H = path(Gz)
         return F, Fz @ T, T, -jnp.linalg.solve(H, Fz[:q])
 
     def hessian(phi, u_hat, T, lam, x, base, data):
-        """ℓ_i'' = ∂²/∂s² [F + λᵀG](z + Ts) at s = 0: second derivatives along the path's tangents only
-        (p² tangents rather than (q + p)²), T and λ from ``gradient`` at the same φ and modes; P's
-        second derivatives in ψ make F and G exact to second order."""
+        """ℓ_i'' = ∂²/∂s² [F + λᵀG](z + Ts) at s = 0, T and λ from ``gradient`` at the same φ and modes:
+        the filter's second derivatives along the n scales (P's, which make F and G exact to second
+        order), the closed form's along T's p columns."""
         z = jnp.concatenate([jax.lax.stop_gradient(u_hat), phi])
         psi = spec.scale(phi, z[:q], x, base)
 
         def first(at):
-            P1, P0 = jax.jacfwd(with_aux(on_random), has_aux=True)(at, base, data)
+            P0, P1 = with_slopes(at, base, data)
             return P1, (P0, P1)
 
         P2, (P0, P1) = jax.jacfwd(first, has_aux=True)(psi)
