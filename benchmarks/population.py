@@ -1,6 +1,7 @@
 """Population benchmark (issue "Population models"): Armadillo-size houses with two random effects.
 
     python benchmarks/population.py [--sizes 100,1000] [--scheduler local] [--cache-dir DIR] [--timings]
+                                    [--layouts]
 
 Houses: the Armadillo model (pySIP's TwTi_RoRi, first-order hold, 232 rows; data
 the data set armadillo) simulated at its fitted parameters with a lognormal spread
@@ -13,7 +14,10 @@ per process to compare sizes; Python's allocation tracing, tracemalloc, is left 
 it slows the tracing of a first call by half).  ``--scheduler local`` runs the members' inner
 optimisations on a Dask LocalCluster with two workers; ``--timings`` also prints
 the seconds of each call spent in the members' modes, the outer gradients and the
-outer Hessian (in this process, so not with ``--scheduler local``).
+outer Hessian (in this process, so not with ``--scheduler local``).  ``--layouts``
+then fits, in the same process and on the same houses, the nested layouts a model
+selection compares: a full Ω, and a covariate effect of a floor area (drawn per
+house) on Ro, printing the first call of each.
 """
 
 from __future__ import annotations
@@ -69,6 +73,7 @@ def main():
     parser.add_argument("--scheduler", default=None, choices=[None, "local"])
     parser.add_argument("--cache-dir", default=None, help="greyid's cache folder (default: a new, empty one)")
     parser.add_argument("--timings", action="store_true", help="seconds in the modes, gradients and Hessian")
+    parser.add_argument("--layouts", action="store_true", help="then a full Omega and a covariate effect")
     args = parser.parse_args()
     import os
     import tempfile
@@ -110,6 +115,17 @@ def main():
                 print(f"  {name}: {seconds:.1f} s in {calls} calls")
         omega = {name: round(float(fit.params.loc[f"omega_{name}", "estimate"]), 3) for name in SPREAD}
         print(f"  omega {omega} (simulated {SPREAD}); loglik {fit.loglik:.3f}")
+        if args.layouts:
+            import pandas as pd
+
+            area = pd.DataFrame({"area": np.random.default_rng(1).uniform(80.0, 200.0, size)}, index=list(fleet))
+            for label, layout in (("full Omega", dict(omega="full")),
+                                  ("covariate effect on Ro", dict(covariates=area, effects={"Ro": ["area"]}))):
+                start = time.perf_counter()
+                nested = greyid.fit_population(model, fleet, random, time="Time", hold="foh", **layout,
+                                               **({} if client is None else dict(scheduler=client)))
+                print(f"{size} houses, {label}, first call: {time.perf_counter() - start:.1f} s, "
+                      f"{nested.iterations} iterations, loglik {nested.loglik:.3f}")
     if client is not None:
         client.close()
         client.cluster.close()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
@@ -429,6 +430,42 @@ def test_outer_gradient_through_the_parameter_scales_equals_that_through_z(nonli
             np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-10 * np.abs(want).max())
 
 
+def test_nested_layouts_share_the_filters_programs(nonlinear_problem):
+    """A diagonal Ω without the covariate effect, nested in the fixture's full Ω with one, has the same programs
+    of the filter (the same keys; the closed forms' differ): compiled for it, they serve the full layout in
+    the same process, whose gradient still equals forward derivatives of g_i through z."""
+    m, data, _, spec, outer = nonlinear_problem
+    options = filter_options(m.structure, None)
+    diagonal, raw = make_spec(m, {"a": "lognormal", "b": "normal"}, None, None, "diagonal", list(data))
+    nested, full = laplace.build(m.structure, diagonal, options), laplace.build(m.structure, spec, options)
+    for name in [f for f in laplace.LaplacePrograms._fields if f != "shaped"]:
+        shared = name in ("likelihood", "on_random", "slopes", "curvatures")
+        assert (getattr(nested, name).key == getattr(full, name).key) == shared, name
+    nested_members = prepare_members(m, list(data), list(data.values()), diagonal, raw, "t", "zoh", None, None)
+    first = laplace.MemberPrograms(nested, nested_members.x, diagonal.base(), nested_members.data, 1)
+    second = laplace.MemberPrograms(full, outer.members.x, spec.base(), outer.members.data, 1)
+    try:
+        first.gradient(diagonal.phi0(), np.zeros((len(data), 2)))
+        phi = spec.phi0() + np.array([0.05, -0.1, 0.02, -0.03, 0.2, 0.1, -0.2, 0.3])
+        u = outer.modes(phi).u
+        _, gradients, tangents, multipliers = second.gradient(phi, u)
+    finally:
+        first.close()
+        second.close()
+    assert list(full.slopes.executables.values()) == list(nested.slopes.executables.values())  # the same one
+    # What the Hessian's closed form is compiled for ahead of the filter's program: shaped as that program gives.
+    (slopes,) = full.slopes.executables.values()
+    _, like = full.shaped(len(data), 1)
+    shapes = [[a.shape for a in jax.tree_util.tree_leaves(tree)] for tree in (like, slopes.out_info)]
+    assert shapes[0] == shapes[1]
+    reference = _derivatives_through_z(m, spec)
+    for i in (0, 6):
+        expected = reference(jnp.asarray(phi), jnp.asarray(u[i]), jnp.asarray(outer.members.x[i]),
+                             tuple(jnp.asarray(b) for b in spec.base()), _member(outer.members.data, i))
+        for got, want in zip((gradients[i], tangents[i], multipliers[i]), map(np.asarray, expected)):
+            np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-10 * np.abs(want).max())
+
+
 def test_parameter_map_by_hand(nonlinear_problem):
     """θ_i from φ, u and the standardised covariate, written out: a lognormal, b normal + β·area, Ω = LLᵀ."""
     *_, spec, _ = nonlinear_problem
@@ -713,18 +750,23 @@ def test_member_programs_compile_a_program_once_then_run_the_chunks_side_by_side
             return np.asarray(x)[:, 0] * 2.0
 
     value, inner = Recorded("value"), Recorded("inner")
-    programs = laplace.LaplacePrograms(value=value, inner=inner, gradient=None, hessian=None)
+    programs = laplace.LaplacePrograms(**dict.fromkeys(laplace.LaplacePrograms._fields))
     x = np.arange(6.0)[:, None]
     members = laplace.MemberPrograms(programs, x, (np.zeros(1),), {"y": np.zeros((6, 3))}, workers=3)
+
+    def run(program):
+        u = np.zeros((6, 1))
+        return members._run([(program, lambda part, _: (u[part[1]], np.zeros(2), part[2], members.base, part[3]))])
+
     try:
         for _ in range(2):  # the first call, then a later one
             value.runs.clear()
-            np.testing.assert_array_equal(members.value(np.zeros((6, 1)), np.zeros(2)), 2.0 * np.arange(6.0))
+            np.testing.assert_array_equal(run(value), 2.0 * np.arange(6.0))
             assert len(value.compiled) == 1 and value.compiled[0][0] == threading.get_ident()  # once, here
             assert sorted(member for member, _, _ in value.runs) == [0, 2, 4]  # three chunks of two
             assert min(start for _, start, _ in value.runs) >= value.compiled[0][2]  # after the compilation
             assert max(start for _, start, _ in value.runs) < min(end for _, _, end in value.runs)  # side by side
-        np.testing.assert_array_equal(members.inner(np.zeros((6, 1)), np.zeros(2)), 2.0 * np.arange(6.0))
+        np.testing.assert_array_equal(run(inner), 2.0 * np.arange(6.0))
         assert len(inner.compiled) == 1  # another program: compiled once too
         assert max(start for _, start, _ in inner.runs) < min(end for _, _, end in inner.runs)
     finally:

@@ -61,12 +61,26 @@ from ..filters.api import compiled_filter
 
 
 class LaplacePrograms(NamedTuple):
-    """Compiled functions vectorised over members (leading axis of u, x and the data)."""
+    """Compiled functions vectorised over members (leading axis of u, x, ψ, P and the data).
 
-    value: Callable  # (u, φ, x, base, data) -> g_i
-    inner: Callable  # (u, φ, x, base, data) -> (g_i, ∇_u g_i, ∇²_u g_i)
-    gradient: Callable  # (φ, û, x, base, data) -> (ℓ_i, ∂ℓ_i/∂φ, T_i, λ_i)
-    hessian: Callable  # (φ, û, T, λ, x, base, data) -> ∂²ℓ_i/∂φ²
+    Each evaluation is ``scales`` (ψ_i at the members' u), a program of the filter at ψ, then a closed
+    form: ``likelihood`` then ``value``; ``on_random`` then ``inner``; ``slopes`` then ``gradient``;
+    ``curvatures`` then ``hessian``.  The filter's programs depend on the population's layout only through
+    where its random effects sit among the free parameters
+    ([`PopulationSpec.scale_key()`][greyid.population.spec.PopulationSpec.scale_key]): nested models (a
+    diagonal or a full Ω, with or without covariate effects) share them, compiled once.
+    """
+
+    scales: Callable  # (φ, u, x, base) -> ψ_i
+    likelihood: Callable  # (ψ, base, data) -> K
+    on_random: Callable  # (ψ, base, data) -> P = (K, ∇_R K, ∇²_R K)
+    slopes: Callable  # (ψ, base, data) -> (P, ∂P/∂ψ)
+    curvatures: Callable  # (ψ, base, data) -> (P, ∂P/∂ψ, ∂²P/∂ψ²)
+    value: Callable  # (u, K) -> g_i
+    inner: Callable  # (u, φ, P) -> (g_i, ∇_u g_i, ∇²_u g_i)
+    gradient: Callable  # (φ, û, x, base, ψ, P, ∂P/∂ψ) -> (ℓ_i, ∂ℓ_i/∂φ, T_i, λ_i)
+    hessian: Callable  # (φ, û, T, λ, x, base, ψ, P, ∂P/∂ψ, ∂²P/∂ψ²) -> ∂²ℓ_i/∂φ²
+    shaped: Callable  # (members, order) -> zeros shaped as ψ and (P, …, its derivatives of that order)
 
 
 def value_gradient_hessian(fun):
@@ -105,16 +119,15 @@ def build(structure, spec, options) -> LaplacePrograms:
     def negative_loglik(theta, data):
         return -log_criterion(run(theta, data)[0])
 
-    def member(u, phi, x, base, data):
-        return negative_loglik(spec.theta(phi, u, x, base), data) + 0.5 * jnp.sum(u ** 2)
-
-    def inner(u, phi, x, base, data):
-        return value_gradient_hessian(lambda v: member(v, phi, x, base, data))(u)
-
-    # The outer derivatives go through the member's likelihood K(ψ) = −log p(y | θ(ψ)) as a function of
-    # its free parameters' scales ψ = spec.scale(φ, u, x) (module doc): what the filter contributes is
-    # P(ψ) = (K, ∇_R K, ∇²_R K), R the random effects' scales, and its derivatives in ψ.
+    # The filter enters through the member's likelihood K(ψ) = −log p(y | θ(ψ)) as a function of its free
+    # parameters' scales ψ = spec.scale(φ, u, x) (module doc): P(ψ) = (K, ∇_R K, ∇²_R K), R the random
+    # effects' scales, and P's derivatives in ψ.  These programs depend on the population's layout only
+    # through R, so nested layouts share them; everything else is closed form.
     R = jnp.asarray(spec.random_in_scale, dtype=int)
+
+    def likelihood(psi, base, data):
+        """K(ψ)."""
+        return negative_loglik(spec.theta_at_scale(psi, base), data)
 
     def with_aux(fun):
         def wrapped(*args):
@@ -125,7 +138,7 @@ def build(structure, spec, options) -> LaplacePrograms:
     def on_random(psi, base, data):
         """P(ψ) = (K, ∇_R K, ∇²_R K) at ψ."""
         def at(v):
-            return negative_loglik(spec.theta_at_scale(psi.at[R].set(v), base), data)
+            return likelihood(psi.at[R].set(v), base, data)
         return value_gradient_hessian(at)(psi[R])
 
     def with_slopes(psi, base, data):
@@ -133,13 +146,34 @@ def build(structure, spec, options) -> LaplacePrograms:
         P1, P0 = jax.jacfwd(with_aux(on_random), has_aux=True)(psi, base, data)
         return P0, P1
 
-    def parts(P, z):
-        """(F, G) at z = (u, φ) from P at the member's ψ: F = g + ½ log det H, G = ∇_u g, with
-        g = K + ½uᵀu, ∇_u g = Lᵀ∇_R K + u and H = Lᵀ∇²_R K L + I (ψ_R moves with L u)."""
+    def curvatures(psi, base, data):
+        """(P, ∂P/∂ψ, ∂²P/∂ψ²) at ψ: P's second derivatives along the n free parameters' scales too."""
+        def first(at):
+            P0, P1 = with_slopes(at, base, data)
+            return P1, (P0, P1)
+
+        P2, (P0, P1) = jax.jacfwd(first, has_aux=True)(psi)
+        return P0, P1, P2
+
+    def scale(phi, u_hat, x, base):
+        """ψ_i at the random effects u: where the filter's programs take K, P and P's derivatives."""
+        return spec.scale(phi, u_hat, x, base)
+
+    def value(u, K):
+        """g_i = K + ½uᵀu."""
+        return K + 0.5 * jnp.sum(u ** 2)
+
+    def inner(u, phi, P):
+        """(g_i, G = ∇_u g_i, H = ∂G/∂u) at (u, φ) from P at ψ_i(u): g = K + ½uᵀu, G = Lᵀ∇_R K + u and
+        H = Lᵀ∇²_R K L + I (ψ_R moves with L u)."""
         K, K_R, K_RR = P
-        u, phi = z[:q], z[q:]
         L = spec.cholesky(phi)
-        return K + 0.5 * jnp.sum(u ** 2) + 0.5 * _log_det(L.T @ K_RR @ L + jnp.eye(q)), L.T @ K_R + u
+        return value(u, K), L.T @ K_R + u, L.T @ K_RR @ L + jnp.eye(q)
+
+    def parts(P, z):
+        """(F, G) at z = (u, φ) from P at the member's ψ: F = g + ½ log det H, G = ∇_u g (see ``inner``)."""
+        g, G, H = inner(z[:q], z[q:], P)
+        return g + 0.5 * _log_det(H), G
 
     def taylor(P0, P1, P2, z, psi, x, base):
         """P at ψ(z) by its Taylor polynomial at ``psi`` of degree 1 (without P2) or 2: exact in value and
@@ -155,28 +189,20 @@ def build(structure, spec, options) -> LaplacePrograms:
         slope = -jnp.linalg.solve(H, Gz[:, q:])
         return jnp.concatenate([slope, jnp.eye(Gz.shape[1] - q)]), H
 
-    def gradient(phi, u_hat, x, base, data):
-        """ℓ_i, ℓ_i' = F_z T, and the path's tangents T and multipliers λ = −H⁻¹F_uᵀ for the Hessian."""
-        z = jnp.concatenate([jax.lax.stop_gradient(u_hat), phi])
-        psi = spec.scale(phi, z[:q], x, base)
-        P0, P1 = with_slopes(psi, base, data)
+    def gradient(phi, u_hat, x, base, psi, P0, P1):
+        """ℓ_i, ℓ_i' = F_z T, and the path's tangents T and multipliers λ = −H⁻¹F_uᵀ for the Hessian, from P
+        and its first derivatives at ψ_i = ``psi`` (F and G exact to first order there)."""
+        z = jnp.concatenate([u_hat, phi])
         (Fz, Gz), (F, _) = jax.jacfwd(with_aux(lambda v: parts(taylor(P0, P1, None, v, psi, x, base), v)),
                                       has_aux=True)(z)
         T, H = path(Gz)
         return F, Fz @ T, T, -jnp.linalg.solve(H, Fz[:q])
 
-    def hessian(phi, u_hat, T, lam, x, base, data):
+    def hessian(phi, u_hat, T, lam, x, base, psi, P0, P1, P2):
         """ℓ_i'' = ∂²/∂s² [F + λᵀG](z + Ts) at s = 0, T and λ from ``gradient`` at the same φ and modes:
         the filter's second derivatives along the n scales (P's, which make F and G exact to second
         order), the closed form's along T's p columns."""
-        z = jnp.concatenate([jax.lax.stop_gradient(u_hat), phi])
-        psi = spec.scale(phi, z[:q], x, base)
-
-        def first(at):
-            P0, P1 = with_slopes(at, base, data)
-            return P1, (P0, P1)
-
-        P2, (P0, P1) = jax.jacfwd(first, has_aux=True)(psi)
+        z = jnp.concatenate([u_hat, phi])
 
         def along(step):
             v = z + T @ step
@@ -185,17 +211,33 @@ def build(structure, spec, options) -> LaplacePrograms:
 
         return jax.hessian(along)(jnp.zeros(T.shape[1]))
 
-    over_members = (0, None, 0, None, 0)
-    over_members_phi_first = (None, 0, 0, None, 0)
+    def shaped(members: int, order: int):
+        """Zeros shaped as ψ and as (P, ∂P/∂ψ, …) up to ``order`` for ``members`` members: what a closed form
+        takes, to compile it before the filter's program that gives them has compiled."""
+        n = len(spec.free)
+        P = (np.zeros(members), np.zeros((members, q)), np.zeros((members, q, q)))
+        return np.zeros((members, n)), tuple(tuple(np.zeros(a.shape + (n,) * k) for a in P) for k in range(order + 1))
 
-    def kept(name):
-        return kept_key(structure, ("population", name, options, spec.key()))
+    members_first = (0, None, 0)
+
+    def kept(name, layout=spec.key()):
+        return kept_key(structure, ("population", name, options, layout))
+
+    def on_scales(fun, name):
+        """A filter's program of the members' ψ, shared by the layouts of one ``spec.scale_key()``."""
+        return jit(jax.vmap(fun, in_axes=members_first), key=kept(name, spec.scale_key()))
 
     return LaplacePrograms(
-        value=jit(jax.vmap(member, in_axes=over_members), key=kept("value")),
-        inner=jit(jax.vmap(inner, in_axes=over_members), key=kept("inner")),
-        gradient=jit(jax.vmap(gradient, in_axes=over_members_phi_first), key=kept("gradient")),
-        hessian=jit(jax.vmap(hessian, in_axes=(None, 0, 0, 0, 0, None, 0)), key=kept("hessian")),
+        scales=jit(jax.vmap(scale, in_axes=(None, 0, 0, None)), key=kept("scales")),
+        likelihood=on_scales(likelihood, "likelihood"),
+        on_random=on_scales(on_random, "on random"),
+        slopes=on_scales(with_slopes, "slopes"),
+        curvatures=on_scales(curvatures, "curvatures"),
+        value=jit(jax.vmap(value), key=kept("value")),
+        inner=jit(jax.vmap(inner, in_axes=(0, None, 0)), key=kept("inner")),
+        gradient=jit(jax.vmap(gradient, in_axes=(None, 0, 0, None, 0, 0, 0)), key=kept("gradient")),
+        hessian=jit(jax.vmap(hessian, in_axes=(None, 0, 0, 0, 0, None, 0, 0, 0, 0)), key=kept("hessian")),
+        shaped=shaped,
     )
 
 
@@ -340,6 +382,17 @@ def _joined(outs: list, parts: list[tuple]):
     return jax.tree_util.tree_map(lambda *leaves: np.concatenate(leaves), *pieces)
 
 
+def _executables(steps, part) -> list:
+    """The executable of each program in ``steps`` (see [`MemberPrograms`][greyid.population.laplace.MemberPrograms]'s
+    ``_run``) for the chunk ``part``: a later program's for arrays shaped as the earlier ones' outputs."""
+    executables, outs = [], []
+    for k, (program, arguments) in enumerate(steps):
+        executables.append(program.executable(*arguments(part, outs)))
+        if k + 1 < len(steps):
+            outs.append(jax.tree_util.tree_map(lambda info: np.zeros(info.shape, info.dtype), executables[-1].out_info))
+    return executables
+
+
 class MemberPrograms:
     """The [`LaplacePrograms`][greyid.population.laplace.LaplacePrograms] bound to the members' data, each call split
     over threads.
@@ -363,57 +416,84 @@ class MemberPrograms:
         self.base = tuple(jax.device_put(np.asarray(b, dtype=float)) for b in base)
         self.pool = ThreadPoolExecutor(len(self.parts))
 
-    def _run(self, program, arguments, parts=None):
-        """``program`` on every chunk (``arguments(part)``: its arguments for a chunk), side by side on the
-        threads.  Its executable is fetched first, here, for the first chunk (the chunks are of one size):
-        compiled or loaded once, where threads started together would each trace and compile it, and
+    def _run(self, steps, parts=None):
+        """Programs run in turn on every chunk, the chunks side by side on the threads.  ``steps``: pairs
+        ``(program, arguments(part, outs))``, a program's arguments for a chunk from the chunk and the
+        outputs of the programs before it.  The executables are fetched first, here, for the first chunk
+        (the chunks are of one size; a later program's for the shapes of the earlier ones' outputs):
+        compiled or loaded once, where threads started together would each trace and compile them, and
         then every chunk runs at once, on the first call as on later ones."""
         parts = self.parts if parts is None else parts
-        executable = program.executable(*arguments(parts[0]))
+        executables = _executables(steps, parts[0])
 
         def run(part):
-            return jax.device_get(executable(*program.dynamic(arguments(part))))
+            outs = []
+            for (program, arguments), executable in zip(steps, executables):
+                outs.append(executable(*program.dynamic(arguments(part, outs))))
+            return jax.device_get(outs[-1])
 
         return _joined(list(self.pool.map(run, parts)), parts)
 
+    def _at_scales(self, phi, u, on_scales, closed_form) -> list:
+        """ψ at the random effects ``u``, the filter's program ``on_scales`` there, then ``closed_form(part,
+        outs)`` (see `_run`)."""
+        programs, base = self.programs, self.base
+        return [(programs.scales, lambda part, _: (phi, u[part[1]], part[2], base)),
+                (on_scales, lambda part, outs: (outs[0], base, part[3])), closed_form]
+
     def value(self, u, phi):
+        """g_i per member at the random effects ``u``."""
         phi, u = jnp.asarray(phi), np.asarray(u)
-        return self._run(self.programs.value, lambda part: (u[part[1]], phi, part[2], self.base, part[3]))
+        return self._run(self._at_scales(phi, u, self.programs.likelihood,
+                                         (self.programs.value, lambda part, outs: (u[part[1]], outs[1]))))
 
     def inner(self, u, phi):
+        """``(g_i, ∇_u g_i, ∇²_u g_i)`` per member at the random effects ``u``."""
         phi, u = jnp.asarray(phi), np.asarray(u)
-        return self._run(self.programs.inner, lambda part: (u[part[1]], phi, part[2], self.base, part[3]))
+        return self._run(self._at_scales(phi, u, self.programs.on_random,
+                                         (self.programs.inner, lambda part, outs: (u[part[1]], phi, outs[1]))))
+
+    def _gradient_steps(self, phi, u) -> list:
+        """ψ at the modes ``u``, P and its slopes there, then ℓ_i, ℓ_i', T_i and λ_i (see `_run`)."""
+        base = self.base
+        return self._at_scales(phi, u, self.programs.slopes, (
+            self.programs.gradient, lambda part, outs: (phi, u[part[1]], part[2], base, outs[0], *outs[1])))
+
+    def _hessian_steps(self, phi, u, tangents, multipliers) -> list:
+        """ψ at the modes ``u``, P and its first and second derivatives there, then ℓ_i'' (see `_run`)."""
+        base = self.base
+        return self._at_scales(phi, u, self.programs.curvatures, (
+            self.programs.hessian, lambda part, outs: (phi, u[part[1]], tangents[part[1]], multipliers[part[1]],
+                                                       part[2], base, outs[0], *outs[1])))
 
     def gradient(self, phi, u):
         """``(ℓ_i, ℓ_i', T_i, λ_i)`` per member at the modes ``u``; T and λ are what ``hessian`` takes."""
-        phi, u = jnp.asarray(phi), np.asarray(u)
-        return self._run(self.programs.gradient, lambda part: (phi, u[part[1]], part[2], self.base, part[3]),
-                         self.derivative_parts)
+        return self._run(self._gradient_steps(jnp.asarray(phi), np.asarray(u)), self.derivative_parts)
 
     def compile_hessian(self, phi, u) -> None:
-        """Compile the Hessian's program in the background (the arguments give only its shapes): it is the
-        largest program and is needed last, so its compilation overlaps the search instead of following it."""
+        """Compile the filter's program of the Hessian in the background (the arguments give only its shapes): it
+        is the largest and is needed last, so its compilation overlaps the search instead of following it."""
         from concurrent.futures import ThreadPoolExecutor
 
-        part = self.derivative_parts[0]
-        u = np.asarray(u)[part[1]]
-        p, q = len(phi), u.shape[1]
-        tangents, multipliers = np.zeros((len(u), q + p, p)), np.zeros((len(u), q))
-        args = (jnp.asarray(phi), u, tangents, multipliers, part[2], self.base, part[3])
+        n, p, q = len(u), len(phi), np.shape(u)[1]
+        steps = self._hessian_steps(jnp.asarray(phi), np.asarray(u), np.zeros((n, q + p, p)), np.zeros((n, q)))
         compiler = ThreadPoolExecutor(1)
-        self._hessian_compiled = compiler.submit(self.programs.hessian.executable, *args)
+        self._hessian_compiled = compiler.submit(_executables, steps[:-1], self.derivative_parts[0])
         compiler.shutdown(wait=False)
 
     def hessian(self, phi, u, tangents, multipliers):
         """ℓ_i'' per member, from the modes ``u`` and the ``tangents`` T and ``multipliers`` λ that ``gradient``
         gave at the same φ; in chunks of [`DERIVATIVE_MEMBERS`][greyid.population.laplace.DERIVATIVE_MEMBERS], split
         over the threads as the gradient's."""
-        if getattr(self, "_hessian_compiled", None) is not None:
-            self._hessian_compiled.result()  # compiled in the background (an error there is raised here)
-        phi, u, tangents, multipliers = jnp.asarray(phi), np.asarray(u), np.asarray(tangents), np.asarray(multipliers)
-        return self._run(self.programs.hessian, lambda part: (phi, u[part[1]], tangents[part[1]],
-                                                              multipliers[part[1]], part[2], self.base, part[3]),
-                         self.derivative_parts)
+        steps = self._hessian_steps(jnp.asarray(phi), np.asarray(u), np.asarray(tangents), np.asarray(multipliers))
+        pending, self._hessian_compiled = getattr(self, "_hessian_compiled", None), None
+        if pending is not None:
+            # The closed form compiles here while the filter's program may still be compiling in the background.
+            part = self.derivative_parts[0]
+            closed_form, arguments = steps[-1]
+            closed_form.executable(*arguments(part, self.programs.shaped(len(part[1]), 2)))
+            pending.result()  # (an error there is raised here)
+        return self._run(steps, self.derivative_parts)
 
     def close(self):
         self.pool.shutdown()

@@ -159,6 +159,11 @@ class PopulationSpec:
         return (self.names, self.free, self.log_scale, tuple(self.transform.kind.tolist()), self.random,
                 self.effects, self.full)
 
+    def scale_key(self) -> tuple:
+        """Everything `theta_at_scale()` and `random_in_scale` close over: the key of the programs that take
+        the members' scales ψ (the same for nested layouts: a diagonal or a full Ω, covariate effects or none)."""
+        return (self.names, self.free, self.log_scale, self.random_in_scale)
+
     def scale(self, phi, u, x, base, xp=jnp):
         """ψ_i, the free parameters' scales of member i (log θ for a lognormal random effect, θ otherwise),
         at the standardised random effects ``u`` and standardised covariates ``x``."""
