@@ -159,6 +159,38 @@ def test_only_greyids_own_process_is_frozen_and_keeps_every_program(tmp_path):
     subprocess.run([sys.executable, "-c", called], check=True, env=env)
 
 
+def test_a_user_process_keeps_greyids_fast_compilations_and_not_its_own(tmp_path):
+    """In a user's script (JAX's minimum compile time of the persistent cache at its default), a program of
+    greyid's that compiles in well under a second is kept in the cache folder for later processes; the user's
+    own program is not, and JAX's setting is left as it was."""
+    code = ("import os, jax, jax.numpy as jnp; from greyid.runtime.jit import jit; "
+            "jit(lambda x: jnp.sin(x) * 3.0, key=('test', 'kept however fast'))(1.5); "
+            "jax.jit(lambda x: jnp.cos(x) * 5.0)(2.5); "
+            "assert jax.config.jax_persistent_cache_min_compile_time_secs == 1.0; "
+            "print(len([n for n in os.listdir(os.environ['GREYID_CACHE_DIR']) if n.endswith('-cache')]))")
+    env = {key: value for key, value in __import__("os").environ.items()
+           if key != "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"}
+    env["GREYID_CACHE_DIR"] = str(tmp_path)
+    kept = subprocess.run([sys.executable, "-c", code], check=True, env=env, capture_output=True, text=True)
+    assert kept.stdout.split()[-1] == "1"
+
+
+def test_a_jax_without_the_thread_local_setting_compiles_as_before(monkeypatch):
+    """kept_however_fast() reaches into JAX's internal configuration: where that setting has no thread-local
+    form (moved or changed in a later JAX), greyid's programs compile and run under JAX's default."""
+    import contextlib
+
+    from jax._src import config as jax_config
+
+    class Moved:  # the setting as a plain value, no context
+        value = 1.0
+
+    monkeypatch.setattr(jax_config, "persistent_cache_min_compile_time_secs", Moved())
+    assert isinstance(compiler.kept_however_fast(), contextlib.nullcontext)
+    program = compiler.jit(lambda x: jnp.tan(x) * 2.0, key=("test", "without the thread-local setting"))
+    assert float(program(0.3)) == pytest.approx(2 * np.tan(0.3))
+
+
 def test_the_tests_compilation_cache_is_pruned_oldest_first(tmp_path):
     """The folder the tests keep programs in between runs (XLA's at its top, traced ones in ``programs/``) is
     pruned to its limit at a run's start, the oldest files first wherever they are, and left alone under it."""

@@ -24,6 +24,7 @@ independent ones side by side, which a filter's small kernels gain nothing from
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import weakref
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -72,9 +73,27 @@ _programs: weakref.WeakSet = weakref.WeakSet()
 
 
 def compile_lowered(lowered):
-    """XLA's compilation of a traced and lowered program, with greyid's options."""
+    """XLA's compilation of a traced and lowered program, with greyid's options, kept in JAX's persistent
+    cache however fast it compiled ([`kept_however_fast()`][greyid.runtime.jit.kept_however_fast])."""
     options = compiler_options()
-    return lowered.compile(options) if options else lowered.compile()
+    with kept_however_fast():
+        return lowered.compile(options) if options else lowered.compile()
+
+
+def kept_however_fast():
+    """A context in which JAX's persistent compilation cache keeps what this thread compiles, however fast.
+
+    JAX keeps by default only programs that took a second or more to compile, so a later process compiled
+    greyid's smaller programs (a population's closed forms, a fit's value program) again.  The setting is
+    thread-local: the user's own programs keep JAX's.  JAX has no public form of it; where its internal one
+    is missing or changed, nothing changes (those programs compile in every process, as with JAX's default).
+    """
+    try:
+        from jax._src import config as jax_config
+
+        return jax_config.persistent_cache_min_compile_time_secs(0.0)
+    except Exception:  # noqa: BLE001  an internal API that moved: JAX's default applies
+        return contextlib.nullcontext()
 
 
 #: The kind of a NumPy or JAX array (or NumPy scalar) leaf in a signature.
