@@ -5,8 +5,9 @@ before JAX itself.  It switches JAX to 64-bit floats (the filters need them; thi
 every JAX user in the process) and, unless a cache folder is configured already,
 turns on JAX's persistent compilation cache in ``$GREYID_CACHE_DIR`` (default
 ``~/.cache/greyid/jax``; ``off`` keeps it off, and with it the traced programs of
-[`greyid.runtime.store`][greyid.runtime.store]).  JAX's own threshold applies: programs that
-compile in under a second are not kept.
+[`greyid.runtime.store`][greyid.runtime.store]).  JAX's own threshold applies to the process: programs
+that compile in under a second are not kept; greyid's kept programs are kept however fast
+([`kept_however_fast()`][greyid.runtime.jit.kept_however_fast], a setting of the compiling thread only).
 """
 
 from __future__ import annotations
