@@ -96,6 +96,7 @@ def main():
 
         client = Client(LocalCluster(n_workers=2, threads_per_worker=1))
     random = {name: "lognormal" for name in SPREAD}
+    on = {} if client is None else dict(scheduler=client)
     spent: dict = {}
     if args.timings:
         time_the_steps(spent)
@@ -104,8 +105,7 @@ def main():
         for attempt in ("first", "second"):
             spent.clear()
             start = time.perf_counter()
-            fit = greyid.fit_population(model, fleet, random, time="Time", hold="foh",
-                                        **({} if client is None else dict(scheduler=client)))
+            fit = greyid.fit_population(model, fleet, random, time="Time", hold="foh", **on)
             seconds = time.perf_counter() - start
             rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
             print(f"{size} houses, {attempt} call: {seconds:.1f} s, {fit.iterations} iterations, "
@@ -122,8 +122,7 @@ def main():
             for label, layout in (("full Omega", dict(omega="full")),
                                   ("covariate effect on Ro", dict(covariates=area, effects={"Ro": ["area"]}))):
                 start = time.perf_counter()
-                nested = greyid.fit_population(model, fleet, random, time="Time", hold="foh", **layout,
-                                               **({} if client is None else dict(scheduler=client)))
+                nested = greyid.fit_population(model, fleet, random, time="Time", hold="foh", **layout, **on)
                 print(f"{size} houses, {label}, first call: {time.perf_counter() - start:.1f} s, "
                       f"{nested.iterations} iterations, loglik {nested.loglik:.3f}")
     if client is not None:

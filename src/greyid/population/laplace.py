@@ -155,10 +155,6 @@ def build(structure, spec, options) -> LaplacePrograms:
         P2, (P0, P1) = jax.jacfwd(first, has_aux=True)(psi)
         return P0, P1, P2
 
-    def scale(phi, u_hat, x, base):
-        """ψ_i at the random effects u: where the filter's programs take K, P and P's derivatives."""
-        return spec.scale(phi, u_hat, x, base)
-
     def value(u, K):
         """g_i = K + ½uᵀu."""
         return K + 0.5 * jnp.sum(u ** 2)
@@ -228,7 +224,7 @@ def build(structure, spec, options) -> LaplacePrograms:
         return jit(jax.vmap(fun, in_axes=members_first), key=kept(name, spec.scale_key()))
 
     return LaplacePrograms(
-        scales=jit(jax.vmap(scale, in_axes=(None, 0, 0, None)), key=kept("scales")),
+        scales=jit(jax.vmap(spec.scale, in_axes=(None, 0, 0, None)), key=kept("scales")),
         likelihood=on_scales(likelihood, "likelihood"),
         on_random=on_scales(on_random, "on random"),
         slopes=on_scales(with_slopes, "slopes"),

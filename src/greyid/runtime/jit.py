@@ -84,7 +84,7 @@ def kept_however_fast():
     """A context in which JAX's persistent compilation cache keeps what this thread compiles, however fast.
 
     JAX keeps by default only programs that took a second or more to compile, so a later process compiled
-    greyid's smaller programs (a population's closed forms, a fit's value program) again.  The setting is
+    greyid's smaller programs (a population's closed forms) again.  The setting is
     thread-local: the user's own programs keep JAX's.  JAX has no public form of it; where its internal one
     is missing or changed, nothing changes (those programs compile in every process, as with JAX's default).
     """
