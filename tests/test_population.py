@@ -504,6 +504,66 @@ def test_population_fit_recovers_a_correlated_nonlinear_population(nonlinear_pro
     assert fit.bic == pytest.approx(-2 * fit.loglik + 8 * np.log(7 * 40))
 
 
+def test_the_results_tables_come_from_one_program(correlated_fit):
+    """A full Ω and a covariate effect: each member's θ_i is spec.theta's, evaluated in NumPy; the estimates are
+    φ mapped back by hand (exp of the log-scale typical value and of log ω, the covariate effect per unit of
+    its covariate, the correlation of Ω = L Lᵀ); the standard errors go through ∂ρ/∂φ, checked by central
+    differences.  Building the tables asks for one compiled program: op by op, as they were computed, each
+    small operation compiled (or loaded) a program of its own, in every process."""
+    from greyid.population.result import PopulationResult, _reporting
+    from greyid.runtime.jit import release_compiled
+
+    fit, spec = correlated_fit, correlated_fit.spec
+    members, modes = fit._members, fit._modes
+    base = spec.base()
+    for k, name in enumerate(fit.names):
+        theta = spec.theta(fit.phi, modes.u[k], members.x[k], base, xp=np)
+        np.testing.assert_allclose(fit.individual.loc[name].to_numpy(), theta, rtol=1e-13, atol=0)
+
+    names = spec.phi_names()
+    phi = dict(zip(names, fit.phi))
+    L = spec.cholesky(fit.phi, xp=np)
+    omega = L @ L.T
+    sd = np.asarray(spec.covariate_sd, dtype=float)[spec.covariates.index("area")]
+    by_hand = {"a": np.exp(phi["a"]), "b": phi["b"], "beta_b_area": phi["beta_b_area"] / sd,
+               "omega_a": np.exp(phi["omega_a"]), "omega_b": np.exp(phi["omega_b"]),
+               "corr_b_a": omega[1, 0] / np.sqrt(omega[0, 0] * omega[1, 1])}
+    for name, value in by_hand.items():
+        assert fit.params.loc[name, "estimate"] == pytest.approx(value, rel=1e-13), name
+
+    rho_of, value_of = _reporting(spec)
+    sd_effects = np.array([sd])
+
+    def rho(v):
+        return np.asarray(rho_of(jnp.asarray(v), sd_effects))
+
+    step = 1e-6
+    J = np.stack([(rho(fit.phi + step * e) - rho(fit.phi - step * e)) / (2 * step) for e in np.eye(len(fit.phi))],
+                 axis=1)
+    r = rho(fit.phi)
+    h = 1e-6 * np.maximum(np.abs(r), 1.0)
+    slope = (value_of(r + h) - value_of(r - h)) / (2 * h)
+    se = np.abs(slope) * np.sqrt(np.diag(J @ fit.cov_phi @ J.T))
+    np.testing.assert_allclose(fit.params["std_error"].to_numpy(), se, rtol=1e-7)
+
+    release_compiled()  # what a later process starts from: the programs in the cache folder, none in memory
+    requests = []
+
+    def listener(event, **_):
+        if event == "/jax/compilation_cache/compile_requests_use_cache":
+            requests.append(event)
+
+    jax.monitoring.register_event_listener(listener)
+    try:
+        again = PopulationResult(fit.model, spec, members, fit.phi, fit.hessian, modes, fit.call, fit.converged,
+                                 fit.message, fit.iterations)
+    finally:
+        jax.monitoring.unregister_event_listener(listener)
+    assert len(requests) == 1
+    pd.testing.assert_frame_equal(again.params, fit.params)
+    pd.testing.assert_frame_equal(again.individual, fit.individual)
+
+
 @pytest.mark.slow
 def test_likelihood_ratio_with_a_variance_on_the_boundary(nonlinear_problem, correlated_fit):
     """Adding b's random effect (its variance and correlation) is tested against ½χ²₁ + ½χ²₂."""

@@ -21,6 +21,7 @@ from ..estimate.settings import FitSettings, filter_settings
 from ..estimate.transforms import Transform
 from ..filters.api import filter_options
 from ..outputs import write_atomic
+from ..runtime.jit import structure_program
 from ..scaled import ScaledInformation, scaled_inverse
 from .laplace import MemberPrograms, Modes, conditional_modes, laplace_values
 from .members import Members, population_programs, prepare_members
@@ -32,17 +33,17 @@ Z95 = float(stats.norm.ppf(0.975))
 
 
 def _reporting(spec: PopulationSpec):
-    """``(ρ(φ), m)``: per reported quantity a coordinate ρ_k in which its Wald interval is taken and the
+    """``(ρ(φ, s), m)``: per reported quantity a coordinate ρ_k in which its Wald interval is taken and the
     monotone map m_k(ρ_k) to the reported value (the bound transform of a typical value, exp for a
-    lognormal typical value or for ω, tanh for a correlation, identity for a covariate effect)."""
-    s = spec.slices
+    lognormal typical value or for ω, tanh for a correlation, identity for a covariate effect); ``s`` the
+    covariates' standard deviations of the effects (a covariate effect per unit of its covariate)."""
     free_kind = spec.transform.kind
 
-    def rho(phi):
+    def rho(phi, covariate_sd):
+        s = spec.slices
         L = spec.cholesky(phi)
         omega_sq = jnp.sum(L ** 2, axis=1)
-        parts = [phi[s["typical"]], phi[s["beta"]] / spec.covariate_sd[[c for _, c in spec.effects]]
-                 if spec.effects else jnp.zeros(0), 0.5 * jnp.log(omega_sq)]
+        parts = [phi[s["typical"]], phi[s["beta"]] / covariate_sd, 0.5 * jnp.log(omega_sq)]
         if spec.full:
             cov = L @ L.T
             corr = [cov[a, b] / jnp.sqrt(omega_sq[a] * omega_sq[b]) for a, b in spec.pairs()]
@@ -61,6 +62,25 @@ def _reporting(spec: PopulationSpec):
             return np.concatenate([typical, r[n:a], np.exp(r[a:b]), np.tanh(r[b:])])
 
     return rho, value
+
+
+def _effects_sd(spec: PopulationSpec) -> np.ndarray:
+    """The standard deviation of each covariate effect's covariate (``_reporting``'s ``s``)."""
+    return np.asarray(spec.covariate_sd, dtype=float)[[c for _, c in spec.effects]].reshape(len(spec.effects))
+
+
+def _summaries(structure, spec: PopulationSpec):
+    """One program for what a result reports at φ: ``(ρ, ∂ρ/∂φ, L, θ_i)`` from ``(φ, s, U, X, base)`` (ρ and s
+    as in ``_reporting``, L Ω's Cholesky factor, θ_i every member's parameters at its random effects U_i
+    and covariates X_i).  Kept with the layout's other programs: run op by op, these small operations
+    would each compile a program of their own, in every process."""
+    rho_of, _ = _reporting(spec)
+
+    def summaries(phi, covariate_sd, u, x, base):
+        theta = jax.vmap(spec.theta, in_axes=(None, 0, 0, None))(phi, u, x, base)
+        return rho_of(phi, covariate_sd), jax.jacfwd(rho_of)(phi, covariate_sd), spec.cholesky(phi), theta
+
+    return structure_program(structure, ("population", "result", spec.key()), lambda: summaries)
 
 
 class PopulationResult:
@@ -108,6 +128,7 @@ class PopulationResult:
         self._modes = modes
         self._members = members
         self.loglik = float(call["loglik"])
+        self._at_estimates = self._summarised(modes.u, members.x)
         self._build_params()
         self._build_random_effects()
 
@@ -118,6 +139,14 @@ class PopulationResult:
         return cls(model, spec, members, optimum.z, optimum.hessian, modes, call, optimum.converged,
                    optimum.message, optimum.iterations)
 
+    def _summarised(self, u, x) -> tuple:
+        """``(ρ, ∂ρ/∂φ, L, θ_i)`` at the estimates for members at random effects ``u`` with covariates ``x``
+        (see ``_summaries``), as NumPy arrays."""
+        spec = self.spec
+        program = _summaries(self.model.structure, spec)
+        return tuple(np.asarray(a) for a in program(self.phi, _effects_sd(spec), np.asarray(u, dtype=float),
+                                                    np.asarray(x, dtype=float), spec.base()))
+
     # ------------------------------------------------------------------ tables
     def _build_params(self):
         spec = self.spec
@@ -125,9 +154,8 @@ class PopulationResult:
         information = ScaledInformation.of(self.hessian, names)
         singular = information.singular
         self.cov_phi = scaled_inverse(self.hessian, pseudo=bool(singular))
-        rho_of, value_of = _reporting(spec)
-        rho = np.asarray(rho_of(jnp.asarray(self.phi)))
-        J = np.asarray(jax.jacfwd(rho_of)(jnp.asarray(self.phi)))
+        _, value_of = _reporting(spec)
+        rho, J = self._at_estimates[:2]
         cov_rho = J @ self.cov_phi @ J.T
         se_rho = np.sqrt(np.where(np.diag(cov_rho) >= 0, np.diag(cov_rho), np.nan))
         estimate = value_of(rho)
@@ -157,13 +185,11 @@ class PopulationResult:
 
     def _build_random_effects(self):
         spec = self.spec
-        base = spec.base()
-        L = np.asarray(spec.cholesky(jnp.asarray(self.phi)))
+        L, thetas = self._at_estimates[2:]
         rows, self.individual_params = [], []
         for k, _name in enumerate(self.names):
             u = self._modes.u[k]
-            theta = np.asarray(spec.theta(jnp.asarray(self.phi), jnp.asarray(u), jnp.asarray(self._members.x[k]),
-                                          tuple(jnp.asarray(b) for b in base)))
+            theta = thetas[k]
             self.individual_params.append(theta)
             H = self._modes.hessian[k]
             cov_eta = L @ np.linalg.inv(0.5 * (H + H.T)) @ L.T
@@ -198,7 +224,7 @@ class PopulationResult:
     @property
     def omega(self) -> pd.DataFrame:
         """Ω, the random effects' covariance (on each parameter's scale: log for lognormal)."""
-        L = np.asarray(self.spec.cholesky(jnp.asarray(self.phi)))
+        L = self._at_estimates[2]
         names = [self.spec.names[i] for i in self.spec.random]
         return pd.DataFrame(L @ L.T, index=names, columns=names)
 
@@ -322,10 +348,8 @@ class PopulationResult:
             modes = conditional_modes(programs, self.phi, np.zeros((1, spec.n_random)))
         finally:
             programs.close()
-        u = modes.u[0]
-        theta = np.asarray(spec.theta(jnp.asarray(self.phi), jnp.asarray(u), jnp.asarray(members.x[0]),
-                                      tuple(jnp.asarray(b) for b in spec.base())))
-        L = np.asarray(spec.cholesky(jnp.asarray(self.phi)))
+        _, _, L, thetas = self._summarised(modes.u, members.x)
+        theta = thetas[0]
         cov_eta = L @ np.linalg.inv(0.5 * (modes.hessian[0] + modes.hessian[0].T)) @ L.T
         random_se = {}
         for r, i in enumerate(spec.random):
