@@ -35,6 +35,15 @@ def test_fit_many_after_a_fit_imports_no_statistics_library():
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
+def test_a_population_fit_imports_no_statistics_library():
+    """``greyid.fit_population`` and its result load without scipy.stats (half a second to import, and a
+    population fit uses none of it): the 95 % quantile is SciPy's normal quantile itself."""
+    code = ("import sys; from greyid.population import fit_population; from greyid.population import result; "
+            "assert 'scipy.stats' not in sys.modules; from scipy import stats; "
+            "assert result.Z95 == float(stats.norm.ppf(0.975)), result.Z95")
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
 def ou_model():
     m = greyid.Model("ou_fixed_p0")
     m.add_system("dx = theta*(mu - x)*dt + exp(ls)*dw1")

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from scipy import stats
+from scipy.special import ndtri
 
 from .. import runtime  # noqa: F401  (64-bit JAX and greyid's cache folder before any JAX work)
 import jax
@@ -29,7 +29,7 @@ from .saved import FORMAT, population_to_dict
 from .spec import PopulationSpec
 
 #: Two-sided 95 % intervals.
-Z95 = float(stats.norm.ppf(0.975))
+Z95 = float(ndtri(0.975))  # scipy.stats.norm.ppf's value; scipy.stats is imported only where it is used
 
 
 def _reporting(spec: PopulationSpec):
@@ -468,6 +468,7 @@ def likelihood_ratio(restricted: PopulationResult, general: PopulationResult) ->
     ValueError
         Fits of different data sets, or models that are not nested.
     """
+    from scipy import stats  # here: scipy.stats costs half a second to import, and a fit needs none
     from scipy.special import comb
 
     small, large = restricted.spec.phi_names(), general.spec.phi_names()
