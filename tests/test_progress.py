@@ -43,6 +43,32 @@ def test_quiet_by_default_and_printed_when_asked(short, capsys):
     assert "start 1/2:" in err and "start 2/2:" in err
 
 
+def test_a_fit_slow_to_its_first_step_says_what_it_waits_for(short, capsys, monkeypatch):
+    """Printed progress: past QUIET_START seconds without a first step, one line says that a first fit
+    compiles its programs, before the first iteration's line; a fit that steps sooner prints none."""
+    from greyid import progress
+
+    model, data = short
+    monkeypatch.setattr(progress, "QUIET_START", 0.0)
+    real = progress.FitProgress.iteration
+
+    def late(self, *args, **kwargs):  # the first step after the waiting line, however quick the fit
+        if self._waiting is not None:
+            self._waiting.join()
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(progress.FitProgress, "iteration", late)
+    model.fit(data, progress=True)
+    err = capsys.readouterr().err
+    assert err.count("a first fit of a model compiles its programs") == 1
+    assert err.index("compiles its programs") < err.index("iter    1")
+    monkeypatch.setattr(progress.FitProgress, "iteration", real)
+    monkeypatch.setattr(progress, "QUIET_START", 600.0)
+    model.fit(data, progress=True)
+    err = capsys.readouterr().err
+    assert "compiles its programs" not in err and "iter    1" in err
+
+
 def test_warnings_are_issued_and_stored():
     m = greyid.Model("bounded")
     m.add_system("dx = -a*x*dt + s*dw1")

@@ -8,9 +8,14 @@ dict per event instead, for notebooks or GUIs that show progress their own way.
 
 from __future__ import annotations
 
+import threading
 from typing import Callable, Iterable, Iterator, TypeVar
 
 T = TypeVar("T")
+
+#: Seconds without a first step after which a printed fit says what it waits for (the compilation of its
+#: programs, on a first fit of a model).
+QUIET_START = 2.0
 
 
 def _console():
@@ -30,10 +35,15 @@ class FitProgress:
         self._bar = None
         self._task = None
         self._start = 0
+        self._waiting = None
 
     def __enter__(self) -> "FitProgress":
         if self.enabled:
             self.console = _console()
+            # A first fit compiles its programs before its first step: seconds of silence otherwise.
+            self._waiting = threading.Timer(QUIET_START, self._still_preparing)
+            self._waiting.daemon = True
+            self._waiting.start()
             if self.starts > 1:
                 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -44,8 +54,18 @@ class FitProgress:
         return self
 
     def __exit__(self, *exc) -> None:
+        self._stop_waiting()
         if self._bar is not None:
             self._bar.stop()
+
+    def _still_preparing(self) -> None:
+        self.console.print(f"  preparing the first step (more than {QUIET_START:g} s): a first fit of a model "
+                           "compiles its programs; greyid's cache folder keeps them for later runs")
+
+    def _stop_waiting(self) -> None:
+        if self._waiting is not None:
+            self._waiting.cancel()
+            self._waiting = None
 
     def begin_start(self, index: int) -> None:
         self._start = index
@@ -55,6 +75,7 @@ class FitProgress:
 
         ``start`` names the start when several run together (batched starts).
         """
+        self._stop_waiting()
         info = dict(start=self._start if start is None else start, iteration=iteration, stage=stage,
                     value=value, max_gradient=gradient)
         if self.callback is not None:
@@ -65,6 +86,7 @@ class FitProgress:
 
     def end_start(self, value: float, iterations: int, converged: bool, message: str,
                   start: int | None = None) -> None:
+        self._stop_waiting()
         if start is not None:
             self._start = start
         if self.callback is not None:
