@@ -130,6 +130,21 @@ def test_help_and_version_do_not_load_jax():
     assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr
 
 
+def test_help_names_every_likelihood_method(capsys):
+    """`greyid fit --help` names every method a fit takes, `greyid population --help` those a population takes
+    (all but the particle filter, which it refuses)."""
+    from greyid.filters.protocol import METHODS, PARTICLE
+
+    main(["fit", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    for method in METHODS:
+        assert f" {method}," in text or f" {method} " in text, method
+    main(["population", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    for method in METHODS:
+        assert (f" {method}," in text or f" {method} " in text) == (method != PARTICLE), method
+
+
 def test_identifiability_command(capsys):
     assert main(["identifiability", "test_cell"]) == 0
     printed = capsys.readouterr().out

@@ -28,6 +28,7 @@ from rich.console import Console
 from rich.markup import escape
 
 from .errors import DataError, ModelError
+from .schema import METHODS
 
 OK, VERDICT, BAD_INPUT = 0, 1, 2
 
@@ -239,7 +240,7 @@ def fit(model: str = typer.Argument(..., metavar="MODEL", help="model file (.tom
         out_dir: Optional[Path] = typer.Option(None, "--out", metavar="DIR",
                                                help="folder for fit.json, summary.txt, parameters.csv"),
         method: Optional[str] = typer.Option(None, metavar="NAME",
-                                             help="filter: kalman, ekf, iekf, ekf2, ukf, gaussian2, truncated2"),
+                                             help=f"likelihood: {', '.join(METHODS)}"),
         hold: Optional[str] = typer.Option(None, metavar="zoh|foh", help="input hold between samples: zoh or foh"),
         time_column: Optional[str] = typer.Option(None, "--time", metavar="COLUMN", help="name of the time column"),
         starts: Optional[int] = typer.Option(None, min=1, metavar="N",
@@ -333,7 +334,8 @@ def population_command(
         omega: Optional[str] = typer.Option(None, help="diagonal or full (correlated random effects; default: "
                                                        "the model file's, else diagonal)"),
         method: Optional[str] = typer.Option(None, metavar="NAME",
-                                             help="filter: kalman, ekf, iekf, ekf2, ukf, gaussian2, truncated2"),
+                                             help="each member's likelihood: "
+                                                  + ", ".join(m for m in METHODS if m != "particle")),
         hold: Optional[str] = typer.Option(None, metavar="zoh|foh", help="input hold between samples: zoh or foh"),
         time_column: Optional[str] = typer.Option(None, "--time", metavar="COLUMN", help="name of the time column"),
         out_dir: Optional[Path] = typer.Option(None, "--out", metavar="DIR",
