@@ -1,6 +1,6 @@
 """Estimation benchmarks (issue "Estimation", section Speed).
 
-    python benchmarks/fit.py [--lengths 1000,10000,100000,1000000] [--steady-state] [--quasi-newton]
+    python benchmarks/fit.py [--lengths 1000,10000,100000,1000000] [--steady-state] [--quasi-newton] [--lbfgs]
     python benchmarks/fit.py --against OTHER_CHECKOUT/src
 
 Prints, on this machine:
@@ -14,6 +14,7 @@ Prints, on this machine:
   ``PYTHONDONTWRITEBYTECODE`` set (as on the development machine) every
   process would otherwise compile them again, 0.4 s (``--no-bytecode`` measures that);
 * with ``--quasi-newton``, the same first fits with ``optimizer="quasi-newton"``, interleaved;
+* with ``--lbfgs``, the same first fits with ``optimizer="lbfgs"`` (no Hessian program), interleaved;
 * with ``--steady-state``, the same fits with ``steady_state=True`` (the fit's programs switch
   a shorter series to the filter's steady state), interleaved with the default ones, and both
   compiled in one process, alternating in blocks of ten fits;
@@ -60,6 +61,8 @@ if sys.argv[3] == "steady":
     kwargs["steady_state"] = True
 if sys.argv[3] == "quasi":
     kwargs["optimizer"] = "quasi-newton"
+if sys.argv[3] == "lbfgs":
+    kwargs["optimizer"] = "lbfgs"
 ready = time.perf_counter()
 fit = model.fit(data, **kwargs)
 first = time.perf_counter()
@@ -163,11 +166,13 @@ def test_cell_data() -> Path:
     return path
 
 
-def fit_case(case: str, data: Path, repeats: int, steady_state: bool = False, quasi_newton: bool = False) -> None:
+def fit_case(case: str, data: Path, repeats: int, steady_state: bool = False, quasi_newton: bool = False,
+             lbfgs: bool = False) -> None:
     """First fits with an empty and a warm compilation cache, ``repeats`` times each (median, range); with
     ``steady_state`` (``quasi_newton``) the same with ``fit(..., steady_state=True)``
     (``optimizer="quasi-newton"``), interleaved with the default."""
-    variants = ["default"] + (["steady"] if steady_state else []) + (["quasi"] if quasi_newton else [])
+    variants = (["default"] + (["steady"] if steady_state else []) + (["quasi"] if quasi_newton else [])
+                + (["lbfgs"] if lbfgs else []))
     runs = {(variant, cache): [] for variant in variants for cache in ("cold cache", "warm cache")}
     for _ in range(repeats):
         for variant in variants:
@@ -176,7 +181,7 @@ def fit_case(case: str, data: Path, repeats: int, steady_state: bool = False, qu
                 run_fits(runs[variant, cache], case, data, variant, env)
     for (variant, cache), results in runs.items():
         label = {"default": cache, "steady": f"steady_state=True, {cache}",
-                 "quasi": f'optimizer="quasi-newton", {cache}'}[variant]
+                 "quasi": f'optimizer="quasi-newton", {cache}', "lbfgs": f'optimizer="lbfgs", {cache}'}[variant]
 
         def stat(key, fmt):
             values = sorted(r[key] for r in results)
@@ -249,6 +254,8 @@ def main():
                         help="also fit with steady_state=True (interleaved with the default)")
     parser.add_argument("--quasi-newton", action="store_true",
                         help='also fit with optimizer="quasi-newton" (interleaved with the default)')
+    parser.add_argument("--lbfgs", action="store_true",
+                        help='also fit with optimizer="lbfgs" (interleaved with the default)')
     parser.add_argument("--against", type=Path, default=None,
                         help="another checkout's src: its compiled Armadillo fits beside this one's")
     parser.add_argument("--no-bytecode", action="store_true",
@@ -261,14 +268,14 @@ def main():
         return
     if ARMADILLO.exists():
         print("Armadillo fit (TwTi_RoRi, foh, 232 rows):")
-        fit_case("armadillo", ARMADILLO, args.repeats, args.steady_state, args.quasi_newton)
+        fit_case("armadillo", ARMADILLO, args.repeats, args.steady_state, args.quasi_newton, args.lbfgs)
         if args.steady_state:
             compiled_blocks("armadillo", ARMADILLO, 6)
     else:
         print(f"Armadillo data not found at {ARMADILLO}; skipped")
     print("Test-cell fit (7.43, 1512 samples):")
     cell = test_cell_data()
-    fit_case("testcell", cell, args.repeats, args.steady_state, args.quasi_newton)
+    fit_case("testcell", cell, args.repeats, args.steady_state, args.quasi_newton, args.lbfgs)
     if args.steady_state:
         compiled_blocks("testcell", cell, 3)
     lengths = [int(v) for v in args.lengths.split(",") if v.strip()]

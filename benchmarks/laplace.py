@@ -1,6 +1,6 @@
 """The Laplace method's cost beside ctsmTMB's (issue "strongly nonlinear and non-Gaussian models").
 
-    python benchmarks/laplace.py [--rows 50 1000 10000] [--calls 20] [--fits 1000 10000]
+    python benchmarks/laplace.py [--rows 50 1000 10000] [--calls 20] [--fits 1000 10000] [--optimizer lbfgs]
 
 ctsmTMB's Ornstein2D example (``create.Ornstein2D.model()``: dx1 = θ(μ + u − x1)dt + σ1 dω1,
 dx2 = α(x1 − x2)dt + σ2 dω2, y_i = x_i + e_i, x0 = (3, 3), P0 = 0.1 I), simulated
@@ -10,7 +10,9 @@ method="laplace", scheme=...)`` value and gradient per call (fastest of
 ``--calls`` after the first, which compiles), for ``scheme="ctsmtmb"`` (ctsmTMB's
 own computation: one Euler–Maruyama step per interval, 10⁻⁸ jitter) and greyid's
 default (exact transitions of these linear dynamics).  ``--fits``: a fit in this
-process (first, compiling) and again.
+process (first, compiling) and again, by ``--optimizer`` (``lbfgs``: as ctsmTMB fits,
+quasi-Newton steps on the value and gradient and the Hessian by differences of the
+gradient).
 """
 
 from __future__ import annotations
@@ -67,6 +69,9 @@ def main():
     parser.add_argument("--rows", type=int, nargs="*", default=[50, 1000, 10000])
     parser.add_argument("--calls", type=int, default=20)
     parser.add_argument("--fits", type=int, nargs="*", default=[1000, 10000])
+    parser.add_argument("--optimizer", default="auto",
+                        help="the fits' optimizer: auto (Newton steps on the exact Hessian) or lbfgs (L-BFGS, "
+                             "the Hessian by differences of the gradient, as TMB's sdreport)")
     args = parser.parse_args()
     for rows in args.rows:
         data = simulate(rows, 20261127 + rows)
@@ -84,8 +89,9 @@ def main():
         data = simulate(rows, 20261127 + rows)
         for label in ("first", "again"):
             start = time.perf_counter()
-            fit = model().fit(data, method="laplace", scheme="ctsmtmb")
-            print(f"{rows:6d} rows  fit scheme ctsmtmb {label}: {time.perf_counter() - start:.2f} s  "
+            fit = model().fit(data, method="laplace", scheme="ctsmtmb", optimizer=args.optimizer)
+            print(f"{rows:6d} rows  fit scheme ctsmtmb optimizer {args.optimizer} {label}: "
+                  f"{time.perf_counter() - start:.2f} s  "
                   f"log-likelihood {fit.loglik:.6f}  converged {fit.converged}", flush=True)
 
 

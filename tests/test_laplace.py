@@ -127,6 +127,61 @@ def test_a_laplace_fit_recovers_the_simulated_parameters_of_counts():
         assert abs(estimate - truth) < 3.5 * error, (name, estimate, error)
 
 
+def test_an_lbfgs_fit_reaches_newtons_optimum_without_a_hessian_program(monkeypatch):
+    """optimizer="lbfgs" (L-BFGS on the value and exact gradient, the Hessian at the optimum by central
+    differences of the gradient, as TMB's sdreport): the default fit's optimum and standard errors, without
+    the exact Hessian's program (what a first Laplace fit spends most of its compilation on)."""
+    from greyid.estimate import estimation, objective
+
+    m, data = poisson_model(), poisson_data(300, seed=8)
+    m.set_parameter("mu", init=1.5, lower=-5, upper=10)
+    newton = m.fit(data, method="laplace")
+
+    def refused(*args, **kwargs):
+        raise AssertionError("the exact Hessian's programs were asked for")
+
+    monkeypatch.setattr(estimation, "single_programs", refused)
+    monkeypatch.setattr(objective.Derivatives, "__init__", refused)
+    events = []
+    lbfgs = m.fit(data, method="laplace", optimizer="lbfgs", progress=events.append)
+    assert newton.converged and lbfgs.converged
+    assert lbfgs.loglik == pytest.approx(newton.loglik, abs=1e-7)
+    shift = (lbfgs.params["estimate"] - newton.params["estimate"]) / newton.params["std_error"]
+    assert np.max(np.abs(shift)) < 1e-3
+    np.testing.assert_allclose(lbfgs.params["std_error"], newton.params["std_error"], rtol=1e-4)
+    steps = [e for e in events if "iteration" in e]
+    assert steps and {e["stage"] for e in steps} == {"lbfgs"}
+    assert [e["iteration"] for e in steps] == list(range(1, lbfgs.iterations + 1))
+    assert lbfgs.settings.optimizer == "lbfgs"
+    assert "covariance: hessian (the Hessian by central differences" in lbfgs.summary()
+    assert "by central differences" not in newton.summary()
+    with pytest.raises(greyid.ModelError, match="optimizer='lbfgs' is for single fits"):
+        greyid.fit_many(m, {"a": data, "b": data}, method="laplace", optimizer="lbfgs")
+
+
+def test_the_difference_hessian_does_not_depend_on_the_parameters_scales():
+    """Central differences of an exact gradient recover the Hessian at an optimum of a function that is not
+    quadratic (Σ cosh of linear combinations), whatever the scale of each coordinate, to 1e-7: the steps are
+    taken in each coordinate's own standard deviation (a step of 1e-4 in every coordinate would be a hundred
+    standard deviations in one of them)."""
+    from greyid.estimate.lbfgs import difference_hessian
+
+    rng = np.random.default_rng(3)
+    for scale in (1e-6, 1.0, 1e6):
+        A = (rng.normal(size=(3, 3)) + 3 * np.eye(3)) @ np.diag([1.0 / scale, 1.0, scale])
+        H = A.T @ A  # cosh''(0) = 1
+        scales = 1.0 / np.sqrt(np.diag(H))
+        optimum = rng.normal(size=3) * 100 * scales
+
+        def value_and_grad(z):
+            u = A @ (z - optimum)
+            return np.sum(np.cosh(u)), A.T @ np.sinh(u)
+
+        found = difference_hessian(value_and_grad, optimum, scales)
+        norm = np.sqrt(np.outer(np.diag(H), np.diag(H)))
+        np.testing.assert_allclose(found / norm, H / norm, atol=1e-7)
+
+
 def test_the_laplace_method_refuses_what_it_cannot_do():
     m, data = ou_model(), ou_data()
     with pytest.raises(ModelError, match="gives a likelihood, not a filter"):

@@ -64,8 +64,8 @@ def check_options(options: Mapping) -> dict:
             raise ModelError(f"setting 'criterion' must be 'ml' or 'map', got {value!r}")
         if key == "cov_type" and value not in ("hessian", "opg", "sandwich"):
             raise ModelError(f"setting 'cov_type' must be 'hessian', 'opg' or 'sandwich', got {value!r}")
-        if key == "optimizer" and value not in ("auto", "scoring", "newton", "quasi-newton"):
-            raise ModelError(f"setting 'optimizer' must be 'auto', 'scoring', 'newton' or 'quasi-newton', "
+        if key == "optimizer" and value not in ("auto", "scoring", "newton", "quasi-newton", "lbfgs"):
+            raise ModelError(f"setting 'optimizer' must be 'auto', 'scoring', 'newton', 'quasi-newton' or 'lbfgs', "
                              f"got {value!r}")
         if key == "resample" and not (isinstance(value, (int, float)) and not isinstance(value, bool)
                                       and 0 < value <= 1):

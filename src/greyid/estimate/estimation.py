@@ -31,7 +31,7 @@ from .covariance import check_cov_type, default_cov_type, score_covariance
 from . import objective
 from .objective import Derivatives, Problem, combine_scoring, compiled, step_scores
 from .batch import BatchedPrograms, drive, prune_trailing
-from .lbfgs import QUASI_EVALUATIONS_PER_PARAMETER, quasi_newton_start
+from .lbfgs import QUASI_EVALUATIONS_PER_PARAMETER, lbfgs_search, quasi_newton_start
 from .optimize import EXACT, GRADIENT, SCORING, VALUE, NotFiniteError, Optimum, run_alone
 from .settings import FitSettings
 from .trust_region import HANDOVER_DECREASE, MAX_STEP, Search
@@ -46,8 +46,10 @@ CRITERIA = ("ml", "map")
 #: where a Hessian of one block is large (see QUASI_WORK), Newton steps otherwise; "quasi-newton":
 #: L-BFGS steps on value and exact gradient from each start run alone, then exact Newton
 #: steps ([`quasi_newton_start()`][greyid.estimate.lbfgs.quasi_newton_start]; a fit's starts run together take
-#: Newton steps).
-OPTIMIZERS = ("auto", "scoring", "newton", "quasi-newton")
+#: Newton steps); "lbfgs": L-BFGS to the optimum and the Hessian there by central differences of the exact
+#: gradient, as TMB's sdreport ([`lbfgs_search()`][greyid.estimate.lbfgs.lbfgs_search]): no Hessian program to
+#: compile, each start alone.
+OPTIMIZERS = ("auto", "scoring", "newton", "quasi-newton", "lbfgs")
 #: Below this (padded rows × free parameters²) the exact Hessian is cheap enough that scoring does
 #: not repay the compilation of its program (the test cell, 1.2e5, fits faster by scoring only once
 #: compiled); the PRBS1 building models (≥ 1.7e5) fit several times faster by scoring
@@ -300,9 +302,18 @@ class SearchesAlone:
     def __init__(self, structure, arguments: tuple, stack: ExitStack):
         self.structure, self.arguments, self.stack, self.programs = structure, arguments, stack, {}
 
-    def run(self, problem: Problem, search: Search, quasi: bool = False) -> Optimum:
+    def run(self, problem: Problem, search: Search, quasi: bool = False, lbfgs: bool = False) -> Optimum:
         """``search`` to its end; with ``quasi``, from where a quasi-Newton start gets to (see
-        [`quasi_newton_start()`][greyid.estimate.lbfgs.quasi_newton_start])."""
+        [`quasi_newton_start()`][greyid.estimate.lbfgs.quasi_newton_start]); with ``lbfgs``, by L-BFGS on the value
+        and gradient alone ([`lbfgs_search()`][greyid.estimate.lbfgs.lbfgs_search]), no Hessian program compiled."""
+        if lbfgs:
+            key = (problem.key(), "lbfgs")
+            if key not in self.programs:
+                program = compiled(self.structure, problem).value_and_grad
+                executable = program.executable(np.zeros(len(problem.free)), *self.arguments)
+                arguments = self.arguments
+                self.programs[key] = lambda z: executable(np.asarray(z, dtype=np.float64), *arguments)
+            return lbfgs_search(self.programs[key], search.z0, search.maxiter, search.report)
         key = (problem.key(), quasi)
         if key not in self.programs:
             # Compiled ahead only where compilation, not evaluation, dominates: on long
@@ -495,7 +506,7 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
             shown.begin_start(i)
             quasi = start and uses_quasi_start(optimizer, search.scoring, rows, len(free), structure.n_states)
             try:
-                optimum = alone.run(problem, search, quasi=quasi)
+                optimum = alone.run(problem, search, quasi=quasi, lbfgs=optimizer == "lbfgs")
             except NotFiniteError:
                 raise not_finite(problem, z_start, i) from None
             finished(i, optimum)
@@ -503,7 +514,7 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
 
         # With the steady state each start runs alone: vectorised over starts, each start's switch
         # would run both forms.
-        if len(points) == 1 or problem.long_series or problem.options.steady_state:
+        if len(points) == 1 or problem.long_series or problem.options.steady_state or optimizer == "lbfgs":
             optima = [optimize(problem, z_start, i, newton_only[i], start=True) for i, z_start in enumerate(points)]
         else:
             # All starts together, each request kind evaluated for all of them by one

@@ -56,6 +56,9 @@ def fit_members(model, names: list, sources: list, inits: list, progress, given:
     filter_settings = {k: v for k, v in settings.items() if k not in FIT_DEFAULTS}
     robust, cov_type = estimation.check_settings(s["criterion"], prior, s["robust"], s["horizon"], s["cov_type"],
                                                  s["optimizer"], s["starts"])
+    if s["optimizer"] == "lbfgs":
+        raise ModelError("optimizer='lbfgs' is for single fits (model.fit): a fleet's searches run together by "
+                         "Newton or scoring steps; use optimizer='auto', 'newton', 'scoring' or 'quasi-newton'")
     shared = estimation.free_parameters(model)
     problem = estimation.make_problem(structure, shared, s["method"], (robust, s["horizon"], prior), filter_settings)
     args = problem.arguments(shared.theta0)
