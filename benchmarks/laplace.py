@@ -1,6 +1,7 @@
 """The Laplace method's cost beside ctsmTMB's (issue "strongly nonlinear and non-Gaussian models").
 
     python benchmarks/laplace.py [--rows 50 1000 10000] [--calls 20] [--fits 1000 10000] [--optimizer lbfgs]
+        [--residuals 50]
 
 ctsmTMB's Ornstein2D example (``create.Ornstein2D.model()``: dx1 = θ(μ + u − x1)dt + σ1 dω1,
 dx2 = α(x1 − x2)dt + σ2 dω2, y_i = x_i + e_i, x0 = (3, 3), P0 = 0.1 I), simulated
@@ -12,7 +13,8 @@ own computation: one Euler–Maruyama step per interval, 10⁻⁸ jitter) and gr
 default (exact transitions of these linear dynamics).  ``--fits``: a fit in this
 process (first, compiling) and again, by ``--optimizer`` (``lbfgs``: as ctsmTMB fits,
 quasi-Newton steps on the value and gradient and the Hessian by differences of the
-gradient).
+gradient).  ``--residuals``: a fit's one-step-ahead residuals (``fit.residuals``, the
+first in the process, compiling, and again for a second fit).
 """
 
 from __future__ import annotations
@@ -69,6 +71,9 @@ def main():
     parser.add_argument("--rows", type=int, nargs="*", default=[50, 1000, 10000])
     parser.add_argument("--calls", type=int, default=20)
     parser.add_argument("--fits", type=int, nargs="*", default=[1000, 10000])
+    parser.add_argument("--residuals", type=int, nargs="*", default=[],
+                        help="rows: a fit's one-step-ahead residuals (ctsmTMB's oneStepPredict, method 'cdf'), "
+                             "the first in this process (compiling) and those of a second fit")
     parser.add_argument("--optimizer", default="auto",
                         help="the fits' optimizer: auto (Newton steps on the exact Hessian) or lbfgs (L-BFGS, "
                              "the Hessian by differences of the gradient, as TMB's sdreport)")
@@ -93,6 +98,15 @@ def main():
             print(f"{rows:6d} rows  fit scheme ctsmtmb optimizer {args.optimizer} {label}: "
                   f"{time.perf_counter() - start:.2f} s  "
                   f"log-likelihood {fit.loglik:.6f}  converged {fit.converged}", flush=True)
+
+    for rows in args.residuals:
+        data = simulate(rows, 20261127 + rows)
+        for label in ("first", "again"):
+            fit = model().fit(data, method="laplace", scheme="ctsmtmb", optimizer=args.optimizer)
+            start = time.perf_counter()
+            residuals = fit.residuals
+            print(f"{rows:6d} rows  one-step residuals {label}: {time.perf_counter() - start:.2f} s  "
+                  f"(sd {np.nanstd(residuals.to_numpy()):.4f})", flush=True)
 
 
 if __name__ == "__main__":

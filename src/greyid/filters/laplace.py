@@ -474,28 +474,37 @@ def one_step_transforms(structure: Structure, options: FilterOptions):
         rows, outputs = jnp.arange(n_rows), jnp.arange(n_out)
         zero = jnp.zeros((n_rows, n_out))
 
+        counts = jnp.array([family in COUNTS for family in families])
+        n_parts = 3 if any(family in COUNTS for family in families) else 2
+
         def at(k):
             truncated = data._replace(dt=jnp.where(rows > k, 0.0, data.dt))
             before = jnp.where((rows < k)[:, None], data.mask, 0.0)
-            out = []
-            for i, family in enumerate(families):
-                observed = data.mask[k, i] > 0
+
+            # The outputs one after the other in a scan, so that the Laplace evaluation is traced and compiled
+            # once whatever their number (each output's evaluations run apart, as a loop over them would).
+            def output(_, i):
                 mask = before.at[k].set(data.mask[k] * (outputs < i))
                 on = zero.at[k, i].set(1.0)
-                counts = family in COUNTS
                 # Y ≤ y (< y for counts) and Y > y; for counts Y = y too (the density observed): one vectorised
-                # Laplace evaluation of the two or three (mask, on, shift, upper).
-                parts = [(mask, on, on if counts else zero, zero), (mask, on, zero, on)]
-                if counts:
+                # Laplace evaluation of the two or three (mask, on, shift, upper); a model with counts among its
+                # outputs takes the third for every output, left out of the others' transforms.
+                parts = [(mask, on, jnp.where(counts[i], on, zero), zero), (mask, on, zero, on)]
+                if n_parts == 3:
                     parts.append((mask.at[k, i].set(1.0), zero, zero, zero))
                 stacked = [jnp.stack(a) for a in zip(*parts)]
-                parts = jax.vmap(lambda mask, *cdf: laplace.value(theta, truncated._replace(mask=mask), cdf))(
+                values = jax.vmap(lambda mask, *cdf: laplace.value(theta, truncated._replace(mask=mask), cdf))(
                     *stacked)
-                p = jnp.exp(parts - jnp.max(parts))
-                u = (p[0] + (uniforms[k, i] * p[2] if counts else 0.0)) / jnp.sum(p)
-                out.append(jnp.where(observed, u, 0.5))
-            return jnp.stack(out)
+                if n_parts == 3:  # a third part for counts only
+                    values = jnp.where(jnp.stack([True, True, counts[i]]), values, -jnp.inf)
+                p = jnp.exp(values - jnp.max(values))
+                u = (p[0] + (uniforms[k, i] * p[2] if n_parts == 3 else 0.0)) / jnp.sum(p)
+                return None, jnp.where(data.mask[k, i] > 0, u, 0.5)
 
-        return jax.lax.map(at, rows, batch_size=ONE_STEP_BATCH)
+            return jax.lax.scan(output, None, outputs)[1]
+
+        # Jitted, so that the rows left over by whole batches (which lax.map vectorises apart) take the
+        # trace of the batches' instead of tracing the whole evaluation again.
+        return jax.lax.map(jax.jit(at), rows, batch_size=ONE_STEP_BATCH)
 
     return transforms
