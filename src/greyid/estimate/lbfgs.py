@@ -34,6 +34,42 @@ class QuasiStart:
     gradient: np.ndarray | None = None
 
 
+def _minimize(value_and_grad: Callable, z0: np.ndarray, stage: str, report: Callable, stop_where_not_finite: bool,
+              options: dict):
+    """SciPy's L-BFGS-B (no bounds) from z0 on ``value_and_grad``: ``(best, result)``, the best point seen (a
+    [`QuasiStart`][greyid.estimate.lbfgs.QuasiStart]) and SciPy's result (None where it stopped at a non-finite
+    evaluation).  Each accepted step is reported as ``stage``.  A non-finite value or gradient ends the search
+    with ``stop_where_not_finite``; otherwise it is a point the line search steps back from (far above every
+    value seen), and at z0 a NotFiniteError."""
+    from scipy.optimize import minimize  # imported while the fit compiles (estimation.fit)
+
+    best = QuasiStart(np.asarray(z0, dtype=float), np.inf, 0, 0)
+
+    def evaluate(z):
+        f, g = settle(value_and_grad(np.asarray(z, dtype=np.float64)))[0]
+        best.evaluations += 1
+        f = float(f)
+        if not (np.isfinite(f) and np.all(np.isfinite(g))):
+            if stop_where_not_finite:
+                raise _NotFinite
+            if best.evaluations == 1:
+                raise NotFiniteError("the criterion or its gradient is not finite at the starting values")
+            return abs(best.value) * 1e3 + 1e10, np.zeros_like(np.asarray(g, dtype=np.float64))
+        if f < best.value:
+            best.z, best.value, best.gradient = np.array(z, dtype=float), f, g
+        return f, g
+
+    def step_done(intermediate):
+        best.iterations += 1
+        report(best.iterations, stage, best.value, best.gradient)
+
+    try:
+        result = minimize(evaluate, best.z, jac=True, method="L-BFGS-B", callback=step_done, options=options)
+    except _NotFinite:
+        result = None
+    return best, result
+
+
 def quasi_newton_start(value_and_grad: Callable, z0: np.ndarray, max_evaluations: int,
                        report: Callable = _no_report) -> QuasiStart:
     """L-BFGS (SciPy's L-BFGS-B, no bounds) from z0 on ``value_and_grad(z) -> (f, g)``, the exact gradient.
@@ -47,29 +83,8 @@ def quasi_newton_start(value_and_grad: Callable, z0: np.ndarray, max_evaluations
     gradient falls below QUASI_GRADIENT, and at the first non-finite value or gradient; it
     returns the best point seen (z0 where nothing was better).
     """
-    from scipy.optimize import minimize  # imported while the fit compiles (estimation.fit)
-
-    best = QuasiStart(np.asarray(z0, dtype=float), np.inf, 0, 0)
-
-    def evaluate(z):
-        f, g = settle(value_and_grad(np.asarray(z, dtype=np.float64)))[0]
-        best.evaluations += 1
-        f = float(f)
-        if not (np.isfinite(f) and np.all(np.isfinite(g))):
-            raise _NotFinite
-        if f < best.value:
-            best.z, best.value, best.gradient = np.array(z, dtype=float), f, g
-        return f, g
-
-    def step_done(intermediate):
-        best.iterations += 1
-        report(best.iterations, "quasi-newton", best.value, best.gradient)
-
-    try:
-        minimize(evaluate, best.z, jac=True, method="L-BFGS-B", callback=step_done,
-                 options=dict(maxfun=max_evaluations, maxiter=max_evaluations, gtol=QUASI_GRADIENT, ftol=0.0))
-    except _NotFinite:
-        pass
+    best, _ = _minimize(value_and_grad, z0, "quasi-newton", report, stop_where_not_finite=True,
+                        options=dict(maxfun=max_evaluations, maxiter=max_evaluations, gtol=QUASI_GRADIENT, ftol=0.0))
     return best
 
 
@@ -112,30 +127,10 @@ def lbfgs_search(value_and_grad: Callable, z0: np.ndarray, maxiter: int, report:
     is a point the line search must step back from.  Returns an
     [`Optimum`][greyid.estimate.optimize.Optimum].
     """
-    from scipy.optimize import minimize
-
     z0 = np.asarray(z0, dtype=np.float64)
-    best = QuasiStart(z0, np.inf, 0, 0)
-
-    def evaluate(z):
-        f, g = settle(value_and_grad(np.asarray(z, dtype=np.float64)))[0]
-        best.evaluations += 1
-        f, g = float(f), np.asarray(g, dtype=np.float64)
-        if not (np.isfinite(f) and np.all(np.isfinite(g))):
-            if best.evaluations == 1:
-                raise NotFiniteError("the criterion or its gradient is not finite at the starting values")
-            # Far above every value seen: the line search steps back.
-            return abs(best.value) * 1e3 + 1e10, np.zeros_like(g)
-        if f < best.value:
-            best.z, best.value, best.gradient = np.array(z, dtype=np.float64), f, g
-        return f, g
-
-    def step_done(intermediate):
-        best.iterations += 1
-        report(best.iterations, "lbfgs", best.value, best.gradient)
-
-    result = minimize(evaluate, z0, jac=True, method="L-BFGS-B", callback=step_done,
-                      options=dict(maxiter=maxiter, maxfun=20 * maxiter, gtol=LBFGS_GRADIENT, ftol=0.0))
+    best, result = _minimize(value_and_grad, z0, "lbfgs", report, stop_where_not_finite=False,
+                             options=dict(maxiter=maxiter, maxfun=20 * maxiter, gtol=LBFGS_GRADIENT, ftol=0.0))
+    best.gradient = np.asarray(best.gradient, dtype=np.float64)
     # The steps' scales: first L-BFGS's own variances (its curvature, which can be far off along a poorly
     # determined direction), then the conditional standard deviations of the Hessian so found.
     variances = np.diag(result.hess_inv.todense()) if hasattr(result.hess_inv, "todense") else np.ones(len(z0))
