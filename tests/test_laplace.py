@@ -252,8 +252,8 @@ def test_laplace_one_step_residuals_match_the_kalman_filter_and_the_grid_filter(
 
 
 def test_the_one_step_residuals_of_two_outputs_trace_the_laplace_value_once(monkeypatch):
-    """The outputs in a scan and the rows' function jitted (21 rows: 16 in a batch, 5 left over, which lax.map
-    vectorises apart): the Laplace value is traced once, not once per output and again for the rows left over.
+    """The outputs in a scan, the rows in batches of one size: the Laplace value is traced once, not once per
+    output and again for rows left over by the batches.
     Each output given the past and the outputs before it: within 0.06 of the Kalman filter's innovations
     whitened in that order."""
     from greyid.filters import laplace
@@ -285,6 +285,41 @@ def test_the_one_step_residuals_of_two_outputs_trace_the_laplace_value_once(monk
     second = (e[:, 1] - R[:, 1, 0] / R[:, 0, 0] * e[:, 0]) / np.sqrt(R[:, 1, 1] - R[:, 1, 0] ** 2 / R[:, 0, 0])
     assert np.max(np.abs(residuals["y1"] - first)) < 0.06
     assert np.max(np.abs(residuals["y2"] - second)) < 0.06
+
+
+def test_row_batches_are_the_fewest_of_one_size():
+    from greyid.filters.laplace import row_batches
+
+    assert row_batches(52) == (7, 8) and row_batches(48) == (6, 8) and row_batches(18) == (3, 6)
+    for n in range(1, 300):
+        count, size = row_batches(n)
+        assert size <= 8 and count == -(-n // 8) and 0 <= count * size - n < count
+
+
+def test_the_one_step_residuals_evaluate_every_row_in_one_vectorised_program():
+    """22 rows (a length bucket that no batch of 8 divides): the rows run in batches of one size (the last row
+    repeated), so that the program holds the Laplace evaluation once; with batches of 8 and the rest vectorised
+    apart (lax.map's remainder), it would hold it twice: a second loop beside the batches' scan."""
+    import jax
+    from jax.extend.core import ClosedJaxpr, Jaxpr
+
+    from greyid.filters import api, laplace
+
+    m, data = ou_model(), ou_data(22, seed=2)
+    made = []
+
+    def make(structure, options):
+        made.append(laplace.one_step_transforms(structure, options))
+        return made[-1]
+
+    _, theta, prepared, _ = api._laplace_program(m, PARAMS, data, "t", "zoh", None, "one-step-test", make, {})
+    inputs = prepared[0][1]
+    assert inputs.t.shape[0] % 8 != 0
+    jaxpr = jax.make_jaxpr(made[0])(theta, inputs, np.zeros(inputs.y.shape)).jaxpr
+    loops = [eqn.primitive.name for eqn in jaxpr.eqns
+             if any(isinstance(value, (ClosedJaxpr, Jaxpr))
+                    for value in eqn.params.values())]
+    assert loops == ["scan"]
 
 
 @pytest.mark.slow

@@ -443,8 +443,15 @@ def log_tail(family: str, y, m, variance, shape, upper):
     return jnp.log(jnp.maximum(jnp.where(upper, 1 - below, below), 1e-300))
 
 
-#: One-step transforms are computed for this many rows at a time (vectorised).
-ONE_STEP_BATCH = 16
+#: One-step transforms are computed for at most this many rows at a time (vectorised).
+ONE_STEP_BATCH = 8
+
+
+def row_batches(n_rows: int, most: int = ONE_STEP_BATCH) -> tuple[int, int]:
+    """``(count, size)``: the fewest batches of at most ``most`` rows, all of one size, that cover ``n_rows``
+    (``count * size - n_rows < count`` rows repeated)."""
+    count = -(-n_rows // most)
+    return count, -(-n_rows // count)
 
 
 def one_step_transforms(structure: Structure, options: FilterOptions):
@@ -503,8 +510,10 @@ def one_step_transforms(structure: Structure, options: FilterOptions):
 
             return jax.lax.scan(output, None, outputs)[1]
 
-        # Jitted, so that the rows left over by whole batches (which lax.map vectorises apart) take the
-        # trace of the batches' instead of tracing the whole evaluation again.
-        return jax.lax.map(jax.jit(at), rows, batch_size=ONE_STEP_BATCH)
+        # Batches of one size: rows left over by whole batches lax.map vectorises apart, a second copy of
+        # the whole evaluation for XLA to compile; the last batch repeats the last row instead.
+        count, size = row_batches(n_rows)
+        batched = rows if count * size == n_rows else jnp.minimum(jnp.arange(count * size), n_rows - 1)
+        return jax.lax.map(at, batched, batch_size=size)[:n_rows]
 
     return transforms
