@@ -75,15 +75,23 @@ def test_fit_writes_fit_summary_and_parameters(fitted):
     assert "greyid fit of model 'TiTw'" in (out / "summary.txt").read_text()
 
 
-def test_validate_uses_the_fits_data_and_exit_code_follows_the_verdict(fitted, capsys):
+def test_validate_uses_the_fits_data_and_exit_code_follows_the_verdict(fitted, capsys, monkeypatch):
+    """... and says on standard error what it waits for when it takes more than QUIET_START seconds."""
+    from greyid import progress
+
     code, folder = fitted
+    monkeypatch.setattr(progress, "QUIET_START", 0.0)
     result = main(["validate", str(folder / "out" / "fit.json")])
-    text = capsys.readouterr().out
+    printed = capsys.readouterr()
+    text = printed.out
+    assert printed.err.count("computing the residuals and their tests") == 1 and "cache folder" in printed.err
+    monkeypatch.setattr(progress, "QUIET_START", 600.0)
     assert "validation of 'TiTw' at level 0.05" in text
     rejects = int(text.split("level 0.05: ")[1].split()[0])
     assert result == (1 if rejects else 0)
     # At level 0.999 nearly every test rejects, so the verdict is negative.
     assert main(["validate", str(folder / "out" / "fit.json"), "--level", "0.999"]) == 1
+    assert "computing the residuals" not in capsys.readouterr().err
 
 
 def test_simulate_from_a_fit_writes_paths(fitted, tmp_path):

@@ -95,3 +95,23 @@ def test_track_reports_to_a_callable():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert list(track(range(2), 2, "x")) == [0, 1]
+
+
+def test_a_waiting_line_is_said_once_only_while_its_block_runs_past_quiet_start(capsys, monkeypatch):
+    """Waiting (the command line's report and residual tests): the line after QUIET_START seconds, once;
+    none for a quicker block, none when not enabled, none after the block has ended."""
+    import time
+
+    from greyid import progress
+
+    monkeypatch.setattr(progress, "QUIET_START", 0.05)
+    with progress.Waiting("  compiling the report"):
+        time.sleep(0.3)
+    assert capsys.readouterr().err.count("compiling the report") == 1
+    with progress.Waiting("  compiling the report", enabled=False):
+        time.sleep(0.3)
+    monkeypatch.setattr(progress, "QUIET_START", 0.5)
+    with progress.Waiting("  compiling the report"):
+        pass
+    time.sleep(0.7)
+    assert "compiling" not in capsys.readouterr().err

@@ -156,6 +156,15 @@ def load_data(model, data: Optional[Path], fit=None, time: Optional[str] = None)
     return frame, data_origin(model, data)
 
 
+def _writing_report(enabled: bool = True):
+    """A line on standard error if the report takes seconds: its residual tests, profile intervals,
+    simulations and predictions compile programs on a first report of a model."""
+    from .progress import KEPT, Waiting
+
+    return Waiting("  writing the report: a first report of a model compiles the programs of its residual tests, "
+                   f"intervals and figures; {KEPT}", enabled)
+
+
 def _fit_warning():
     """FitWarning (greyid.errors), taken from estimate.results, whose import loads JAX (and with it sets up
     the cache): imported inside ``_run``'s handling of warnings, so that the cache's own warning is handled too."""
@@ -279,7 +288,8 @@ def fit(model: str = typer.Argument(..., metavar="MODEL", help="model file (.tom
             files = {"fit.json": json.dumps(result.to_dict(), indent=2), "summary.txt": result.summary() + "\n",
                      "parameters.csv": result.params.to_csv()}
             if report:
-                files["report.html"] = result.report()
+                with _writing_report(not quiet):
+                    files["report.html"] = result.report()
             write_generation(out_dir, files)
             err.print(f"wrote {', '.join(files)} to {out_dir}")
         elif report:
@@ -388,7 +398,8 @@ def population_command(
                          "summary.txt": result.summary() + "\n", "parameters.csv": result.params.to_csv(),
                          "random_effects.csv": result.random_effects.to_csv()}
             if report:
-                files_out["report.html"] = result.report()
+                with _writing_report(not quiet):
+                    files_out["report.html"] = result.report()
             write_generation(out_dir, files_out)
             err.print(f"wrote {', '.join(files_out)} to {out_dir}")
         return OK if result.converged else VERDICT
@@ -454,7 +465,12 @@ def validate(fit_file: Path = typer.Argument(..., metavar="FIT", help="fit file 
     """Run the residual tests of chapter 5 on a saved fit; exit code 1 if any test rejects."""
 
     def command() -> int:
-        result = _fit_with_data(fit_file, data).validate(level=level)
+        from .progress import KEPT, Waiting
+
+        fitted = _fit_with_data(fit_file, data)
+        with Waiting(f"  computing the residuals and their tests: a first run for a model compiles its programs; "
+                     f"{KEPT}"):
+            result = fitted.validate(level=level)
         out.print(result.summary())
         return VERDICT if len(result.rejected) else OK
 
@@ -472,7 +488,9 @@ def report(fit_file: Path = typer.Argument(..., metavar="FIT", help="fit file wr
 
     def command() -> int:
         check_output_file(out_file)
-        _fit_with_data(fit_file, data).report(out_file, level=level, steps=steps)
+        fitted = _fit_with_data(fit_file, data)
+        with _writing_report():
+            fitted.report(out_file, level=level, steps=steps)
         err.print(f"wrote {out_file}")
         return OK
 
@@ -630,7 +648,8 @@ def demo(out_dir: Path = typer.Option(Path("greyid-demo"), "--out", help="folder
 
         files = {"fit.json": json.dumps(result.to_dict(), indent=2)}
         if report:
-            files["report.html"] = result.report()
+            with _writing_report(not quiet):
+                files["report.html"] = result.report()
         write_generation(out_dir, files)
         if report:
             out.print(f"report: {out_dir / 'report.html'}")

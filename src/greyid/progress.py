@@ -24,6 +24,55 @@ def _console():
     return Console(stderr=True, highlight=False, soft_wrap=True)
 
 
+#: What the cache folder does for a program's compilation, said in every waiting line.
+KEPT = "greyid's cache folder keeps them for later runs"
+
+
+class Waiting:
+    """Says ``message`` once on standard error if the block it guards still runs after
+    [`QUIET_START`][greyid.progress.QUIET_START] seconds: a first run of work that compiles programs
+    (a report, residual tests) is otherwise seconds of silence.
+
+    Parameters
+    ----------
+    message : str
+        What the block waits for.
+    enabled : bool
+        False: say nothing (``--quiet``).
+
+    Examples
+    --------
+    >>> with Waiting("  writing the report"):
+    ...     pass
+    """
+
+    def __init__(self, message: str, enabled: bool = True):
+        self.message = message
+        self._timer = None
+        if enabled:
+            self._timer = threading.Timer(QUIET_START, lambda: _console().print(self.message))
+            self._timer.daemon = True
+
+    def __enter__(self) -> "Waiting":
+        if self._timer is not None:
+            self._timer.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def stop(self) -> None:
+        """Say nothing from now on (a line being said is finished first, so none comes after the block)."""
+        if self._timer is not None:
+            self._timer.cancel()
+            self.join()
+
+    def join(self) -> None:
+        """Wait until the line is said or the waiting stopped."""
+        if self._timer is not None and self._timer.is_alive():
+            self._timer.join()
+
+
 class FitProgress:
     """Reports a fit: each optimiser iteration (single start) or each finished start."""
 
@@ -41,9 +90,8 @@ class FitProgress:
         if self.enabled:
             self.console = _console()
             # A first fit compiles its programs before its first step: seconds of silence otherwise.
-            self._waiting = threading.Timer(QUIET_START, self._still_preparing)
-            self._waiting.daemon = True
-            self._waiting.start()
+            self._waiting = Waiting(f"  preparing the first step (more than {QUIET_START:g} s): a first fit of a "
+                                    f"model compiles its programs; {KEPT}").__enter__()
             if self.starts > 1:
                 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -58,13 +106,9 @@ class FitProgress:
         if self._bar is not None:
             self._bar.stop()
 
-    def _still_preparing(self) -> None:
-        self.console.print(f"  preparing the first step (more than {QUIET_START:g} s): a first fit of a model "
-                           "compiles its programs; greyid's cache folder keeps them for later runs")
-
     def _stop_waiting(self) -> None:
         if self._waiting is not None:
-            self._waiting.cancel()
+            self._waiting.stop()
             self._waiting = None
 
     def begin_start(self, index: int) -> None:
