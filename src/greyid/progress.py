@@ -54,6 +54,10 @@ class Waiting:
             self._timer.daemon = True
 
     def __enter__(self) -> "Waiting":
+        return self.start()
+
+    def start(self) -> "Waiting":
+        """Start waiting (what entering the block does)."""
         if self._timer is not None:
             self._timer.start()
         return self
@@ -91,7 +95,7 @@ class FitProgress:
             self.console = _console()
             # A first fit compiles its programs before its first step: seconds of silence otherwise.
             self._waiting = Waiting(f"  preparing the first step (more than {QUIET_START:g} s): a first fit of a "
-                                    f"model compiles its programs; {KEPT}").__enter__()
+                                    f"model compiles its programs; {KEPT}").start()
             if self.starts > 1:
                 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
