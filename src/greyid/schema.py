@@ -35,6 +35,8 @@ ALL_KEYS = DATA_KEYS + FILE_KEYS + FILTER_KEYS + ESTIMATION_KEYS
 HOLDS = ("zoh", "foh")
 METHODS = ("kalman", "ekf", "iekf", "ekf2", "ukf", "truncated2", "gaussian2", "enkf", "particle", "laplace")
 FORMS = ("sqrt", "plain")
+#: The fit's searches (what each does: greyid.estimate.estimation, where they are run).
+OPTIMIZERS = ("auto", "scoring", "newton", "quasi-newton", "lbfgs")
 
 
 def check_options(options: Mapping) -> dict:
@@ -64,9 +66,9 @@ def check_options(options: Mapping) -> dict:
             raise ModelError(f"setting 'criterion' must be 'ml' or 'map', got {value!r}")
         if key == "cov_type" and value not in ("hessian", "opg", "sandwich"):
             raise ModelError(f"setting 'cov_type' must be 'hessian', 'opg' or 'sandwich', got {value!r}")
-        if key == "optimizer" and value not in ("auto", "scoring", "newton", "quasi-newton", "lbfgs"):
-            raise ModelError(f"setting 'optimizer' must be 'auto', 'scoring', 'newton', 'quasi-newton' or 'lbfgs', "
-                             f"got {value!r}")
+        if key == "optimizer" and value not in OPTIMIZERS:
+            raise ModelError(f"setting 'optimizer' must be {', '.join(map(repr, OPTIMIZERS[:-1]))} or "
+                             f"{OPTIMIZERS[-1]!r}, got {value!r}")
         if key == "resample" and not (isinstance(value, (int, float)) and not isinstance(value, bool)
                                       and 0 < value <= 1):
             raise ModelError(f"setting 'resample' must be a fraction in (0, 1] of the particles, got {value!r}")

@@ -19,6 +19,7 @@ import numpy as np
 
 from ..data.prepare import as_frames
 from ..errors import DataError, ModelError
+from ..schema import OPTIMIZERS
 from ..filters.accuracy import LOGLIK_TOLERANCE, MAX_SUBSTEPS, SubstepChoice, chooses_substeps
 from ..filters.api import check_at_parameters, check_equations_finite, filter_options, prepare_datasets
 from ..filters.kalman import takes_steady_state
@@ -39,17 +40,17 @@ from .starts import nested_start, reductions, space_filling
 from .transforms import NONE, Transform
 
 CRITERIA = ("ml", "map")
-#: "scoring": Fisher scoring far from the optimum, exact Newton near it (Gaussian
-#: criteria; robust and k-step criteria have no scoring matrix and use Newton only);
-#: "newton": exact Newton steps throughout; "auto": scoring where a Hessian costs
-#: much more than a gradient, rows × (free parameters)² ≥ SCORING_WORK, the quasi-Newton start
-#: where a Hessian of one block is large (see QUASI_WORK), Newton steps otherwise; "quasi-newton":
-#: L-BFGS steps on value and exact gradient from each start run alone, then exact Newton
-#: steps ([`quasi_newton_start()`][greyid.estimate.lbfgs.quasi_newton_start]; a fit's starts run together take
-#: Newton steps); "lbfgs": L-BFGS to the optimum and the Hessian there by central differences of the exact
-#: gradient, as TMB's sdreport ([`lbfgs_search()`][greyid.estimate.lbfgs.lbfgs_search]): no Hessian program to
-#: compile, each start alone.
-OPTIMIZERS = ("auto", "scoring", "newton", "quasi-newton", "lbfgs")
+# "scoring": Fisher scoring far from the optimum, exact Newton near it (Gaussian
+# criteria; robust and k-step criteria have no scoring matrix and use Newton only);
+# "newton": exact Newton steps throughout; "auto": scoring where a Hessian costs
+# much more than a gradient, rows × (free parameters)² ≥ SCORING_WORK, the quasi-Newton start
+# where a Hessian of one block is large (see QUASI_WORK), Newton steps otherwise; "quasi-newton":
+# L-BFGS steps on value and exact gradient from each start run alone, then exact Newton
+# steps (lbfgs.quasi_newton_start; a fit's starts run together take
+# Newton steps); "lbfgs": L-BFGS to the optimum and the Hessian there by central differences of the exact
+# gradient, as TMB's sdreport (lbfgs.lbfgs_search): no Hessian program to compile, each start alone.
+# The names are greyid.schema.OPTIMIZERS (model files are checked against them).
+
 #: Below this (padded rows × free parameters²) the exact Hessian is cheap enough that scoring does
 #: not repay the compilation of its program (the test cell, 1.2e5, fits faster by scoring only once
 #: compiled); the PRBS1 building models (≥ 1.7e5) fit several times faster by scoring

@@ -481,8 +481,8 @@ def one_step_transforms(structure: Structure, options: FilterOptions):
         rows, outputs = jnp.arange(n_rows), jnp.arange(n_out)
         zero = jnp.zeros((n_rows, n_out))
 
-        counts = jnp.array([family in COUNTS for family in families])
-        n_parts = 3 if any(family in COUNTS for family in families) else 2
+        is_count = [family in COUNTS for family in families]
+        counts, n_parts = jnp.array(is_count), 3 if any(is_count) else 2
 
         def at(k):
             truncated = data._replace(dt=jnp.where(rows > k, 0.0, data.dt))
