@@ -1,7 +1,7 @@
 """The Laplace method's cost beside ctsmTMB's (issue "strongly nonlinear and non-Gaussian models").
 
     python benchmarks/laplace.py [--rows 50 1000 10000] [--calls 20] [--fits 1000 10000] [--optimizer lbfgs]
-        [--residuals 50]
+        [--residuals 50] [--one-step cdf]
 
 ctsmTMB's Ornstein2D example (``create.Ornstein2D.model()``: dx1 = θ(μ + u − x1)dt + σ1 dω1,
 dx2 = α(x1 − x2)dt + σ2 dω2, y_i = x_i + e_i, x0 = (3, 3), P0 = 0.1 I), simulated
@@ -14,7 +14,8 @@ default (exact transitions of these linear dynamics).  ``--fits``: a fit in this
 process (first, compiling) and again, by ``--optimizer`` (``lbfgs``: as ctsmTMB fits,
 quasi-Newton steps on the value and gradient and the Hessian by differences of the
 gradient).  ``--residuals``: a fit's one-step-ahead residuals (``fit.residuals``, the
-first in the process, compiling, and again for a second fit).
+first in the process, compiling, and again for a second fit); ``--one-step cdf`` by TMB's
+method "cdf" instead of the Gaussian predictive (ctsmTMB's "oneStepGaussian").
 """
 
 from __future__ import annotations
@@ -72,12 +73,16 @@ def main():
     parser.add_argument("--calls", type=int, default=20)
     parser.add_argument("--fits", type=int, nargs="*", default=[1000, 10000])
     parser.add_argument("--residuals", type=int, nargs="*", default=[],
-                        help="rows: a fit's one-step-ahead residuals (ctsmTMB's oneStepPredict, method 'cdf'), "
+                        help="rows: a fit's one-step-ahead residuals (ctsmTMB's oneStepPredict, 'oneStepGaussian'), "
                              "the first in this process (compiling) and those of a second fit")
+    parser.add_argument("--one-step", choices=("gaussian", "cdf"), default=None,
+                        help="the residuals' method (default: the fit's, 'gaussian' for these Gaussian outputs)")
     parser.add_argument("--optimizer", default="auto",
                         help="the fits' optimizer: auto (Newton steps on the exact Hessian) or lbfgs (L-BFGS, "
                              "the Hessian by differences of the gradient, as TMB's sdreport)")
     args = parser.parse_args()
+    from greyid.filters.api import laplace_residuals
+
     for rows in args.rows:
         data = simulate(rows, 20261127 + rows)
         for scheme in ("ctsmtmb", "auto"):
@@ -104,7 +109,8 @@ def main():
         for label in ("first", "again"):
             fit = model().fit(data, method="laplace", scheme="ctsmtmb", optimizer=args.optimizer)
             start = time.perf_counter()
-            residuals = fit.residuals
+            residuals = (fit.residuals if args.one_step is None else
+                         laplace_residuals(fit.model, fit.values, data, scheme="ctsmtmb", one_step=args.one_step))
             print(f"{rows:6d} rows  one-step residuals {label}: {time.perf_counter() - start:.2f} s  "
                   f"(sd {np.nanstd(residuals.to_numpy()):.4f})", flush=True)
 

@@ -132,15 +132,18 @@ def rosenblatt(result):
 @pytest.mark.slow
 def test_laplace_method_with_correlated_noise(simulated):
     """The Laplace method on a linear Gaussian model is the exact likelihood; its one-step residuals (each output given
-    the rows before and the row's outputs before it, as ctsmTMB's) are the Kalman filter's innovations whitened within
-    the row, up to the tails' Laplace error (largest at the first row, whose prior is wide)."""
+    the rows before and the row's outputs before it) are the Kalman filter's innovations whitened within the row: to
+    rounding by the Gaussian predictive (the default), up to the tails' Laplace error by the "cdf" method (largest at
+    the first row, whose prior is wide)."""
     from greyid.filters.api import laplace_residuals
 
     m, df, t, U, Y = simulated
     reference = dense_loglik(TRUE, t, U, Y)
     assert m.loglik(TRUE, df, method="laplace") == pytest.approx(reference, rel=1e-10)
     z = rosenblatt(m.filter(TRUE, df))
-    residuals = laplace_residuals(m, TRUE, df).to_numpy()
+    gaussian = laplace_residuals(m, TRUE, df).to_numpy()
+    assert np.array_equal(np.isnan(gaussian), np.isnan(z)) and np.nanmax(np.abs(gaussian - z)) < 1e-9
+    residuals = laplace_residuals(m, TRUE, df, one_step="cdf").to_numpy()
     assert np.array_equal(np.isnan(residuals), np.isnan(z))
     assert np.nanmax(np.abs(residuals - z)) < 0.1 and np.nanmax(np.abs(residuals - z)[1:]) < 0.06
 

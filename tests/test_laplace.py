@@ -231,14 +231,18 @@ def grid_transforms(counts, uniforms, a=0.5, mu=2.0, s=0.5, points=3000):
 
 @pytest.mark.slow
 def test_laplace_one_step_residuals_match_the_kalman_filter_and_the_grid_filter():
-    """ctsmTMB's one-step-ahead residuals (each tail of y_k given the past by Laplace's method): on a linear
-    Gaussian model within 0.06 of the Kalman filter's standardized innovations (the tails' Laplace error,
-    the documented tolerance), missing values NaN; for counts within 0.06 of the grid filter's exact randomized
-    transforms (the same uniform numbers), normal under the simulating parameters and not under a wrong level."""
+    """The one-step-ahead residuals on a linear Gaussian model: by the Gaussian predictive (the default, ctsmTMB's)
+    the Kalman filter's standardized innovations to rounding; by each tail of y_k given the past by Laplace's
+    method ("cdf") within 0.06 of them (the tails' Laplace error, the documented tolerance); missing values NaN.
+    For counts (the "cdf" method, their default) within 0.06 of the grid filter's exact randomized transforms
+    (the same uniform numbers), normal under the simulating parameters and not under a wrong level."""
     m, data = ou_model(), ou_data(80, seed=4)
-    residuals = laplace_residuals(m, PARAMS, data)["y"]
     exact = m.filter(PARAMS, data, method="kalman").standardized_innovations["y"]
-    assert residuals.isna().tolist() == exact.isna().tolist() and residuals.isna().sum() == 2
+    gaussian = laplace_residuals(m, PARAMS, data)["y"]
+    assert gaussian.isna().tolist() == exact.isna().tolist() and gaussian.isna().sum() == 2
+    assert np.nanmax(np.abs(gaussian - exact)) < 1e-9
+    residuals = laplace_residuals(m, PARAMS, data, one_step="cdf")["y"]
+    assert residuals.isna().tolist() == exact.isna().tolist()
     assert np.nanmax(np.abs(residuals - exact)) < 0.06 and np.nanmean(np.abs(residuals - exact)) < 0.03
 
     counts_model, counts = poisson_model(), poisson_data(120, seed=11)
@@ -252,10 +256,10 @@ def test_laplace_one_step_residuals_match_the_kalman_filter_and_the_grid_filter(
 
 
 def test_the_one_step_residuals_of_two_outputs_trace_the_laplace_value_once(monkeypatch):
-    """The outputs in a scan, the rows in batches of one size: the Laplace value is traced once, not once per
-    output and again for rows left over by the batches.
-    Each output given the past and the outputs before it: within 0.06 of the Kalman filter's innovations
-    whitened in that order."""
+    """The outputs in a scan, the rows in batches of one size: the Laplace value of the "cdf" method is traced once,
+    not once per output and again for rows left over by the batches.
+    Each output given the past and the outputs before it: the Kalman filter's innovations whitened in that order,
+    to rounding by the Gaussian predictive, within 0.06 by the tails."""
     from greyid.filters import laplace
 
     traced, build = [], laplace.build
@@ -277,7 +281,7 @@ def test_the_one_step_residuals_of_two_outputs_trace_the_laplace_value_once(monk
     m.set_initial_state(mean={"x": 1.0}, covariance=[[0.1]])
     params = dict(a=0.5, mu=1.0, s=0.4, r=0.04)
     data = m.simulate(params, np.arange(21.0), seed=3).frame()[["t", "y1", "y2"]]
-    residuals = laplace_residuals(m, params, data)
+    residuals = laplace_residuals(m, params, data, one_step="cdf")
     assert len(traced) == 1
     kalman = m.filter(params, data, method="kalman")
     e, R = kalman.innovations.to_numpy(), kalman.innovation_cov
@@ -285,6 +289,27 @@ def test_the_one_step_residuals_of_two_outputs_trace_the_laplace_value_once(monk
     second = (e[:, 1] - R[:, 1, 0] / R[:, 0, 0] * e[:, 0]) / np.sqrt(R[:, 1, 1] - R[:, 1, 0] ** 2 / R[:, 0, 0])
     assert np.max(np.abs(residuals["y1"] - first)) < 0.06
     assert np.max(np.abs(residuals["y2"] - second)) < 0.06
+    gaussian = laplace_residuals(m, params, data)
+    assert np.max(np.abs(gaussian["y1"] - first)) < 1e-9 and np.max(np.abs(gaussian["y2"] - second)) < 1e-9
+
+
+def test_the_one_step_method_is_the_gaussian_predictive_where_it_is_exact_and_checked():
+    """By default the Gaussian predictive for a linear model with Gaussian outputs, the tails ("cdf") for a nonlinear
+    model or another distribution; a method that is not one, or the Gaussian one for counts, refused by name."""
+    from greyid.filters.api import one_step_method
+
+    nonlinear = greyid.Model("double well")
+    nonlinear.add_system("dx = (x - x^3)*dt + sigma*dw1")
+    nonlinear.add_observation("y = x", variance="e^2")
+    nonlinear.set_initial_state(mean={"x": 1.0}, covariance=[[0.01]])
+    assert one_step_method(ou_model().structure, None) == "gaussian"
+    assert one_step_method(nonlinear.structure, None) == "cdf"
+    assert one_step_method(nonlinear.structure, "gaussian") == "gaussian"
+    assert one_step_method(poisson_model().structure, None) == "cdf"
+    with pytest.raises(greyid.ModelError, match="'n' is not: use one_step='cdf'"):
+        one_step_method(poisson_model().structure, "gaussian")
+    with pytest.raises(greyid.ModelError, match="one_step='tails' is not a one-step method"):
+        laplace_residuals(ou_model(), PARAMS, ou_data(), one_step="tails")
 
 
 def test_row_batches_are_the_fewest_of_one_size():

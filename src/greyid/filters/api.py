@@ -25,7 +25,7 @@ from ..model.transforms import to_original
 from .accuracy import choose_substeps, chooses_substeps
 from .driver import checked_horizon, filter_steps, make_ahead, make_filter
 from .gaussian import initial_state
-from ..model.distributions import check_method, check_observed
+from ..model.distributions import NORMAL, check_method, check_observed
 from . import laplace
 from .protocol import EKF, KALMAN, LAPLACE, PARTICLE, STOCHASTIC, FilterInputs, FilterOptions
 from .delays import check_delays, delay_slots, with_delayed_inputs
@@ -424,11 +424,35 @@ def filter_data(model, params, data, time="t", hold="zoh", method=None, time_uni
     return results[0] if isinstance(data, pd.DataFrame) else results
 
 
-def laplace_residuals(model, params, data, time="t", hold="zoh", time_unit=None, seed=0, **options):
-    """The Laplace method's one-step-ahead quantile residuals Φ⁻¹(u_k) per output, as ctsmTMB's.
+#: The one-step-ahead residuals of the Laplace method (TMB's ``oneStepPredict`` methods by these names).
+ONE_STEP = ("gaussian", "cdf")
 
-    See ``greyid.filters.laplace.one_step_transforms``: u_k is the probability integral transform of y_k given
-    the data before it, both of its tails by Laplace's method (TMB's ``oneStepPredict``, method "cdf").
+
+def one_step_method(structure: Structure, one_step: str | None) -> str:
+    """The one-step method ``laplace_residuals`` runs: ``one_step``, checked, or where None "gaussian" for a linear
+    model with Gaussian outputs (where the Gaussian predictive is exact) and "cdf" otherwise (where it is not, the
+    tails by Laplace's method are closer to the exact transforms: docs/guide/filters.md)."""
+    others = [name for name, family in zip(structure.output_names, structure.output_families) if family != NORMAL]
+    if one_step is None:
+        return "gaussian" if structure.is_linear and not others else "cdf"
+    if one_step not in ONE_STEP:
+        raise ModelError(f"one_step={one_step!r} is not a one-step method; use one of {', '.join(map(repr, ONE_STEP))}")
+    if one_step == "gaussian" and others:
+        raise ModelError(f"one_step='gaussian' takes Gaussian outputs only; {', '.join(map(repr, others))} "
+                         "is not: use one_step='cdf'")
+    return one_step
+
+
+def laplace_residuals(model, params, data, time="t", hold="zoh", time_unit=None, seed=0, one_step=None,
+                      **options):
+    """The Laplace method's one-step-ahead residuals per output, as ctsmTMB's.
+
+    ``one_step="gaussian"`` (TMB's ``oneStepPredict`` method "oneStepGaussian", what ctsmTMB runs): each output
+    standardized by its one-step Gaussian predictive, the mode and curvature of the joint density of the states
+    and the output given the data before it, exact for a linear Gaussian model
+    (``greyid.filters.laplace.one_step_gaussian``).  ``one_step="cdf"`` (method "cdf"):
+    Φ⁻¹ of the probability integral transform, both of its tails by Laplace's method, for any model and
+    distribution (``greyid.filters.laplace.one_step_transforms``).
 
     Parameters
     ----------
@@ -443,6 +467,9 @@ def laplace_residuals(model, params, data, time="t", hold="zoh", time_unit=None,
     seed : int
         Counts' transforms are randomized with ``numpy.random.default_rng([seed, i]).uniform(size=(rows,
         outputs))`` for data set i.
+    one_step : {None, "gaussian", "cdf"}
+        The method; None takes "gaussian" for a linear model with Gaussian outputs, else "cdf"
+        (``greyid.filters.api.one_step_method``).
     **options
         The Laplace method's ``substeps`` and ``scheme`` (``method`` is ignored).
 
@@ -454,7 +481,8 @@ def laplace_residuals(model, params, data, time="t", hold="zoh", time_unit=None,
     Raises
     ------
     ModelError, DataError
-        Settings the Laplace method does not take, or data that do not fit the model.
+        Settings the Laplace method does not take, ``one_step="gaussian"`` with an output that is not
+        Gaussian, or data that do not fit the model.
 
     Examples
     --------
@@ -464,15 +492,21 @@ def laplace_residuals(model, params, data, time="t", hold="zoh", time_unit=None,
     from scipy.stats import norm
 
     options.pop("method", None)
+    one_step = one_step_method(model.structure, one_step)
+    make = laplace.one_step_gaussian if one_step == "gaussian" else laplace.one_step_transforms
     structure, theta, prepared, program = _laplace_program(
-        model, params, data, time, hold, time_unit, "one-step", laplace.one_step_transforms, options)
+        model, params, data, time, hold, time_unit, f"one-step {one_step}", make, options)
     out = []
     for i, (series, inputs) in enumerate(prepared):
-        uniforms = np.zeros(inputs.y.shape)
-        uniforms[:series.n_rows] = np.random.default_rng([seed, i]).uniform(size=series.outputs.shape)
-        u = np.asarray(program(jnp.asarray(theta), inputs, jnp.asarray(uniforms)))[:series.n_rows]
         observed = ~np.isnan(series.outputs)
-        residuals = np.where(observed, norm.ppf(np.clip(u, 1e-300, 1 - 1e-16)), np.nan)
+        if one_step == "gaussian":
+            residuals = np.asarray(program(jnp.asarray(theta), inputs))[:series.n_rows]
+        else:
+            uniforms = np.zeros(inputs.y.shape)
+            uniforms[:series.n_rows] = np.random.default_rng([seed, i]).uniform(size=series.outputs.shape)
+            u = np.asarray(program(jnp.asarray(theta), inputs, jnp.asarray(uniforms)))[:series.n_rows]
+            residuals = norm.ppf(np.clip(u, 1e-300, 1 - 1e-16))
+        residuals = np.where(observed, residuals, np.nan)
         out.append(pd.DataFrame(residuals, index=series.index, columns=list(structure.output_names)))
     return out[0] if isinstance(data, pd.DataFrame) else out
 

@@ -180,12 +180,14 @@ def block_matvec(diagonal, lower, x):
 
 class Laplace(NamedTuple):
     """The Laplace method's functions of (θ, data): ``marginal`` (the value with exact derivatives in θ, and
-    the mode), ``value(theta, data, cdf=None)`` (the value alone, optionally with CDF terms) and
-    ``smoothed(theta, data)`` (the mode at the sample times with its marginal covariances)."""
+    the mode), ``value(theta, data, cdf=None)`` (the value alone, optionally with CDF terms),
+    ``smoothed(theta, data)`` (the mode at the sample times with its marginal covariances) and
+    ``predictive(theta, data, k, i)`` (output i of row k standardized by its one-step Gaussian predictive)."""
 
     marginal: Callable
     value: Callable
     smoothed: Callable
+    predictive: Callable
 
 
 def build(structure: Structure, options: FilterOptions) -> Laplace:
@@ -417,6 +419,32 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
         """The Laplace value alone (no derivatives in θ), with the ``cdf`` terms of ``pieces``."""
         return value_at(pieces(theta, data, cdf), newton(theta, data, cdf))
 
+    def predictive(theta, data: FilterInputs, k, i):
+        """Output i of row k standardized by its one-step Gaussian predictive given the outputs that ``data``'s
+        mask observes: (y − h_i(x̂)) / √(S_i + ∇h_i Σ_k ∇h_iᵀ), x̂ the states' mode given them at row k, Σ_k
+        its marginal covariance there (the block of (−∂²J/∂X²)⁻¹), S_i the noise variance at the mode.  This is
+        the mode and curvature of the joint density of the states and y_ki, exact for a linear Gaussian model.
+        With correlated noise, output i whitened given the row's outputs before it (``observed``)."""
+        terms = pieces(theta, data)
+        X = newton(theta, data)
+        factor, couplings = block_cholesky(*blocks(terms, X))
+        y, mask, u, t = (a[k] for a in terms.rows[:4])
+
+        def centred(x):
+            """(y_i and h_i(x), both whitened where the noise is correlated; S_i)."""
+            mean, variance = structure.observation_law(x, u, t, theta)[:2]
+            if full is None:
+                return y[i] - mean[i], variance[i]
+            seen = mask.at[i].set(1.0)
+            L = observed_root(full(zeros, u, t, theta), seen)
+            return whiten(L, seen, y)[i] - whiten(L, seen, mean)[i], 1.0
+
+        x = X[k * s]
+        residual, variance = centred(x)
+        slope = jax.grad(lambda v: centred(v)[0])(x)  # −∇h_i: its sign cancels in the variance
+        spread = block_solve(factor, couplings, jnp.zeros_like(X).at[k * s].set(slope))[k * s]
+        return residual / jnp.sqrt(variance + slope @ spread)
+
     def smoothed(theta, data: FilterInputs):
         """The mode's states at the sample times (N, n) and their covariances (N, n, n): the diagonal blocks of
         (−∂²J/∂X²)⁻¹ at the mode, the Laplace approximation's marginals (for a linear Gaussian model the
@@ -425,7 +453,7 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
         factor, couplings = block_cholesky(*blocks(pieces(theta, data), X))
         return X[::s], block_inverse_diagonal(factor, couplings)[::s]
 
-    return Laplace(marginal, value, smoothed)
+    return Laplace(marginal, value, smoothed, predictive)
 
 
 def prepare(structure: Structure, options: FilterOptions):
@@ -454,10 +482,59 @@ def row_batches(n_rows: int, most: int = ONE_STEP_BATCH) -> tuple[int, int]:
     return count, -(-n_rows // count)
 
 
+def each_observation(data: FilterInputs, n_out: int, evaluate, unobserved: float):
+    """``evaluate(data_before, k, i)`` for every row k and output i, ``unobserved`` where y_ki is not observed: the
+    data before y_ki are the rows before k and the outputs before i of row k (the mask), the rows after k left out
+    (their intervals set to length 0, whose steps integrate to one exactly).
+
+    The outputs run one after the other in a scan, so that the evaluation is traced and compiled once whatever
+    their number; the rows in batches of at most ``ONE_STEP_BATCH``, all of one size (the last row repeated),
+    because ``lax.map`` vectorises rows left over by whole batches apart, a second copy of the evaluation for
+    XLA to compile."""
+    n_rows = data.t.shape[0]
+    rows, outputs = jnp.arange(n_rows), jnp.arange(n_out)
+
+    def at(k):
+        truncated = data._replace(dt=jnp.where(rows > k, 0.0, data.dt))
+        before = jnp.where((rows < k)[:, None], data.mask, 0.0)
+
+        def output(_, i):
+            mask = before.at[k].set(data.mask[k] * (outputs < i))
+            return None, jnp.where(data.mask[k, i] > 0, evaluate(truncated._replace(mask=mask), k, i), unobserved)
+
+        return jax.lax.scan(output, None, outputs)[1]
+
+    count, size = row_batches(n_rows)
+    batched = rows if count * size == n_rows else jnp.minimum(jnp.arange(count * size), n_rows - 1)
+    return jax.lax.map(at, batched, batch_size=size)[:n_rows]
+
+
+def one_step_gaussian(structure: Structure, options: FilterOptions):
+    """``residuals(theta, data) -> (N, outputs)``: each Gaussian observation standardized by its one-step-ahead
+    predictive under the Laplace method, as ctsmTMB's one-step-ahead residuals (TMB's ``oneStepPredict``, method
+    "oneStepGaussian", which ``estimate(laplace.residuals = TRUE)`` runs); 0 where y_ki is unobserved.
+
+    For row k and output i, with D the data before it (rows before k, and outputs before i of row k), y_ki given
+    D is taken Gaussian: its mean h_i(x̂_k) and variance S_i + ∇h_i Σ_k ∇h_iᵀ are the mode and curvature of the
+    joint density of the states and y_ki given D (``Laplace.predictive``).  Exact for a linear Gaussian model,
+    where they are the Kalman filter's innovation and its variance.  TMB finds the mode of its Laplace
+    approximation of p(y_ki, D) in y_ki instead, whose log-determinant moves with y_ki where the observation
+    or the transitions are nonlinear in the states: the two differ there by that term.  Cost: one Laplace mode
+    per observation over the series up to it, so quadratic in the series' length.
+    """
+    laplace = build(structure, options)
+    n_out = len(structure.output_families)
+
+    def residuals(theta, data: FilterInputs):
+        return each_observation(data, n_out, lambda before, k, i: laplace.predictive(theta, before, k, i), 0.0)
+
+    return residuals
+
+
 def one_step_transforms(structure: Structure, options: FilterOptions):
     """``transforms(theta, data, uniforms) -> (N, outputs)``: each observation's one-step-ahead probability integral
-    transform under the Laplace method, as ctsmTMB's one-step-ahead residuals (TMB's ``oneStepPredict``,
-    method "cdf"; Thygesen et al. 2017).
+    transform under the Laplace method by TMB's ``oneStepPredict`` method "cdf" (Thygesen et al. 2017), for any
+    observation distribution.
 
     For row k and output i, with D the data before it (rows before k, and outputs before i of row k),
     the probabilities of y_ki's two tails given D,
@@ -468,8 +545,7 @@ def one_step_transforms(structure: Structure, options: FilterOptions):
     transform is the first over their sum, as TMB does: each tail's approximation keeps its relative
     accuracy where the transform is close to 0 or 1.  For counts the three parts P(Y < y), P(Y = y)
     and P(Y > y) are approximated so, and the transform randomized between them by ``uniforms``
-    (Dunn & Smyth 1996); 0.5 where y_ki is unobserved.  Rows after k are left out (their intervals set
-    to length 0, whose steps integrate to one exactly).  Cost: two Laplace evaluations (three for
+    (Dunn & Smyth 1996); 0.5 where y_ki is unobserved.  Cost: two Laplace evaluations (three for
     counts) per observation over the series up to it, so quadratic in the series' length.
     """
     laplace = build(structure, options)
@@ -477,43 +553,26 @@ def one_step_transforms(structure: Structure, options: FilterOptions):
     n_out = len(families)
 
     def transforms(theta, data: FilterInputs, uniforms):
-        n_rows = data.t.shape[0]
-        rows, outputs = jnp.arange(n_rows), jnp.arange(n_out)
-        zero = jnp.zeros((n_rows, n_out))
-
+        zero = jnp.zeros(data.mask.shape)
         is_count = [family in COUNTS for family in families]
         counts, n_parts = jnp.array(is_count), 3 if any(is_count) else 2
 
-        def at(k):
-            truncated = data._replace(dt=jnp.where(rows > k, 0.0, data.dt))
-            before = jnp.where((rows < k)[:, None], data.mask, 0.0)
+        def transform(before, k, i):
+            mask = before.mask
+            on = zero.at[k, i].set(1.0)
+            # Y ≤ y (< y for counts) and Y > y; for counts Y = y too (the density observed): one vectorised
+            # Laplace evaluation of the two or three (mask, on, shift, upper); a model with counts among its
+            # outputs takes the third for every output, left out of the others' transforms.
+            parts = [(mask, on, jnp.where(counts[i], on, zero), zero), (mask, on, zero, on)]
+            if n_parts == 3:
+                parts.append((mask.at[k, i].set(1.0), zero, zero, zero))
+            stacked = [jnp.stack(a) for a in zip(*parts)]
+            values = jax.vmap(lambda mask, *cdf: laplace.value(theta, before._replace(mask=mask), cdf))(*stacked)
+            if n_parts == 3:  # a third part for counts only
+                values = jnp.where(jnp.stack([True, True, counts[i]]), values, -jnp.inf)
+            p = jnp.exp(values - jnp.max(values))
+            return (p[0] + (uniforms[k, i] * p[2] if n_parts == 3 else 0.0)) / jnp.sum(p)
 
-            # The outputs one after the other in a scan, so that the Laplace evaluation is traced and compiled
-            # once whatever their number (each output's evaluations run apart, as a loop over them would).
-            def output(_, i):
-                mask = before.at[k].set(data.mask[k] * (outputs < i))
-                on = zero.at[k, i].set(1.0)
-                # Y ≤ y (< y for counts) and Y > y; for counts Y = y too (the density observed): one vectorised
-                # Laplace evaluation of the two or three (mask, on, shift, upper); a model with counts among its
-                # outputs takes the third for every output, left out of the others' transforms.
-                parts = [(mask, on, jnp.where(counts[i], on, zero), zero), (mask, on, zero, on)]
-                if n_parts == 3:
-                    parts.append((mask.at[k, i].set(1.0), zero, zero, zero))
-                stacked = [jnp.stack(a) for a in zip(*parts)]
-                values = jax.vmap(lambda mask, *cdf: laplace.value(theta, truncated._replace(mask=mask), cdf))(
-                    *stacked)
-                if n_parts == 3:  # a third part for counts only
-                    values = jnp.where(jnp.stack([True, True, counts[i]]), values, -jnp.inf)
-                p = jnp.exp(values - jnp.max(values))
-                u = (p[0] + (uniforms[k, i] * p[2] if n_parts == 3 else 0.0)) / jnp.sum(p)
-                return None, jnp.where(data.mask[k, i] > 0, u, 0.5)
-
-            return jax.lax.scan(output, None, outputs)[1]
-
-        # Batches of one size: rows left over by whole batches lax.map vectorises apart, a second copy of
-        # the whole evaluation for XLA to compile; the last batch repeats the last row instead.
-        count, size = row_batches(n_rows)
-        batched = rows if count * size == n_rows else jnp.minimum(jnp.arange(count * size), n_rows - 1)
-        return jax.lax.map(at, batched, batch_size=size)[:n_rows]
+        return each_observation(data, n_out, transform, 0.5)
 
     return transforms
