@@ -322,18 +322,20 @@ def test_row_batches_are_the_fewest_of_one_size():
 
 
 def test_the_one_step_residuals_evaluate_every_row_in_one_vectorised_program():
-    """22 rows (a length bucket that no batch of 8 divides): the rows run in batches of one size (the last row
-    repeated), so that the program holds the Laplace evaluation once; with batches of 8 and the rest vectorised
-    apart (lax.map's remainder), it would hold it twice: a second loop beside the batches' scan."""
+    """22 rows (a length bucket that no batch of 8 divides): the "cdf" residuals' rows run in batches of one size
+    (the last row repeated), so that the program holds the Laplace evaluation once; with batches of 8 and the rest
+    vectorised apart (lax.map's remainder), it would hold it twice: a second loop beside the batches' scan.  The
+    Gaussian predictive's run one row at a time."""
     import jax
     from jax.extend.core import ClosedJaxpr, Jaxpr
 
     from greyid.filters import api, laplace
 
     m, data = ou_model(), ou_data(22, seed=2)
-    made = []
+    made, settings = [], []
 
     def make(structure, options):
+        settings.append((structure, options))
         made.append(laplace.one_step_transforms(structure, options))
         return made[-1]
 
@@ -345,6 +347,11 @@ def test_the_one_step_residuals_evaluate_every_row_in_one_vectorised_program():
              if any(isinstance(value, (ClosedJaxpr, Jaxpr))
                     for value in eqn.params.values())]
     assert loops == ["scan"]
+    # The Gaussian predictive's residuals run the rows one at a time: one scan over the rows, nothing vectorised.
+    structure, options = settings[0]
+    jaxpr = jax.make_jaxpr(laplace.one_step_gaussian(structure, options))(theta, inputs).jaxpr
+    loops = [eqn for eqn in jaxpr.eqns if any(isinstance(value, (ClosedJaxpr, Jaxpr)) for value in eqn.params.values())]
+    assert [eqn.primitive.name for eqn in loops] == ["scan"] and loops[0].params["length"] == inputs.t.shape[0]
 
 
 @pytest.mark.slow

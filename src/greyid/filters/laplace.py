@@ -482,15 +482,15 @@ def row_batches(n_rows: int, most: int = ONE_STEP_BATCH) -> tuple[int, int]:
     return count, -(-n_rows // count)
 
 
-def each_observation(data: FilterInputs, n_out: int, evaluate, unobserved: float):
+def each_observation(data: FilterInputs, n_out: int, evaluate, unobserved: float, most: int = ONE_STEP_BATCH):
     """``evaluate(data_before, k, i)`` for every row k and output i, ``unobserved`` where y_ki is not observed: the
     data before y_ki are the rows before k and the outputs before i of row k (the mask), the rows after k left out
     (their intervals set to length 0, whose steps integrate to one exactly).
 
     The outputs run one after the other in a scan, so that the evaluation is traced and compiled once whatever
-    their number; the rows in batches of at most ``ONE_STEP_BATCH``, all of one size (the last row repeated),
-    because ``lax.map`` vectorises rows left over by whole batches apart, a second copy of the evaluation for
-    XLA to compile."""
+    their number; the rows one at a time (``most=1``) or vectorised in batches of at most ``most``, all of one
+    size (the last row repeated), because ``lax.map`` vectorises rows left over by whole batches apart, a second
+    copy of the evaluation for XLA to compile."""
     n_rows = data.t.shape[0]
     rows, outputs = jnp.arange(n_rows), jnp.arange(n_out)
 
@@ -504,7 +504,9 @@ def each_observation(data: FilterInputs, n_out: int, evaluate, unobserved: float
 
         return jax.lax.scan(output, None, outputs)[1]
 
-    count, size = row_batches(n_rows)
+    if most == 1:
+        return jax.lax.map(at, rows)
+    count, size = row_batches(n_rows, most)
     batched = rows if count * size == n_rows else jnp.minimum(jnp.arange(count * size), n_rows - 1)
     return jax.lax.map(at, batched, batch_size=size)[:n_rows]
 
@@ -526,7 +528,10 @@ def one_step_gaussian(structure: Structure, options: FilterOptions):
     n_out = len(structure.output_families)
 
     def residuals(theta, data: FilterInputs):
-        return each_observation(data, n_out, lambda before, k, i: laplace.predictive(theta, before, k, i), 0.0)
+        # One row at a time: vectorised over rows, the Newton searches (a loop whose rows all run until the
+        # slowest has converged) compile longer and, from a few hundred rows on, run slower.
+        return each_observation(data, n_out, lambda before, k, i: laplace.predictive(theta, before, k, i), 0.0,
+                                most=1)
 
     return residuals
 
