@@ -16,6 +16,7 @@ from statsmodels.tsa.statespace.kalman_smoother import KalmanSmoother
 from statsmodels.tsa.statespace.structural import UnobservedComponents
 
 import greyid
+from greyid.filters.api import laplace_residuals
 from greyid.cli import main
 from greyid.errors import DataError, ModelError
 
@@ -212,6 +213,12 @@ def test_laplace_method_with_a_flat_prior_is_the_diffuse_likelihood():
     trend, params = trend_model(), {"s1": 0.4, "sb": 0.15, "s2": 0.3}
     assert trend.loglik(params, frame(y, 0.5), time="t", method="laplace") == pytest.approx(
         trend.loglik(params, frame(y, 0.5), time="t"), rel=1e-12)
+    # Its one-step residuals (the Gaussian predictive's) are the diffuse filter's standardized innovations, with none
+    # at the first row, whose level nothing before it determines.
+    residuals = laplace_residuals(m, LEVEL, data.iloc[:30], time="t")["y"]
+    innovations = m.filter(LEVEL, data.iloc[:30], time="t").standardized_innovations["y"]
+    assert np.isnan(residuals.iloc[0]) and np.isnan(innovations.iloc[0])
+    np.testing.assert_allclose(residuals.iloc[1:], innovations.iloc[1:], rtol=0, atol=1e-9)
     laplace, kalman = (m.smooth(LEVEL, data, time="t", method=method) for method in ("laplace", "kalman"))
     np.testing.assert_allclose(laplace.smoothed.to_numpy(), kalman.smoothed.to_numpy(), rtol=1e-12)
     np.testing.assert_allclose(laplace.smoothed_cov, kalman.smoothed_cov, rtol=1e-9)

@@ -422,8 +422,9 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
     def predictive(theta, data: FilterInputs, k, i):
         """Output i of row k standardized by its one-step Gaussian predictive given the outputs that ``data``'s
         mask observes: (y − h_i(x̂)) / √(S_i + ∇h_i Σ_k ∇h_iᵀ), x̂ the states' mode given them at row k, Σ_k
-        its marginal covariance there (the block of (−∂²J/∂X²)⁻¹), S_i the noise variance at the mode.  This is
-        the mode and curvature of the joint density of the states and y_ki, exact for a linear Gaussian model.
+        its marginal covariance there (the block of (−∂²J/∂X²)⁻¹), S_i the noise variance at the mode (NaN where
+        that is not finite).  This is the mode and curvature of the joint density of the states and y_ki, exact
+        for a linear Gaussian model.
         With correlated noise, output i whitened given the row's outputs before it (``observed``)."""
         terms = pieces(theta, data)
         X = newton(theta, data)
@@ -443,7 +444,10 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
         residual, variance = centred(x)
         slope = jax.grad(lambda v: centred(v)[0])(x)  # −∇h_i: its sign cancels in the variance
         spread = block_solve(factor, couplings, jnp.zeros_like(X).at[k * s].set(slope))[k * s]
-        return residual / jnp.sqrt(variance + slope @ spread)
+        total = variance + slope @ spread
+        # No predictive where the states are not determined (a diffuse state before any observation of it):
+        # NaN, as the exact diffuse filter has no innovation there.
+        return jnp.where(jnp.isfinite(total) & (total > 0), residual / jnp.sqrt(total), jnp.nan)
 
     def smoothed(theta, data: FilterInputs):
         """The mode's states at the sample times (N, n) and their covariances (N, n, n): the diagonal blocks of
