@@ -481,8 +481,8 @@ def laplace_residuals(model, params, data, time="t", hold="zoh", time_unit=None,
     Raises
     ------
     ModelError, DataError
-        Settings the Laplace method does not take, ``one_step="gaussian"`` with an output that is not
-        Gaussian, or data that do not fit the model.
+        Settings the Laplace method does not take, a ``one_step`` that is not one of the two,
+        ``one_step="gaussian"`` with an output that is not Gaussian, or data that do not fit the model.
 
     Examples
     --------

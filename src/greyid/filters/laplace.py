@@ -475,7 +475,7 @@ def log_tail(family: str, y, m, variance, shape, upper):
     return jnp.log(jnp.maximum(jnp.where(upper, 1 - below, below), 1e-300))
 
 
-#: One-step transforms are computed for at most this many rows at a time (vectorised).
+#: The "cdf" one-step transforms are computed for at most this many rows at a time (vectorised).
 ONE_STEP_BATCH = 8
 
 
