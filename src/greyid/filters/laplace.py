@@ -432,7 +432,7 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
         y, mask, u, t = (a[k] for a in terms.rows[:4])
 
         def centred(x):
-            """(y_i and h_i(x), both whitened where the noise is correlated; S_i)."""
+            """(y_i − h_i(x), both whitened where the noise is correlated; S_i)."""
             mean, variance = structure.observation_law(x, u, t, theta)[:2]
             if full is None:
                 return y[i] - mean[i], variance[i]
@@ -441,8 +441,8 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
             return whiten(L, seen, y)[i] - whiten(L, seen, mean)[i], 1.0
 
         x = X[k * s]
-        residual, variance = centred(x)
-        slope = jax.grad(lambda v: centred(v)[0])(x)  # −∇h_i: its sign cancels in the variance
+        # The slope is −∇h_i: its sign cancels in the variance.
+        (residual, variance), slope = jax.value_and_grad(centred, has_aux=True)(x)
         spread = block_solve(factor, couplings, jnp.zeros_like(X).at[k * s].set(slope))[k * s]
         total = variance + slope @ spread
         # No predictive where the states are not determined (a diffuse state before any observation of it):
