@@ -181,12 +181,12 @@ def test_steady_state_derivatives_equal_the_ordinary_filter_s(monkeypatch, short
     assert short_chunks["steady"] >= 10
     short_chunks.stop()
     traced = short_chunks["traced"]
-    fast_value, fast_gradient = jax.value_and_grad(fast)(theta)
-    fast_forward = jax.jacfwd(fast)(theta)
+    fast_value, fast_gradient = jax.jit(jax.value_and_grad(fast))(theta)
+    fast_forward = jax.jit(jax.jacfwd(fast))(theta)
     assert short_chunks["traced"] > traced
     step_by_step(monkeypatch)
     _, exact = summed_criterion(random_linear_model_spec(), params, frame)
-    value, gradient = jax.value_and_grad(exact)(theta)
+    value, gradient = jax.jit(jax.value_and_grad(exact))(theta)
     assert abs(float(fast_value - value)) < 1e-8
     scale = np.max(np.abs(gradient))
     np.testing.assert_allclose(fast_gradient, gradient, atol=1e-8 * scale)
@@ -330,12 +330,12 @@ def test_shorter_series_derivatives_equal_the_ordinary_filter_s(counted_steady):
     forward, rows = jax.jit(jax.vmap(lambda u: jax.jvp(jax.jacfwd(total(fast)), (theta,), (u,))))(directions)
     assert counted_steady["traced"] > traced
     traced = counted_steady["traced"]
-    reverse, expected = jax.grad(total(fast))(theta), jax.grad(total(exact))(theta)
+    reverse, expected = jax.jit(jax.grad(total(fast)))(theta), jax.jit(jax.grad(total(exact)))(theta)
     assert counted_steady["traced"] > traced
     scale = np.max(np.abs(expected))
     np.testing.assert_allclose(forward[0], expected, atol=1e-8 * scale)
     np.testing.assert_allclose(reverse, expected, atol=1e-8 * scale)
-    expected_rows = [jax.jvp(jax.jacfwd(total(exact)), (theta,), (u,))[1] for u in directions]
+    _, expected_rows = jax.jit(jax.vmap(lambda u: jax.jvp(jax.jacfwd(total(exact)), (theta,), (u,))))(directions)
     np.testing.assert_allclose(rows, expected_rows, atol=1e-6 * np.max(np.abs(expected_rows)))
 
 

@@ -328,3 +328,45 @@ def test_a_kept_program_that_calls_lapack_runs_in_a_fresh_process(tmp_path, ou_d
     for fit_loglik, loglik in runs:
         assert float(fit_loglik) == pytest.approx(traced, abs=1e-9)
         assert float(loglik) == pytest.approx(m.loglik(values, ou_data), abs=1e-12)
+
+
+def test_the_key_reads_the_code_without_its_comments_and_docstrings():
+    """A docstring, a comment or the layout changed: the same code digest, so kept programs stay; any change
+    to what runs (a constant, an operator, a name, a default) is another digest."""
+    source = b'''"""A module."""
+import math
+
+
+def f(x, a=2.0):
+    """Twice x."""
+    return a * x + math.pi  # a comment
+'''
+    same = [source.replace(b"Twice x.", b"Two times x, see (4.36)."),
+            source.replace(b"# a comment", b"# another comment").replace(b'"""A module."""\n', b""),
+            source.replace(b"return a * x", b"return (a\n            * x)")]
+    changed = [source.replace(b"a=2.0", b"a=3.0"), source.replace(b"a * x", b"a / x"),
+               source.replace(b"math.pi", b"math.e"), source.replace(b"return", b"y = 0\n    return")]
+    digest = programs.code_digest(source)
+    assert [programs.code_digest(s) for s in same] == [digest] * len(same)
+    assert len({digest, *(programs.code_digest(s) for s in changed)}) == len(changed) + 1
+    # A body of a docstring alone runs as `pass` does.
+    assert programs.code_digest(b'def g():\n    "doc"\n') == programs.code_digest(b"def g():\n    pass\n")
+
+
+def test_the_code_digests_are_remembered_and_a_damaged_record_is_computed_again(tmp_path, monkeypatch):
+    """The first process parses greyid's files and keeps their digests; a later one reads them instead of
+    parsing (the same key), and a damaged record is computed again and written anew."""
+    monkeypatch.setenv("GREYID_CACHE_DIR", "off")
+    expected = programs.source_hash.__wrapped__()  # no folder: every file parsed
+    monkeypatch.setenv("GREYID_CACHE_DIR", str(tmp_path))
+    record = tmp_path / "programs" / programs.CODE_DIGESTS
+    assert programs.source_hash.__wrapped__() == expected
+    written = record.read_bytes()
+    with monkeypatch.context() as parsing:
+        parsing.setattr(programs, "code_digest", lambda source: pytest.fail("parsed a remembered file"))
+        assert programs.source_hash.__wrapped__() == expected
+    assert record.read_bytes() == written  # nothing new: not written again
+    record.write_bytes(written[:-1] + bytes([written[-1] ^ 1]))
+    assert programs.source_hash.__wrapped__() == expected
+    programs.unseal(record.read_bytes())  # sound again
+    assert programs.usage()["programs"] == (0, 0)  # the record is not a program
