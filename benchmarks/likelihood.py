@@ -1,6 +1,6 @@
 """The likelihood's cost per call, beside a plain JAX scan of the same filter (issue "public likelihood").
 
-    python benchmarks/likelihood.py [--rounds 10] [--calls 100] [--source OTHER_CHECKOUT/src]
+    python benchmarks/likelihood.py [--rounds 10] [--calls 100] [--source OTHER_CHECKOUT/src] [--first]
 
 The Armadillo model (pySIP's TwTi_RoRi, first-order hold, 232 rows, seven free
 parameters; the data set armadillo) at its fitted
@@ -22,13 +22,17 @@ also taken round by round (the fastest call of each in the same round): its
 median and range are printed beside the ratio of the fastest calls.  The
 values and gradients of both are checked against each other first.
 ``--source`` runs another checkout's greyid in the same way (the figures before
-a change), its own plain scan beside it.
+a change), its own plain scan beside it.  ``--first`` prints instead the first
+call of ``value_and_grad`` and then of ``hessian`` at the starting values in this
+process (run it twice with one ``GREYID_CACHE_DIR``: the first run with an empty
+folder, the second loading what the first kept).
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+import time
 import warnings
 from pathlib import Path
 
@@ -89,6 +93,7 @@ def main(argv=None) -> None:
     parser.add_argument("--rounds", type=int, default=10)
     parser.add_argument("--calls", type=int, default=100, help="calls of each function per round")
     parser.add_argument("--source", help="another checkout's src folder, measured instead of this one's")
+    parser.add_argument("--first", action="store_true", help="time the first calls in this process only")
     args = parser.parse_args(argv)
     if args.source:
         sys.path.insert(0, str(Path(args.source).resolve()))
@@ -102,6 +107,13 @@ def main(argv=None) -> None:
     print(f"greyid from {Path(greyid.__file__).parent}, JAX {jax.__version__}")
     data = greyid.datasets.fetch("armadillo").iloc[:-1]
     model = armadillo_model()
+    if args.first:
+        nll = model.likelihood(data, time="Time", hold="foh")
+        for name in ("value_and_grad", "hessian"):
+            start = time.perf_counter()
+            getattr(nll, name)(nll.start())
+            print(f"first {name}: {time.perf_counter() - start:.2f} s")
+        return
     fit = model.fit(data, time="Time", hold="foh")
     nll = model.likelihood(data, time="Time", hold="foh")
     optimum = np.array([fit.values[n] for n in nll.names])

@@ -10,19 +10,21 @@ _SHARED_DATA = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "da
 if os.path.isdir(_SHARED_DATA):
     os.environ.setdefault("GREYID_DATA_MIRROR", os.path.abspath(_SHARED_DATA))
 
-# One cache folder for the tests, of their own (the user's cache folder is neither read nor written), holding both what
-# greyid keeps of a program: its traced program (greyid.runtime.store, on as for a user; the file's name hashes greyid's
-# code, so a change to it traces anew, and one to comments or docstrings alone does not) and XLA's compilation of it
-# (JAX's persistent cache).  Tracing and compiling are most of a test's time, and the same program is made again and
-# again — by tests that build the same model anew, in a module after an earlier one's programs were released
-# (_release_memory), in the command line's and Dask's worker processes (which inherit these variables), and in the next
-# run.  Every program is kept, however quickly it compiled (JAX keeps only those of a second or more by default).  The
-# folder is kept between runs (GREYID_TEST_CACHE, default ~/.cache/greyid/tests), so that a later run traces and
-# compiles only the programs a change made new: both keys name the program's whole content, so a kept program is the one
-# tracing and XLA would give.  A test that replaces part of greyid at run time (the monkeypatch fixture below) keeps and
-# loads no traced program.  A run starts by pruning the folder to TEST_CACHE_BYTES, the oldest files first (JAX's own
-# limit would scan the folder at every program it keeps).  GREYID_TEST_CACHE=run keeps them for the run only, in a
-# folder removed at exit, as on a clean machine.
+# One cache folder for the tests, of their own (the user's cache folder is neither read nor written),
+# holding both what greyid keeps of a program: its traced program (greyid.runtime.store, on as for a
+# user; the file's name hashes greyid's source files, so a change to them traces anew) and XLA's
+# compilation of it (JAX's persistent cache).  Tracing and compiling are most of a test's time, and
+# the same program is made again and again — by tests that build the same model anew, in a module
+# after an earlier one's programs were released (_release_memory), in the command line's and Dask's
+# worker processes (which inherit these variables), and in the next run.  Every program is kept,
+# however quickly it compiled (JAX keeps only those of a second or more by default).  The folder is
+# kept between runs (GREYID_TEST_CACHE, default ~/.cache/greyid/tests), so that a later run traces and
+# compiles only the programs a change made new: both keys name the program's whole content, so a kept
+# program is the one tracing and XLA would give.  A test that replaces part of greyid at run time
+# (the monkeypatch fixture below) keeps and loads no traced program.  A run starts by pruning the
+# folder to TEST_CACHE_BYTES, the oldest files first (JAX's own limit would scan the folder at every
+# program it keeps).  GREYID_TEST_CACHE=run keeps them for the run only, in a folder removed at exit,
+# as on a clean machine.
 TEST_CACHE_BYTES = 4 * 10**9
 
 

@@ -330,43 +330,39 @@ def test_a_kept_program_that_calls_lapack_runs_in_a_fresh_process(tmp_path, ou_d
         assert float(loglik) == pytest.approx(m.loglik(values, ou_data), abs=1e-12)
 
 
-def test_the_key_reads_the_code_without_its_comments_and_docstrings():
-    """A docstring, a comment or the layout changed: the same code digest, so kept programs stay; any change
-    to what runs (a constant, an operator, a name, a default) is another digest."""
-    source = b'''"""A module."""
-import math
+def test_a_likelihood_keeps_its_programs_under_its_data_and_frees_them_on_release(cache, ou_data, monkeypatch):
+    """model.likelihood's programs hold the data as constants, so they are kept under the data's digest: a later
+    process with the same data loads them (bitwise the same value, gradient and Hessian); other data of the same
+    shape are another program, with their own value; release_compiled() frees the executables it holds."""
+    import gc
 
+    from jax.stages import Compiled
 
-def f(x, a=2.0):
-    """Twice x."""
-    return a * x + math.pi  # a comment
-'''
-    same = [source.replace(b"Twice x.", b"Two times x, see (4.36)."),
-            source.replace(b"# a comment", b"# another comment").replace(b'"""A module."""\n', b""),
-            source.replace(b"return a * x", b"return (a\n            * x)")]
-    changed = [source.replace(b"a=2.0", b"a=3.0"), source.replace(b"a * x", b"a / x"),
-               source.replace(b"math.pi", b"math.e"), source.replace(b"return", b"y = 0\n    return")]
-    digest = programs.code_digest(source)
-    assert [programs.code_digest(s) for s in same] == [digest] * len(same)
-    assert len({digest, *(programs.code_digest(s) for s in changed)}) == len(changed) + 1
-    # A body of a docstring alone runs as `pass` does.
-    assert programs.code_digest(b'def g():\n    "doc"\n') == programs.code_digest(b"def g():\n    pass\n")
+    x = np.array([0.9, 0.8, -1.1, -2.9, 0.4])
+    first = ou_model().likelihood(ou_data)
+    expected = (*first.value_and_grad(x), first.hessian(x), first.value(np.stack([x, x + 0.01])))
+    files = kept_files(cache)
+    assert len(files) == 3  # value and gradient, Hessian, the batched value
 
+    def refuse(*args, **kwargs):
+        raise AssertionError("exported again although a kept program matches")
 
-def test_the_code_digests_are_remembered_and_a_damaged_record_is_computed_again(tmp_path, monkeypatch):
-    """The first process parses greyid's files and keeps their digests; a later one reads them instead of
-    parsing (the same key), and a damaged record is computed again and written anew."""
-    monkeypatch.setenv("GREYID_CACHE_DIR", "off")
-    expected = programs.source_hash.__wrapped__()  # no folder: every file parsed
-    monkeypatch.setenv("GREYID_CACHE_DIR", str(tmp_path))
-    record = tmp_path / "programs" / programs.CODE_DIGESTS
-    assert programs.source_hash.__wrapped__() == expected
-    written = record.read_bytes()
-    with monkeypatch.context() as parsing:
-        parsing.setattr(programs, "code_digest", lambda source: pytest.fail("parsed a remembered file"))
-        assert programs.source_hash.__wrapped__() == expected
-    assert record.read_bytes() == written  # nothing new: not written again
-    record.write_bytes(written[:-1] + bytes([written[-1] ^ 1]))
-    assert programs.source_hash.__wrapped__() == expected
-    programs.unseal(record.read_bytes())  # sound again
-    assert programs.usage()["programs"] == (0, 0)  # the record is not a program
+    with monkeypatch.context() as loading:
+        loading.setattr(programs.jax.export, "export", refuse)
+        as_in_a_new_process(loading)
+        again = ou_model().likelihood(ou_data)
+        loaded = (*again.value_and_grad(x), again.hessian(x), again.value(np.stack([x, x + 0.01])))
+    for a, b in zip(loaded, expected):
+        np.testing.assert_array_equal(a, b)
+    assert kept_files(cache) == files
+
+    other = ou_data.assign(y=ou_data["y"] + 0.5)  # the same shapes, other values
+    value = ou_model().likelihood(other).value(x)
+    assert len(kept_files(cache)) == len(files) + 1
+    assert value == pytest.approx(-ou_model().loglik(dict(zip(first.names, x)), other), rel=1e-12)
+    assert abs(value - expected[0]) > 1.0
+
+    compiler.release_compiled()  # with the likelihoods alive
+    gc.collect()
+    assert not any(isinstance(thing, Compiled) for thing in gc.get_objects())
+    assert first.value(x) == expected[0]

@@ -25,6 +25,8 @@ row for single evaluations too.
 
 from __future__ import annotations
 
+import hashlib
+import weakref
 from dataclasses import replace
 
 from .. import runtime  # noqa: F401  (64-bit JAX and greyid's cache folder before any JAX work)
@@ -32,7 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..runtime.jit import jit
+from ..runtime.jit import jit, kept_key
 from ..data.prepare import as_frames
 from ..errors import ModelError
 from ..filters.api import prepare_datasets
@@ -40,6 +42,17 @@ from ..model.options import DATA_KEYS, ESTIMATION_KEYS, FILTER_KEYS
 from . import objective
 from .estimation import check_observed, check_settings, free_parameters, make_problem
 from .transforms import Transform
+
+
+def data_digest(arrays) -> str:
+    """A hash of a tree of arrays: its structure, and each array's shape, type and values."""
+    leaves, tree = jax.tree_util.tree_flatten(arrays)
+    digest = hashlib.sha256(str(tree).encode())
+    for leaf in leaves:
+        leaf = np.ascontiguousarray(leaf)
+        digest.update(repr((leaf.shape, leaf.dtype.str)).encode())
+        digest.update(leaf.tobytes())
+    return digest.hexdigest()
 
 
 def likelihood_of(model, data, prior=None, **given) -> "Likelihood":
@@ -58,7 +71,8 @@ class Likelihood:
 
     Made by [`Model.likelihood()`][greyid.api.Model.likelihood], whose
     arguments it takes.  Parameters not free in the model (fixed ones) keep their
-    values; the free ones are ``names``, in order.  Compiled once; single
+    values; the free ones are ``names``, in order.  Compiled once, and kept in greyid's cache folder
+    under the model, the settings and the data for a later process; single
     evaluations of a regular series of a linear model switch to the filter's
     steady state where it has settled (``steady_state=False`` steps through every row).
 
@@ -116,9 +130,15 @@ class Likelihood:
         # A short series' switch to the steady state after its first rows (greyid.filters.steady)
         # for single values and gradients; Hessians and evaluations vectorised over parameter
         # vectors (one decision per row of x would run both forms) step through every row.
+        every_row = replace(problem, options=replace(problem.options, steady_state=False))
+        self._problems = {False: problem, True: every_row}
         self._functions = functions(problem)
-        self._every_row = functions(replace(problem, options=replace(problem.options, steady_state=False)))
+        self._every_row = functions(every_row)
         self._programs: dict = {}
+        self._ready = weakref.WeakValueDictionary()
+        # The data are constants of the programs (XLA folds what depends on them alone: a fifth of the
+        # Armadillo value's time), so a program kept in the cache folder is named by them too.
+        self._data = data_digest((base, lower, upper, prior_mean, prior_chol, datasets))
 
     # ------------------------------------------------------------------ the functions
     def function(self, unconstrained: bool = False):
@@ -145,7 +165,9 @@ class Likelihood:
                 fun = objective.forward_value_and_grad(fun)
             elif kind == "hessian":
                 fun = jax.jacfwd(jax.jacfwd(fun))
-            self._programs[key] = jit(jax.vmap(fun) if batched else fun)
+            problem = self._problems[every_row]
+            name = ("likelihood", *key, problem.key(), problem.prior_index, self._data)
+            self._programs[key] = jit(jax.vmap(fun) if batched else fun, key=kept_key(self.model.structure, name))
         return self._programs[key]
 
     def _call(self, kind: str, x, unconstrained: bool):
@@ -155,7 +177,13 @@ class Likelihood:
                              f"per parameter vector), got shape {x.shape}")
         # NumPy in and out directly (the compiled program's own fast path): a jnp.asarray and
         # a tree_map around each call cost a third of the Armadillo model's value and gradient.
-        out = self._program(kind, unconstrained, x.ndim == 2)(x)
+        run = self._ready.get((kind, bool(unconstrained), x.shape))
+        if run is None:
+            # Fetched once per shape: the program's own call would look it up by its arguments' tree
+            # and types at every evaluation.  Held weakly, so that release_compiled() frees it.
+            program = self._program(kind, unconstrained, x.ndim == 2)
+            run = self._ready[(kind, bool(unconstrained), x.shape)] = program.executable(x)
+        out = run(x)
         return tuple(np.asarray(a) for a in out) if isinstance(out, tuple) else np.asarray(out)
 
     def value(self, x, unconstrained: bool = False):

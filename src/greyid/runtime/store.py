@@ -12,9 +12,7 @@ A kept program must be the one tracing would give, or answers would be silently
 wrong: its file name is a hash of the key (the model's equations and every setting
 the program closes over, see
 [`greyid.model.structure.Structure.fingerprint`][greyid.model.structure.Structure.fingerprint]), the
-arguments' shapes and types, greyid's code (its source files without their comments
-and docstrings, so that a change to those alone keeps the programs) and JAX's version
-and backend.
+arguments' shapes and types, greyid's source files and JAX's version and backend.
 A process that replaces greyid's functions or constants at run time must switch the
 store off: the key does not see such changes (the test suite does so for each test
 that replaces one).  A program
@@ -29,10 +27,8 @@ again.  ``greyid cache info`` and ``greyid cache clear`` show and empty the fold
 
 from __future__ import annotations
 
-import ast
 import functools
 import hashlib
-import json
 import os
 import sys
 import tempfile
@@ -66,56 +62,14 @@ def enabled() -> bool:
     return folder() is not None and switched_on()
 
 
-def code_digest(source: bytes) -> str:
-    """A hash of a Python file's code: its syntax tree without its docstrings (nor its comments and
-    layout, which the tree does not hold), so that a change to those alone keeps the programs."""
-    tree = ast.parse(source)
-    for node in ast.walk(tree):
-        if (isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and node.body
-                and isinstance(node.body[0], ast.Expr) and isinstance(node.body[0].value, ast.Constant)
-                and isinstance(node.body[0].value.value, str)):
-            node.body = node.body[1:] or [ast.Pass()]
-    return hashlib.sha256(ast.dump(tree).encode()).hexdigest()
-
-
-#: File, in the programs' folder, of each source file's code digest by the digest of its bytes: parsing
-#: greyid's files would take a process about half a second, reading and hashing them milliseconds.
-CODE_DIGESTS = "code-digests"
-#: Entries kept in it (other versions' files too, for checkouts that share a cache folder).
-CODE_DIGESTS_KEPT = 4096
-
-
-def _remembered_digests(path: Path | None) -> dict:
-    """The code digests kept at ``path`` by their files' byte digests; empty where none are (or a damaged
-    file: it is written again)."""
-    if path is None:
-        return {}
-    try:
-        kept = json.loads(unseal(path.read_bytes()))
-    except Exception:  # noqa: BLE001  none, damaged or edited: computed again
-        return {}
-    return {raw: code for raw, code in kept.items() if isinstance(code, str)} if isinstance(kept, dict) else {}
-
-
 @functools.cache
 def source_hash() -> str:
-    """A hash of greyid's code ([`code_digest()`][greyid.runtime.store.code_digest] of each source file)
-    and of the JAX that traces it."""
-    base = folder()
-    memo = None if base is None else base / CODE_DIGESTS
-    known = _remembered_digests(memo)
-    digest, found = hashlib.sha256(), {}
+    """A hash of greyid's source files and of the JAX that traces them."""
+    digest = hashlib.sha256()
     root = Path(__file__).resolve().parents[1]
     for path in sorted(root.rglob("*.py")):
-        source = path.read_bytes()
-        raw = hashlib.sha256(source).hexdigest()
-        found[raw] = known.get(raw) or code_digest(source)
         digest.update(str(path.relative_to(root)).encode())
-        digest.update(found[raw].encode())
-    if memo is not None and any(raw not in known for raw in found):
-        others = [(raw, code) for raw, code in known.items() if raw not in found]
-        room = max(CODE_DIGESTS_KEPT - len(found), 0)
-        write(memo, seal(json.dumps(dict(others[max(len(others) - room, 0):]) | found).encode()))
+        digest.update(path.read_bytes())
     import jaxlib
 
     for part in (jax.__version__, jaxlib.__version__, jax.default_backend(), FORMAT,
@@ -215,7 +169,7 @@ def usage() -> dict:
            "problem": None if base is None else config.cache_folder_problem(base)}
     if base is None or out["problem"] or not Path(base).is_dir():
         return out
-    kept = [p for p in (Path(base) / "programs").glob("*.jaxexport") if p.is_file()]
+    kept = [p for p in (Path(base) / "programs").glob("*") if p.is_file()]
     compiled = [p for p in Path(base).iterdir() if p.is_file()]
     out["programs"] = (len(kept), sum(p.stat().st_size for p in kept))
     out["compiled"] = (len(compiled), sum(p.stat().st_size for p in compiled))
