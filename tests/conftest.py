@@ -12,7 +12,7 @@ if os.path.isdir(_SHARED_DATA):
 
 # One cache folder for the tests, of their own (the user's cache folder is neither read nor written),
 # holding both what greyid keeps of a program: its traced program (greyid.runtime.store, on as for a
-# user; the file's name hashes greyid's source files, so a change to them traces anew) and XLA's
+# user; the file's name hashes greyid's code, so that a change to it, not to a comment, traces anew) and XLA's
 # compilation of it (JAX's persistent cache).  Tracing and compiling are most of a test's time, and
 # the same program is made again and again — by tests that build the same model anew, in a module
 # after an earlier one's programs were released (_release_memory), in the command line's and Dask's

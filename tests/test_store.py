@@ -366,3 +366,67 @@ def test_a_likelihood_keeps_its_programs_under_its_data_and_frees_them_on_releas
     gc.collect()
     assert not any(isinstance(thing, Compiled) for thing in gc.get_objects())
     assert first.value(x) == expected[0]
+
+
+def test_the_key_reads_the_code_without_its_comments_layout_and_docstrings(tmp_path):
+    """A docstring, a comment or the layout changed: the same digest, so kept programs stay; any change to what
+    runs (a constant, an operator, a string that is not a docstring, a comprehension's constant) is another.
+    The bytecode Python keeps beside a file gives the digest its text gives."""
+    import os
+    import py_compile
+    import sys
+
+    source = b'''"""A module."""
+import math
+
+
+def f(x, a=2.0):
+    """Twice x."""
+    return a * x + math.pi  # a comment
+
+
+def g(y):
+    return [str(v) + "q" for v in y], "text"
+'''
+
+    def digest(text: bytes) -> str:
+        path = tmp_path / f"m{abs(hash(text))}.py"
+        path.write_bytes(text)
+        return programs.file_digest(path, text)
+
+    base = digest(source)
+    same = [source.replace(b"Twice x.", b"Two times x, see (4.36)."), source.replace(b"# a comment", b"# another"),
+            source.replace(b"return a * x", b"return (a\n            * x)"), b"\n\n" + source]
+    changed = [source.replace(b"a=2.0", b"a=3.0"), source.replace(b"a * x", b"a / x"),
+               source.replace(b"math.pi", b"math.e"), source.replace(b'"q"', b'"r"'),
+               source.replace(b'"text"', b'"other"')]
+    if sys.version_info[:2] in programs.DOCSTRING_FIRST:
+        assert [digest(s) for s in same] == [base] * len(same)
+    assert len({base, *(digest(s) for s in changed)}) == len(changed) + 1
+    # From the bytecode kept beside the file (written after it), the same digest.
+    path = tmp_path / "kept.py"
+    path.write_bytes(source)
+    earlier = path.stat().st_mtime_ns - 2 * 10**9
+    os.utime(path, ns=(earlier, earlier))  # the text older than the bytecode, whatever the clock's grain
+    py_compile.compile(str(path))
+    kept = programs.compiled_code(path, b"syntax error (")  # not compiled from the text: read from the bytecode
+    assert programs.hashlib.sha256(programs.code_digest(kept)).hexdigest() == base
+
+
+def test_the_code_digests_are_remembered_and_a_damaged_record_is_computed_again(tmp_path, monkeypatch):
+    """The first process computes greyid's files' digests and keeps them; a later one reads them (the same
+    key), and a damaged record is computed again and written anew."""
+    monkeypatch.setenv("GREYID_CACHE_DIR", "off")
+    expected = programs.source_hash.__wrapped__()  # no folder: every file's digest computed
+    monkeypatch.setenv("GREYID_CACHE_DIR", str(tmp_path))
+    record = tmp_path / "programs" / programs.CODE_DIGESTS
+    assert programs.source_hash.__wrapped__() == expected
+    written = record.read_bytes()
+    with monkeypatch.context() as computing:
+        computing.setattr(programs, "file_digest", lambda *args: pytest.fail("computed a remembered digest"))
+        assert programs.source_hash.__wrapped__() == expected
+    assert record.read_bytes() == written  # nothing new: not written again
+    record.write_bytes(written[:-1] + bytes([written[-1] ^ 1]))
+    assert programs.source_hash.__wrapped__() == expected
+    programs.unseal(record.read_bytes())  # sound again
+    assert programs.usage()["programs"] == (0, 0)  # the record is not a program

@@ -12,7 +12,9 @@ A kept program must be the one tracing would give, or answers would be silently
 wrong: its file name is a hash of the key (the model's equations and every setting
 the program closes over, see
 [`greyid.model.structure.Structure.fingerprint`][greyid.model.structure.Structure.fingerprint]), the
-arguments' shapes and types, greyid's source files and JAX's version and backend.
+arguments' shapes and types, greyid's code (its compiled modules without line numbers
+and docstrings, so that a change to comments, layout or docstrings alone keeps the
+programs) and JAX's version and backend.
 A process that replaces greyid's functions or constants at run time must switch the
 store off: the key does not see such changes (the test suite does so for each test
 that replaces one).  A program
@@ -29,8 +31,13 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import importlib.util
+import inspect
+import json
+import marshal
 import os
 import sys
+import types
 import tempfile
 from pathlib import Path
 
@@ -62,14 +69,92 @@ def enabled() -> bool:
     return folder() is not None and switched_on()
 
 
+#: Python versions whose compiler puts a function's docstring (or None) first among its code's constants;
+#: there the docstrings are left out of the key (3.14 marks a docstring by a flag instead).
+DOCSTRING_FIRST = ((3, 11), (3, 12), (3, 13))
+#: Code objects with local variables that are not functions: their first constant may be the code's own.
+NOT_FUNCTIONS = frozenset({"<listcomp>", "<setcomp>", "<dictcomp>", "<genexpr>"})
+
+
+def code_digest(code: types.CodeType) -> bytes:
+    """A module's compiled code without what does not change what it computes: its line numbers (so its
+    comments and layout), its file's name and its functions' docstrings (where ``DOCSTRING_FIRST``)."""
+    def bare(code):
+        consts = tuple(bare(c) if isinstance(c, types.CodeType) else c for c in code.co_consts)
+        if (sys.version_info[:2] in DOCSTRING_FIRST and code.co_flags & inspect.CO_NEWLOCALS
+                and code.co_name not in NOT_FUNCTIONS and consts and isinstance(consts[0], str)):
+            consts = (None, *consts[1:])
+        return code.replace(co_consts=consts, co_firstlineno=1, co_linetable=b"", co_filename="")
+
+    return marshal.dumps(bare(code))
+
+
+def compiled_code(path: Path, source: bytes) -> types.CodeType:
+    """The code of the module at ``path``: from the bytecode Python keeps beside it where that was written
+    after the file's last change and records its time and size (reading it is a tenth of compiling),
+    otherwise compiled from ``source``."""
+    try:
+        kept = Path(importlib.util.cache_from_source(str(path)))
+        stat, kept_stat = path.stat(), kept.stat()
+        if kept_stat.st_mtime_ns > stat.st_mtime_ns:
+            data = kept.read_bytes()
+            if (data[:4] == importlib.util.MAGIC_NUMBER and data[4:8] == bytes(4)
+                    and data[8:12] == (int(stat.st_mtime) & 0xFFFFFFFF).to_bytes(4, "little")
+                    and data[12:16] == (stat.st_size & 0xFFFFFFFF).to_bytes(4, "little")):
+                return marshal.loads(data[16:])
+    except (OSError, ValueError, EOFError, TypeError):
+        pass
+    return compile(source, str(path), "exec", dont_inherit=True, optimize=sys.flags.optimize)
+
+
+def file_digest(path: Path, source: bytes) -> str:
+    """The SHA-256 of [`code_digest()`][greyid.runtime.store.code_digest] of the module at ``path`` whose
+    text is ``source``; of ``source`` itself where Python cannot compile it."""
+    try:
+        return hashlib.sha256(code_digest(compiled_code(path, source))).hexdigest()
+    except Exception:  # noqa: BLE001
+        return hashlib.sha256(source).hexdigest()
+
+
+#: File, in the programs' folder, of each source file's code digest by the digest of its bytes: reading and
+#: hashing greyid's files takes a process milliseconds, their bytecode's digests several times as long.
+CODE_DIGESTS = "code-digests"
+#: Entries kept in it (other versions' files too, for checkouts that share a cache folder).
+CODE_DIGESTS_KEPT = 4096
+
+
+def _remembered_digests(path: Path | None) -> dict:
+    """The code digests kept at ``path`` by their files' byte digests; empty where none are (or a damaged
+    file: it is written again)."""
+    if path is None:
+        return {}
+    try:
+        kept = json.loads(unseal(path.read_bytes()))
+    except Exception:  # noqa: BLE001  none, damaged or edited: computed again
+        return {}
+    return {raw: code for raw, code in kept.items() if isinstance(code, str)} if isinstance(kept, dict) else {}
+
+
 @functools.cache
 def source_hash() -> str:
-    """A hash of greyid's source files and of the JAX that traces them."""
-    digest = hashlib.sha256()
+    """A hash of greyid's code ([`file_digest()`][greyid.runtime.store.file_digest] of each source file,
+    remembered in the programs' folder by the file's bytes) and of the JAX that traces it."""
+    base = folder()
+    memo = None if base is None else base / CODE_DIGESTS
+    known = _remembered_digests(memo)
+    digest, found = hashlib.sha256(), {}
     root = Path(__file__).resolve().parents[1]
     for path in sorted(root.rglob("*.py")):
+        source = path.read_bytes()
+        # The bytes' digest names the Python and the optimisation level too: the bytecode depends on them.
+        raw = hashlib.sha256(source + repr((sys.version, sys.flags.optimize)).encode()).hexdigest()
+        found[raw] = known.get(raw) or file_digest(path, source)
         digest.update(str(path.relative_to(root)).encode())
-        digest.update(path.read_bytes())
+        digest.update(found[raw].encode())
+    if memo is not None and any(raw not in known for raw in found):
+        others = [(raw, code) for raw, code in known.items() if raw not in found]
+        room = max(CODE_DIGESTS_KEPT - len(found), 0)
+        write(memo, seal(json.dumps(dict(others[max(len(others) - room, 0):]) | found).encode()))
     import jaxlib
 
     for part in (jax.__version__, jaxlib.__version__, jax.default_backend(), FORMAT,
@@ -169,7 +254,7 @@ def usage() -> dict:
            "problem": None if base is None else config.cache_folder_problem(base)}
     if base is None or out["problem"] or not Path(base).is_dir():
         return out
-    kept = [p for p in (Path(base) / "programs").glob("*") if p.is_file()]
+    kept = [p for p in (Path(base) / "programs").glob("*.jaxexport") if p.is_file()]
     compiled = [p for p in Path(base).iterdir() if p.is_file()]
     out["programs"] = (len(kept), sum(p.stat().st_size for p in kept))
     out["compiled"] = (len(compiled), sum(p.stat().st_size for p in compiled))
