@@ -13,7 +13,7 @@ wrong: its file name is a hash of the key (the model's equations and every setti
 the program closes over, see
 [`greyid.model.structure.Structure.fingerprint`][greyid.model.structure.Structure.fingerprint]), the
 arguments' shapes and types, greyid's code (its compiled modules without line numbers
-and docstrings, so that a change to comments, layout or docstrings alone keeps the
+and functions' docstrings, so that a change to comments, layout or functions' docstrings alone keeps the
 programs) and JAX's version and backend.
 A process that replaces greyid's functions or constants at run time must switch the
 store off: the key does not see such changes (the test suite does so for each test
