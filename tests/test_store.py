@@ -368,7 +368,7 @@ def test_a_likelihood_keeps_its_programs_under_its_data_and_frees_them_on_releas
     assert first.value(x) == expected[0]
 
 
-def test_the_key_reads_the_code_without_its_comments_layout_and_docstrings(tmp_path):
+def test_the_key_reads_the_code_without_its_comments_layout_and_docstrings(tmp_path, monkeypatch):
     """A docstring, a comment or the layout changed: the same digest, so kept programs stay; any change to what
     runs (a constant, an operator, a string that is not a docstring, a comprehension's constant) is another.
     The bytecode Python keeps beside a file gives the digest its text gives."""
@@ -409,8 +409,14 @@ def g(y):
     earlier = path.stat().st_mtime_ns - 2 * 10**9
     os.utime(path, ns=(earlier, earlier))  # the text older than the bytecode, whatever the clock's grain
     py_compile.compile(str(path))
-    kept = programs.compiled_code(path, b"syntax error (")  # not compiled from the text: read from the bytecode
+    with monkeypatch.context() as reading:
+        reading.setattr(programs, "compile", lambda *args, **kwargs: pytest.fail("compiled"), raising=False)
+        kept = programs.compiled_code(path, source)
     assert programs.hashlib.sha256(programs.code_digest(kept)).hexdigest() == base
+    # Bytes that the file no longer holds (read before a change): compiled from them, not read from the bytecode.
+    other = changed[0]
+    assert programs.hashlib.sha256(programs.code_digest(programs.compiled_code(path, other))).hexdigest() == \
+        digest(other)
 
 
 def test_the_code_digests_are_remembered_and_a_damaged_record_is_computed_again(tmp_path, monkeypatch):

@@ -90,9 +90,9 @@ def code_digest(code: types.CodeType) -> bytes:
 
 
 def compiled_code(path: Path, source: bytes) -> types.CodeType:
-    """The code of the module at ``path``: from the bytecode Python keeps beside it where that was written
-    after the file's last change and records its time and size (reading it is a tenth of compiling),
-    otherwise compiled from ``source``."""
+    """The code of the module at ``path`` whose text is ``source``: from the bytecode Python keeps beside it
+    where that was written after the file's last change and records its time and size, and the file still
+    holds ``source`` (reading it is a tenth of compiling), otherwise compiled from ``source``."""
     try:
         kept = Path(importlib.util.cache_from_source(str(path)))
         stat, kept_stat = path.stat(), kept.stat()
@@ -100,7 +100,8 @@ def compiled_code(path: Path, source: bytes) -> types.CodeType:
             data = kept.read_bytes()
             if (data[:4] == importlib.util.MAGIC_NUMBER and data[4:8] == bytes(4)
                     and data[8:12] == (int(stat.st_mtime) & 0xFFFFFFFF).to_bytes(4, "little")
-                    and data[12:16] == (stat.st_size & 0xFFFFFFFF).to_bytes(4, "little")):
+                    and data[12:16] == (len(source) & 0xFFFFFFFF).to_bytes(4, "little")
+                    and path.read_bytes() == source):  # not changed since ``source`` was read
                 return marshal.loads(data[16:])
     except (OSError, ValueError, EOFError, TypeError):
         pass
