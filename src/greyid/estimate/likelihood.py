@@ -130,15 +130,14 @@ class Likelihood:
         # A short series' switch to the steady state after its first rows (greyid.filters.steady)
         # for single values and gradients; Hessians and evaluations vectorised over parameter
         # vectors (one decision per row of x would run both forms) step through every row.
+        # By whether every row steps through: the problem and its functions.
         every_row = replace(problem, options=replace(problem.options, steady_state=False))
-        self._problems = {False: problem, True: every_row}
-        self._functions = functions(problem)
-        self._every_row = functions(every_row)
+        self._forms = {every: (p, functions(p)) for every, p in ((False, problem), (True, every_row))}
         self._programs: dict = {}
         self._ready = weakref.WeakValueDictionary()
         # The data are constants of the programs (XLA folds what depends on them alone: a fifth of the
         # Armadillo value's time), so a program kept in the cache folder is named by them too.
-        self._data = data_digest((base, lower, upper, prior_mean, prior_chol, datasets))
+        self._data_digest = data_digest((base, lower, upper, prior_mean, prior_chol, datasets))
 
     # ------------------------------------------------------------------ the functions
     def function(self, unconstrained: bool = False):
@@ -154,19 +153,19 @@ class Likelihood:
         callable
             x ↦ the negative log-likelihood (a JAX scalar).
         """
-        return self._functions[bool(unconstrained)]
+        return self._forms[False][1][bool(unconstrained)]
 
     def _program(self, kind: str, unconstrained: bool, batched: bool):
         key = (kind, bool(unconstrained), batched)
         if key not in self._programs:
             every_row = batched or kind == "hessian"
-            fun = (self._every_row if every_row else self._functions)[bool(unconstrained)]
+            problem, functions = self._forms[every_row]
+            fun = functions[bool(unconstrained)]
             if kind == "value_and_grad":
                 fun = objective.forward_value_and_grad(fun)
             elif kind == "hessian":
                 fun = jax.jacfwd(jax.jacfwd(fun))
-            problem = self._problems[every_row]
-            name = ("likelihood", *key, problem.key(), problem.prior_index, self._data)
+            name = ("likelihood", *key, problem.key(), problem.prior_index, self._data_digest)
             self._programs[key] = jit(jax.vmap(fun) if batched else fun, key=kept_key(self.model.structure, name))
         return self._programs[key]
 
