@@ -1,7 +1,7 @@
 """Population benchmark (issue "Population models"): Armadillo-size houses with two random effects.
 
     python benchmarks/population.py [--sizes 100,1000] [--scheduler local] [--cache-dir DIR] [--timings]
-                                    [--layouts]
+                                    [--layouts] [--method laplace] [--hessian exact|differences]
 
 Houses: the Armadillo model (pySIP's TwTi_RoRi, first-order hold, 232 rows; data
 the data set armadillo) simulated at its fitted parameters with a lognormal spread
@@ -17,7 +17,9 @@ the seconds of each call spent in the members' modes, the outer gradients and th
 outer Hessian (in this process, so not with ``--scheduler local``).  ``--layouts``
 then fits, in the same process and on the same houses, the nested layouts a model
 selection compares: a full Ω, and a covariate effect of a floor area (drawn per
-house) on Ro, printing the first call of each.
+house) on Ro, printing the first call of each.  ``--method`` sets each member's likelihood (e.g. ``laplace``,
+the Laplace method over the states; ``enkf``) and ``--hessian`` the outer Hessian (``fit_population``'s
+``hessian=``: by default differences of the gradient for those two methods, the exact one otherwise).
 """
 
 from __future__ import annotations
@@ -74,6 +76,9 @@ def main():
     parser.add_argument("--cache-dir", default=None, help="greyid's cache folder (default: a new, empty one)")
     parser.add_argument("--timings", action="store_true", help="seconds in the modes, gradients and Hessian")
     parser.add_argument("--layouts", action="store_true", help="then a full Omega and a covariate effect")
+    parser.add_argument("--method", default=None, help="each member's likelihood (default: the Kalman filter)")
+    parser.add_argument("--hessian", default=None, choices=[None, "exact", "differences"],
+                        help="the outer Hessian (default: fit_population's own)")
     args = parser.parse_args()
     import os
     import tempfile
@@ -97,6 +102,10 @@ def main():
         client = Client(LocalCluster(n_workers=2, threads_per_worker=1))
     random = {name: "lognormal" for name in SPREAD}
     on = {} if client is None else dict(scheduler=client)
+    if args.hessian is not None:
+        on["hessian"] = args.hessian
+    if args.method is not None:
+        on["method"] = args.method
     spent: dict = {}
     if args.timings:
         time_the_steps(spent)

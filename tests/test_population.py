@@ -54,7 +54,8 @@ def test_a_population_by_the_ensemble_kalman_filter_approaches_the_exact_one_and
 def test_a_population_by_the_laplace_method_over_the_states_equals_the_kalman_filters():
     """Laplace's method over the states (exact transitions of a linear Gaussian model) gives each member the
     Kalman filter's likelihood exactly, so the nested Laplace over the random effects must reproduce the
-    Kalman population fit: log-likelihood to 1e-6, estimates and standard errors to 1e-4 relative."""
+    Kalman population fit: log-likelihood to 1e-6, estimates and standard errors to 1e-4 relative (the
+    Kalman filter's from the exact Hessian, the Laplace method's by differences of its gradient)."""
     from test_particle import ou_data, ou_gaussian
 
     m = ou_gaussian()
@@ -66,6 +67,9 @@ def test_a_population_by_the_laplace_method_over_the_states_equals_the_kalman_fi
     exact = greyid.fit_population(m, data, random={"mu": "normal"}, method="kalman")
     marginal = greyid.fit_population(m, data, random={"mu": "normal"}, method="laplace")
     assert exact.converged and marginal.converged
+    # The Laplace method's standard errors by differences of its exact gradient (its default), the Kalman
+    # filter's from the exact Hessian.
+    assert (marginal.call["hessian"], exact.call["hessian"]) == ("differences", "exact")
     assert exact.params.loc["omega_mu", "estimate"] > 0.1  # a real random effect, not one at its bound
     assert marginal.loglik == pytest.approx(exact.loglik, abs=1e-6)
     for column in ("estimate", "std_error"):
@@ -239,6 +243,26 @@ def test_standard_errors_are_the_dense_likelihoods_curvature(gain_fit, dense_cur
     se = gain_fit.params["std_error"]
     np.testing.assert_allclose([se["b11"], se["c1"], se["s1"] / est["s1"], se["omega_b11"] / est["omega_b11"]],
                                se_log, rtol=2e-3)
+
+
+def test_the_hessian_by_differences_of_the_gradient_equals_the_exact_one(gain_problem, gain_fit, monkeypatch):
+    """``hessian="differences"`` (central differences of the exact gradient, the default of the Laplace method
+    over the states and the ensemble filter) ends at the exact Hessian's optimum with its standard errors to
+    1e-6 relative, says so, and compiles no Hessian program; an unknown setting is named."""
+    model, _, datasets = gain_problem
+    assert gain_fit.call["hessian"] == "exact" and "from the exact Hessian" in gain_fit.summary()
+    called = []
+    for name in ("compile_hessian", "hessian"):
+        monkeypatch.setattr(laplace.MemberPrograms, name, lambda *args, name=name: called.append(name))
+    differenced = fit_population(model, datasets, {"b11": "normal"}, hessian="differences")
+    assert called == []
+    assert differenced.call["hessian"] == "differences"
+    assert "from the Hessian by differences of the exact gradient" in differenced.summary()
+    assert differenced.loglik == pytest.approx(gain_fit.loglik, abs=1e-9)
+    np.testing.assert_allclose(differenced.params["estimate"], gain_fit.params["estimate"], rtol=1e-7)
+    np.testing.assert_allclose(differenced.params["std_error"], gain_fit.params["std_error"], rtol=1e-6)
+    with pytest.raises(greyid.ModelError, match="hessian is 'numeric'; use 'exact'.*'differences'"):
+        fit_population(model, datasets, {"b11": "normal"}, hessian="numeric")
 
 
 def test_random_effects_are_the_conditional_means(gain_problem, gain_fit):

@@ -8,8 +8,11 @@ members at once by vectorised programs, warm-started from the previous modes)
 and evaluates Σ_i ℓ_i(φ) with exact derivatives ([`laplace`][greyid.population.laplace]).  The outer
 search is greyid's trust-region search (`greyid.estimate.trust_region`):
 BFGS steps on the exact gradient from the members' outer-product information
-Σ_i ∇ℓ_i∇ℓ_iᵀ, then Newton steps on the exact Hessian at the end (see
-[`_search()`][greyid.population.fit._search]); the standard errors come from that exact Hessian.
+Σ_i ∇ℓ_i∇ℓ_iᵀ, then Newton steps on the Hessian at the end (see
+[`_search()`][greyid.population.fit._search]); the standard errors come from that Hessian.  The Hessian is
+the exact one for the Gaussian filters, and central differences of the exact gradient for the Laplace
+method over the states and the ensemble filter (``hessian=``), whose exact one is a program of their own
+derivative rules' fourth derivatives, minutes to compile.
 """
 
 from __future__ import annotations
@@ -24,10 +27,11 @@ import numpy as np
 import pandas as pd
 
 from ..errors import DataError, ModelError
+from ..estimate.lbfgs import difference_hessian
 from ..estimate.objective import worker_count
 from ..estimate.optimize import EXACT, GRADIENT, VALUE, NotFiniteError, run_alone
 from ..estimate.trust_region import Search
-from ..filters.protocol import PARTICLE
+from ..filters.protocol import ENKF, LAPLACE, PARTICLE
 from ..data.files import named_datasets, read_covariates, read_source
 from ..model.options import rename_columns
 from . import laplace
@@ -37,16 +41,38 @@ from .result import PopulationResult
 from .spec import PopulationSpec, make_spec
 
 
+#: The outer Hessian's two ways: the exact one (the filter's derivatives to fourth order in one program), or
+#: central differences of the exact gradient.
+HESSIANS = ("exact", "differences")
+#: The members' methods whose outer Hessian is taken by differences unless ``hessian="exact"`` is asked for: their
+#: likelihoods run derivative rules of their own (the Laplace method's mode, the ensemble's gain), whose fourth
+#: derivatives are a program many times the gradient's to trace and compile (docs/performance.md).
+DIFFERENCED = (LAPLACE, ENKF)
+
+
+def _step_scales(hessian) -> np.ndarray:
+    """Each coordinate's conditional standard deviation 1/√H_ii, 1 where that is not a positive finite number."""
+    d = np.diag(np.asarray(hessian, dtype=float))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(np.isfinite(d) & (d > 0), 1.0 / np.sqrt(np.abs(d)), 1.0)
+
+
 class Outer:
     """The outer criterion Σ_i ℓ_i(φ) with its derivatives; keeps the members' modes for warm starts.
 
     Evaluations run here (the members split over the cores) or, with ``evaluator`` (a
     [`ClusterEvaluator`][greyid.population.distributed.ClusterEvaluator]), by chunks of members on a Dask cluster.
+    ``hessian``: ``"exact"`` (the members' exact outer Hessians, whose program compiles in the background from the
+    start) or ``"differences"`` (central differences of the exact gradient, no program of its own).
     """
 
     def __init__(self, programs: laplace.LaplacePrograms | None, members: Members, spec: PopulationSpec,
-                 workers: int | None = None, evaluator=None):
+                 workers: int | None = None, evaluator=None, hessian: str = "exact"):
         self.members = members
+        self.hessian = hessian
+        # The differences' steps, in conditional standard deviations: from the search's own curvature (set by
+        # `_search`), then from each Hessian so found (``scaled``).
+        self.scales, self.scaled = np.ones(len(spec.phi0())), False
         self.u = np.zeros((len(members.names), spec.n_random))
         self.evaluations = 0
         # (φ, modes, values, gradients, path) of the last finite gradient evaluation (path: the Hessian's T, λ)
@@ -55,7 +81,8 @@ class Outer:
         if evaluator is None:
             self.programs = laplace.MemberPrograms(programs, members.x, spec.base(), members.data,
                                                    worker_count() if workers is None else workers)
-            self.programs.compile_hessian(spec.phi0(), self.u)
+            if hessian == "exact":
+                self.programs.compile_hessian(spec.phi0(), self.u)
             evaluator = functools.partial(evaluate, self.programs)
         self.evaluator = evaluator
 
@@ -95,7 +122,9 @@ class Outer:
     def exact(self, phi):
         """Value, gradient and Hessian at φ; where the search's last gradient was taken at this φ (where
         the quasi-Newton stage ends), its modes, values, gradients and the modes' path are used and only the
-        Hessian is computed."""
+        Hessian is computed (with ``hessian="differences"``: `_differenced`)."""
+        if self.hessian == "differences":
+            return self._differenced(np.asarray(phi, dtype=float))
         if self._at_last_gradient(phi):
             _, modes, values, gradients, path = self.last_gradient
             hessians = self.evaluator(np.asarray(phi, dtype=float), modes.u, "hessian", path)[3]
@@ -107,6 +136,21 @@ class Outer:
             return np.inf, np.full(n, np.nan), np.full((n, n), np.nan)
         H = np.asarray(hessians).sum(axis=0)
         return float(np.sum(values)), np.asarray(gradients).sum(axis=0), 0.5 * (H + H.T)
+
+    def _differenced(self, phi):
+        """Value, gradient and the Hessian by central differences of the exact gradient
+        ([`difference_hessian()`][greyid.estimate.lbfgs.difference_hessian]): twice where no Hessian has been found
+        yet (the second with steps of the first's conditional standard deviations, as ``optimizer="lbfgs"`` does),
+        else once with the last one's."""
+        value, gradient = self.value_and_gradient(phi)
+        n = len(phi)
+        if not (np.isfinite(value) and np.all(np.isfinite(gradient))):
+            return np.inf, np.full(n, np.nan), np.full((n, n), np.nan)
+        if not self.scaled:
+            self.scales = _step_scales(difference_hessian(self.value_and_gradient, phi, self.scales))
+        H = difference_hessian(self.value_and_gradient, phi, self.scales)
+        self.scales, self.scaled = _step_scales(H), True
+        return float(value), np.asarray(gradient, dtype=float), H
 
     def close(self):
         if self.programs is not None:
@@ -177,9 +221,9 @@ def _say(progress, phase: str, text: str) -> None:
 
 def _search(outer: Outer, phi0: np.ndarray, maxiter: int, progress=False):
     """The maximum of Σ_i ℓ_i: quasi-Newton (BFGS) steps on exact gradients, from the members'
-    outer-product information at the start, in greyid's trust region; then the exact Hessian, and
+    outer-product information at the start, in greyid's trust region; then the Hessian (``outer.exact``), and
     Newton steps on it until the Newton decrement vanishes (usually none: the BFGS optimum is the
-    optimum to the criterion's precision).  The exact Hessian costs dozens of gradients, so the
+    optimum to the criterion's precision).  The Hessian costs dozens of gradients, so the
     search takes it only at the end."""
     try:
         _, gradients, _ = outer.member_gradients(phi0)
@@ -190,6 +234,8 @@ def _search(outer: Outer, phi0: np.ndarray, maxiter: int, progress=False):
     except NotFiniteError:
         raise ModelError("the Laplace marginal likelihood is not finite at the initial values (a member's "
                          "filter fails there): give other initial values (init=...) or omega_init") from None
+    if optimum.hessian is not None:  # the differences' first steps, where they are taken
+        outer.scales = _step_scales(optimum.hessian)
     final = Search(optimum.z, max(maxiter - optimum.iterations, 1), _progress_report(progress), scoring=False,
                    value=True)
     polished = run_alone(final, {EXACT: outer.exact, VALUE: outer.value})
@@ -201,7 +247,7 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
                    omega: str | None = None, time: str | None = None, hold: str | None = None,
                    method: str | None = None, init=None, omega_init=None, start: str = "pooled",
                    maxiter: int = 200, scheduler=None, chunk_size: int | None = None,
-                   worker_timeout: float | None = None, progress=False, **options):
+                   worker_timeout: float | None = None, progress=False, hessian: str | None = None, **options):
     """Fit a population (nonlinear mixed-effects) SDE model to many data sets.
 
     Every data set (a house, a patient, an engine) has its own parameters, drawn
@@ -260,6 +306,12 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
         Print to standard error each phase (the pooled start, the members' programs, which a first run
         compiles) and each step of the outer search; a callable receives one dict per event instead
         (``phase`` and ``message``, or ``iteration``, ``stage``, ``value``, ``max_gradient``).
+    hessian : {"exact", "differences"}, optional
+        The outer Hessian, for the last Newton steps and the standard errors: the exact one, or central
+        differences of the exact gradient (4 gradients per population parameter; standard errors within
+        about 1e-6 relative of the exact Hessian's).  Default: differences for ``method="laplace"`` and
+        ``"enkf"``, whose exact Hessian is a program minutes to compile; the exact one otherwise, which a
+        large population's later fits run faster.
     **options
         The filter's settings (``form``, ``substeps``, ``iterations``, ...),
         ``time_unit`` and ``columns``; not ``steady_state``.
@@ -314,6 +366,9 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
     if unknown:
         raise ModelError(f"fit_population does not take '{sorted(unknown)[0]}'; it takes time, hold, method, init, "
                          f"omega_init, maxiter, progress and the filter's options {list(FILTER_OPTIONS)}")
+    if hessian is not None and hessian not in HESSIANS:
+        raise ModelError(f"hessian is '{hessian}'; use 'exact' (the exact outer Hessian) or 'differences' (central "
+                         "differences of the exact gradient)")
     if options.get("steady_state"):
         raise ModelError("steady_state=True is for single fits (model.fit, model.likelihood): a population "
                          "evaluates its members together in one program, where each member's switch would run "
@@ -342,23 +397,26 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
     members = prepare_members(model, names, sources, spec, raw, time, hold, time_unit, columns)
     structure = model.structure
     fo = population_filter(model, spec, members, method, time, hold, time_unit, options)
+    if hessian is None:
+        hessian = "differences" if fo.method in DIFFERENCED else "exact"
     _say(progress, "programs", f"the members' programs for {len(members.names)} members (a first run compiles "
                                "them, which can take a minute; greyid's cache folder keeps them for later runs)")
     if scheduler is not None:
         evaluator = ClusterEvaluator(scheduler, model, spec, fo, members, chunk_size,
                                      60.0 if worker_timeout is None else worker_timeout)
-        outer = Outer(None, members, spec, evaluator=evaluator)
+        outer = Outer(None, members, spec, evaluator=evaluator, hessian=hessian)
     else:
-        outer = Outer(population_programs(structure, spec, fo), members, spec)
+        outer = Outer(population_programs(structure, spec, fo), members, spec, hessian=hessian)
     phi0 = spec.phi0()
     try:
-        _say(progress, "search", "the outer search (the members' modes, the gradient, then the exact Hessian)")
+        last = "the exact Hessian" if hessian == "exact" else "the Hessian by differences of the gradient"
+        _say(progress, "search", f"the outer search (the members' modes, the gradient, then {last})")
         optimum = _search(outer, phi0, maxiter, progress)
         modes = outer.modes(optimum.z)
     finally:
         outer.close()
     call = dict(time=time, hold=hold, method=fo.method, form=fo.form, substeps=fo.substeps,
-                iterations=fo.iterations, time_unit=time_unit, omega=omega)
+                iterations=fo.iterations, time_unit=time_unit, omega=omega, hessian=hessian)
     result = PopulationResult._at_optimum(model, spec, members, optimum, modes, call)
     if covariates is not None:
         kept = {str(n) for n in result.names}

@@ -98,7 +98,8 @@ class PopulationResult:
         the covariate, on the parameter's scale: log for lognormal),
         ``omega_<parameter>`` (the standard deviation of η; for a lognormal
         parameter about its coefficient of variation) and ``corr_<a>_<b>``; with
-        standard errors from the exact Hessian of the Laplace marginal likelihood
+        standard errors from the Hessian of the Laplace marginal likelihood (the
+        exact one, or central differences of the exact gradient: ``call["hessian"]``)
         and 95 % intervals taken where each quantity is unbounded, then mapped back.
     random_effects : pandas.DataFrame
         One row per member: each random parameter at the conditional mode of η,
@@ -408,7 +409,9 @@ class PopulationResult:
                  f"log-likelihood (Laplace) {self.loglik:.6f}   AIC {self.aic:.4f}   BIC {self.bic:.4f}   "
                  f"{self.n_params} population parameters",
                  f"converged: {self.converged} ({self.message}), {self.iterations} iterations",
-                 f"filter: {self.call['method']}, {self.call['substeps']} sub-step(s) per sampling interval",
+                 f"filter: {self.call['method']}, {self.call['substeps']} sub-step(s) per sampling interval; "
+                 + ("standard errors from the Hessian by differences of the exact gradient"
+                    if self.call.get("hessian") == "differences" else "standard errors from the exact Hessian"),
                  "random effects: " + ", ".join(f"{spec.names[i]} {k}" for i, k in zip(spec.random, spec.kinds))
                  + f"; Ω {'full' if spec.full else 'diagonal'}"]
         if spec.covariates:
