@@ -263,6 +263,8 @@ def test_the_hessian_by_differences_of_the_gradient_equals_the_exact_one(gain_pr
     np.testing.assert_allclose(differenced.params["std_error"], gain_fit.params["std_error"], rtol=1e-6)
     with pytest.raises(greyid.ModelError, match="hessian is 'numeric'; use 'exact'.*'differences'"):
         fit_population(model, datasets, {"b11": "normal"}, hessian="numeric")
+    with pytest.raises(greyid.ModelError, match="does not take 'hesian'.*progress, hessian and"):
+        fit_population(model, datasets, {"b11": "normal"}, hesian="exact")
 
 
 def test_random_effects_are_the_conditional_means(gain_problem, gain_fit):

@@ -365,7 +365,7 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
     unknown = set(options) - set(FILTER_OPTIONS) - {"time_unit", "columns"}
     if unknown:
         raise ModelError(f"fit_population does not take '{sorted(unknown)[0]}'; it takes time, hold, method, init, "
-                         f"omega_init, maxiter, progress and the filter's options {list(FILTER_OPTIONS)}")
+                         f"omega_init, maxiter, progress, hessian and the filter's options {list(FILTER_OPTIONS)}")
     if hessian is not None and hessian not in HESSIANS:
         raise ModelError(f"hessian is '{hessian}'; use 'exact' (the exact outer Hessian) or 'differences' (central "
                          "differences of the exact gradient)")
