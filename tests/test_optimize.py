@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize
 
-from greyid.estimate.lbfgs import quasi_newton_start
+from greyid.estimate.lbfgs import conditional_scales, quasi_newton_start, scaled_difference_hessian
 from greyid.estimate.trust_region import newton_trust_region, trust_region_step
 
 
@@ -232,3 +232,25 @@ def test_a_search_is_explicit_state_that_can_be_copied_and_continued():
     np.testing.assert_array_equal(first.z, second.z)
     assert first.iterations == second.iterations and first.evaluations == second.evaluations
     np.testing.assert_allclose(first.z, [1.0, 1.0], atol=1e-5)  # a decrement of 1e-12 leaves z to ~1e-6
+
+
+def test_the_scaled_difference_hessian_recovers_a_badly_scaled_curvature():
+    """Two passes of central differences: from a step guess 2e5 times too large along a stiff coordinate,
+    the second pass's steps of conditional standard deviations give the exact Hessian of a quartic
+    (its third derivative makes a too-large step's difference wrong)."""
+    curvature = np.array([[4.0e6, 1.0e3], [1.0e3, 2.0]])
+
+    def f(z):
+        return 0.5 * z @ curvature @ z + 1e6 * z[0] ** 4 + z[1] ** 4
+
+    def value_and_grad(z):
+        return f(z), curvature @ z + np.array([4e6 * z[0] ** 3, 4 * z[1] ** 3])
+
+    z = np.array([1e-3, 0.5])
+    exact = curvature + np.diag([12e6 * z[0] ** 2, 12 * z[1] ** 2])
+    guessed = np.array([100.0, 1.0])
+    H = scaled_difference_hessian(value_and_grad, z, guessed)
+    np.testing.assert_allclose(H, exact, rtol=1e-7)
+    np.testing.assert_allclose(conditional_scales(np.diag(H), guessed), 1 / np.sqrt(np.diag(exact)), rtol=1e-7)
+    # Where the curvature is not a positive finite number, the guess stays.
+    np.testing.assert_array_equal(conditional_scales(np.array([-1.0, np.nan]), guessed), guessed)

@@ -115,11 +115,28 @@ def difference_hessian(value_and_grad: Callable, z: np.ndarray, scales: np.ndarr
     return 0.5 * (H + H.T)
 
 
+def conditional_scales(curvatures: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+    """Each coordinate's conditional standard deviation 1/√H_ii from a Hessian's diagonal, ``fallback[i]``
+    where H_ii is not a positive finite number."""
+    d = np.asarray(curvatures, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(np.isfinite(d) & (d > 0), 1.0 / np.sqrt(np.abs(d)), fallback)
+
+
+def scaled_difference_hessian(value_and_grad: Callable, z: np.ndarray, scales: np.ndarray) -> np.ndarray:
+    """The Hessian at z by [`difference_hessian()`][greyid.estimate.lbfgs.difference_hessian] twice: first with
+    steps along ``scales`` (a guess: a quasi-Newton search's curvature can be far off along a poorly determined
+    direction), then with the first Hessian's conditional standard deviations (where they are positive, else
+    the guess).  ``4 · len(z)`` gradients."""
+    first = np.diag(difference_hessian(value_and_grad, z, scales))
+    return difference_hessian(value_and_grad, z, conditional_scales(first, scales))
+
+
 def lbfgs_search(value_and_grad: Callable, z0: np.ndarray, maxiter: int, report: Callable = _no_report):
     """``optimizer="lbfgs"``: SciPy's L-BFGS-B (no bounds, in z) on the exact value and gradient until the
     gradient's largest element falls below LBFGS_GRADIENT, then the Hessian at the optimum by central
-    differences of the gradient ([`difference_hessian()`][greyid.estimate.lbfgs.difference_hessian], twice: the
-    second with steps scaled by the first's conditional standard deviations).
+    differences of the gradient
+    ([`scaled_difference_hessian()`][greyid.estimate.lbfgs.scaled_difference_hessian]).
 
     Only the value and gradient's program is compiled (about half of a Laplace fit's first compilation,
     none of the Hessian's); the price is L-BFGS's linear convergence (more evaluations than Newton's
@@ -131,13 +148,10 @@ def lbfgs_search(value_and_grad: Callable, z0: np.ndarray, maxiter: int, report:
     best, result = _minimize(value_and_grad, z0, "lbfgs", report, stop_where_not_finite=False,
                              options=dict(maxiter=maxiter, maxfun=20 * maxiter, gtol=LBFGS_GRADIENT, ftol=0.0))
     best.gradient = np.asarray(best.gradient, dtype=np.float64)
-    # The steps' scales: first L-BFGS's own variances (its curvature, which can be far off along a poorly
-    # determined direction), then the conditional standard deviations of the Hessian so found.
+    # The first steps' scales: L-BFGS's own variances.
     variances = np.diag(result.hess_inv.todense()) if hasattr(result.hess_inv, "todense") else np.ones(len(z0))
     scales = np.where(np.isfinite(variances) & (variances > 0), np.sqrt(np.abs(variances)), 1.0)
-    first = np.diag(difference_hessian(value_and_grad, best.z, scales))
-    scales = np.where(np.isfinite(first) & (first > 0), 1.0 / np.sqrt(np.abs(first)), scales)
-    hessian = difference_hessian(value_and_grad, best.z, scales)
+    hessian = scaled_difference_hessian(value_and_grad, best.z, scales)
     evaluations = best.evaluations + 4 * len(z0)
     # Judged as a Newton search judges its end: the Newton decrement gᵀH⁻¹g negligible against |f| where the
     # Hessian is positive definite (L-BFGS itself stops where f no longer decreases, which the inner

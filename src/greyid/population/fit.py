@@ -27,7 +27,7 @@ import numpy as np
 import pandas as pd
 
 from ..errors import DataError, ModelError
-from ..estimate.lbfgs import difference_hessian
+from ..estimate.lbfgs import conditional_scales, difference_hessian, scaled_difference_hessian
 from ..estimate.objective import worker_count
 from ..estimate.optimize import EXACT, GRADIENT, VALUE, NotFiniteError, run_alone
 from ..estimate.trust_region import Search
@@ -48,13 +48,6 @@ HESSIANS = ("exact", "differences")
 #: likelihoods run derivative rules of their own (the Laplace method's mode, the ensemble's gain), whose fourth
 #: derivatives are a program many times the gradient's to trace and compile (docs/performance.md).
 DIFFERENCED = (LAPLACE, ENKF)
-
-
-def _step_scales(hessian) -> np.ndarray:
-    """Each coordinate's conditional standard deviation 1/√H_ii, 1 where that is not a positive finite number."""
-    d = np.diag(np.asarray(hessian, dtype=float))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(np.isfinite(d) & (d > 0), 1.0 / np.sqrt(np.abs(d)), 1.0)
 
 
 class Outer:
@@ -138,18 +131,22 @@ class Outer:
         return float(np.sum(values)), np.asarray(gradients).sum(axis=0), 0.5 * (H + H.T)
 
     def _differenced(self, phi):
-        """Value, gradient and the Hessian by central differences of the exact gradient
-        ([`difference_hessian()`][greyid.estimate.lbfgs.difference_hessian]): twice where no Hessian has been found
-        yet (the second with steps of the first's conditional standard deviations, as ``optimizer="lbfgs"`` does),
-        else once with the last one's."""
-        value, gradient = self.value_and_gradient(phi)
+        """Value, gradient and the Hessian by central differences of the exact gradient: the first time by
+        [`scaled_difference_hessian()`][greyid.estimate.lbfgs.scaled_difference_hessian] (two passes, as
+        ``optimizer="lbfgs"`` takes it), later once with the last Hessian's conditional standard deviations."""
         n = len(phi)
+        if self._at_last_gradient(phi):  # where the quasi-Newton stage ended
+            _, _, values, gradients, _ = self.last_gradient
+            value, gradient = float(np.sum(values)), gradients.sum(axis=0)
+        else:
+            value, gradient = self.value_and_gradient(phi)
         if not (np.isfinite(value) and np.all(np.isfinite(gradient))):
             return np.inf, np.full(n, np.nan), np.full((n, n), np.nan)
-        if not self.scaled:
-            self.scales = _step_scales(difference_hessian(self.value_and_gradient, phi, self.scales))
-        H = difference_hessian(self.value_and_gradient, phi, self.scales)
-        self.scales, self.scaled = _step_scales(H), True
+        if self.scaled:
+            H = difference_hessian(self.value_and_gradient, phi, self.scales)
+        else:
+            H = scaled_difference_hessian(self.value_and_gradient, phi, self.scales)
+        self.scales, self.scaled = conditional_scales(np.diag(H), self.scales), True
         return float(value), np.asarray(gradient, dtype=float), H
 
     def close(self):
@@ -235,7 +232,7 @@ def _search(outer: Outer, phi0: np.ndarray, maxiter: int, progress=False):
         raise ModelError("the Laplace marginal likelihood is not finite at the initial values (a member's "
                          "filter fails there): give other initial values (init=...) or omega_init") from None
     if optimum.hessian is not None:  # the differences' first steps, where they are taken
-        outer.scales = _step_scales(optimum.hessian)
+        outer.scales = conditional_scales(np.diag(optimum.hessian), outer.scales)
     final = Search(optimum.z, max(maxiter - optimum.iterations, 1), _progress_report(progress), scoring=False,
                    value=True)
     polished = run_alone(final, {EXACT: outer.exact, VALUE: outer.value})
