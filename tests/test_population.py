@@ -737,16 +737,24 @@ def test_command_line_population(nonlinear_problem, tmp_path, capsys):
     assert "--effect needs --covariates" in capsys.readouterr().err
     assert main(["population", str(model_file), str(folder), "--random", "a:lognormal", "--report", "-q"]) == 2
     assert "--report needs --out" in capsys.readouterr().err
+    assert main(["population", str(model_file), str(folder), "--random", "a:lognormal", "--hessian", "numeric",
+                 "-q"]) == 2
+    assert "hessian is 'numeric'" in capsys.readouterr().err
     # The same settings from the model file's [population] table (covariates relative to the file).
     m.set_population(random={"a": "lognormal"}, effects={"b": ["area"]}, covariates="covariates.csv")
     with_table = tmp_path / "decay_population.toml"
     with_table.write_text(m.to_toml())
     assert "[population]" in with_table.read_text()
-    code = main(["population", str(with_table), str(folder), "--out", str(tmp_path / "again"), "-q"])
+    # ... with the outer Hessian by differences of the gradient: the same optimum, the same standard errors.
+    code = main(["population", str(with_table), str(folder), "--out", str(tmp_path / "again"), "--hessian",
+                 "differences", "-q"])
     assert code == 0
+    assert "by differences of the exact gradient" in (tmp_path / "again" / "summary.txt").read_text()
+    assert "from the exact Hessian" in (out / "summary.txt").read_text()
     first = pd.read_csv(out / "parameters.csv", index_col=0)
     again = pd.read_csv(tmp_path / "again" / "parameters.csv", index_col=0)
-    np.testing.assert_allclose(again["estimate"], first["estimate"], rtol=1e-10)
+    np.testing.assert_allclose(again["estimate"], first["estimate"], rtol=1e-7)
+    np.testing.assert_allclose(again["std_error"], first["std_error"], rtol=1e-5)
     m.population.clear()
 
 

@@ -346,6 +346,10 @@ def population_command(
         method: Optional[str] = typer.Option(None, metavar="NAME",
                                              help="each member's likelihood: "
                                                   + ", ".join(m for m in METHODS if m != "particle")),
+        hessian: Optional[str] = typer.Option(None, metavar="exact|differences",
+                                              help="the outer Hessian (the standard errors): exact, or central "
+                                                   "differences of the exact gradient (default: differences for "
+                                                   "the methods laplace and enkf, else exact)"),
         hold: Optional[str] = typer.Option(None, metavar="zoh|foh", help="input hold between samples: zoh or foh"),
         time_column: Optional[str] = typer.Option(None, "--time", metavar="COLUMN", help="name of the time column"),
         out_dir: Optional[Path] = typer.Option(None, "--out", metavar="DIR",
@@ -384,7 +388,8 @@ def population_command(
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", PopulationWarning)  # the summary lists the members left out
             result = fit_population(m, files, kinds or None, covariates=table, effects=effects or None, omega=omega,
-                                    time=time_column, hold=hold, method=method, progress=not quiet)
+                                    time=time_column, hold=hold, method=method, hessian=hessian,
+                                    progress=not quiet)
         if not quiet:
             err.print(f"fitted in {time.perf_counter() - started:.2f} s")
         out.print(result.summary())

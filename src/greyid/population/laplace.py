@@ -408,7 +408,8 @@ class MemberPrograms:
         workers = max(1, min(int(workers), n))
         self.n, self.programs = n, programs
         self.parts = _cut(x, data, workers)
-        self.derivative_parts = _cut(x, data, -(-n // DERIVATIVE_MEMBERS))
+        # At least one chunk per thread: a population of up to DERIVATIVE_MEMBERS would run on one core.
+        self.derivative_parts = _cut(x, data, max(workers, -(-n // DERIVATIVE_MEMBERS)))
         self.base = tuple(jax.device_put(np.asarray(b, dtype=float)) for b in base)
         self.pool = ThreadPoolExecutor(len(self.parts))
 
