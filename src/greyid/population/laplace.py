@@ -394,11 +394,10 @@ class MemberPrograms:
     over threads.
 
     The members are cut into chunks of equal size (the last padded with copies of
-    its first member): ``workers`` chunks for the inner programs, chunks of
-    [`DERIVATIVE_MEMBERS`][greyid.population.laplace.DERIVATIVE_MEMBERS] for the outer gradient and Hessian.  One
-    compiled
-    program serves all chunks of a size, and the chunks run side by side on the
-    threads: XLA runs one vectorised scan on one core.
+    its first member): ``workers`` chunks for the inner programs, chunks of at most
+    [`DERIVATIVE_MEMBERS`][greyid.population.laplace.DERIVATIVE_MEMBERS] (at least ``workers``) for the outer
+    gradient and Hessian.  One compiled program serves all chunks of a size, and the chunks run side by side
+    on the threads: XLA runs one vectorised scan on one core.
     """
 
     def __init__(self, programs: LaplacePrograms, x, base, data, workers: int):
