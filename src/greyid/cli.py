@@ -347,9 +347,10 @@ def population_command(
                                              help="each member's likelihood: "
                                                   + ", ".join(m for m in METHODS if m != "particle")),
         hessian: Optional[str] = typer.Option(None, metavar="exact|differences",
-                                              help="the outer Hessian (the standard errors): exact, or central "
-                                                   "differences of the exact gradient (default: differences for "
-                                                   "the methods laplace and enkf, else exact)"),
+                                              help="the outer Hessian (the standard errors): exact, or with the "
+                                                   "members' second derivatives by central differences of their "
+                                                   "exact first derivatives (default: differences for the "
+                                                   "methods laplace and enkf, else exact)"),
         hold: Optional[str] = typer.Option(None, metavar="zoh|foh", help="input hold between samples: zoh or foh"),
         time_column: Optional[str] = typer.Option(None, "--time", metavar="COLUMN", help="name of the time column"),
         out_dir: Optional[Path] = typer.Option(None, "--out", metavar="DIR",

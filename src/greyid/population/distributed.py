@@ -61,7 +61,14 @@ def evaluate(programs, phi, u0, kind: str, path=None):
     ``(modes, values, gradients, hessians, path)``, None where not asked; ``path`` is the modes' tangents T and
     multipliers λ that the outer Hessian needs (laplace's module doc), given with every gradient.
     ``kind="hessian"`` takes ``u0`` as the modes at φ and ``path`` as their T and λ, both found before by a
-    gradient at φ, and gives the outer Hessian alone (without ``path`` the gradient's program runs again for it)."""
+    gradient at φ, and gives the outer Hessian alone (without ``path`` the gradient's program runs again for it);
+    ``kind="differences"`` the same with P's second derivatives by differences of its slopes, ``path`` being T, λ
+    and the steps
+    ([`hessian_by_differences()`][greyid.population.laplace.MemberPrograms.hessian_by_differences]), and gives
+    the steps for a later call as its ``path``."""
+    if kind == "differences":
+        hessians, steps = programs.hessian_by_differences(phi, u0, *path)
+        return None, None, None, hessians, (steps,)
     if kind == "hessian":
         tangents, multipliers = path if path is not None else programs.gradient(phi, u0)[2:]
         return None, None, None, np.asarray(programs.hessian(phi, u0, tangents, multipliers)), None
@@ -158,7 +165,7 @@ class ClusterEvaluator:
         gradients = None if any(p[2] is None for p in parts) else np.concatenate([p[2] for p in parts])
         hessians = None if any(p[3] is None for p in parts) else np.concatenate([p[3] for p in parts])
         path = None if any(p[4] is None for p in parts) else tuple(np.concatenate([p[4][k] for p in parts])
-                                                                   for k in range(2))
+                                                                   for k in range(len(parts[0][4])))
         return modes, values, gradients, hessians, path
 
     def close(self):

@@ -10,9 +10,9 @@ search is greyid's trust-region search (`greyid.estimate.trust_region`):
 BFGS steps on the exact gradient from the members' outer-product information
 Σ_i ∇ℓ_i∇ℓ_iᵀ, then Newton steps on the Hessian at the end (see
 [`_search()`][greyid.population.fit._search]); the standard errors come from that Hessian.  The Hessian is
-the exact one for the Gaussian filters, and central differences of the exact gradient for the Laplace
-method over the states and the ensemble filter (``hessian=``), whose exact one is a program of their own
-derivative rules' fourth derivatives, minutes to compile.
+the exact one for the Gaussian filters; for the Laplace method over the states and the ensemble filter, whose
+exact one is a program of their own derivative rules' fourth derivatives (minutes to compile), the same formula
+with the members' second derivatives by central differences of their exact first derivatives (``hessian=``).
 """
 
 from __future__ import annotations
@@ -27,7 +27,6 @@ import numpy as np
 import pandas as pd
 
 from ..errors import DataError, ModelError
-from ..estimate.lbfgs import conditional_scales, difference_hessian, scaled_difference_hessian
 from ..estimate.objective import worker_count
 from ..estimate.optimize import EXACT, GRADIENT, VALUE, NotFiniteError, run_alone
 from ..estimate.trust_region import Search
@@ -42,7 +41,8 @@ from .spec import PopulationSpec, make_spec
 
 
 #: The outer Hessian's two ways: the exact one (the filter's derivatives to fourth order in one program), or
-#: central differences of the exact gradient.
+#: the same formula with each member's second derivatives in its parameters' scales by central differences of its
+#: exact first derivatives (the gradient's program: nothing more to compile).
 HESSIANS = ("exact", "differences")
 #: The members' methods whose outer Hessian is taken by differences unless ``hessian="exact"`` is asked for: their
 #: likelihoods run derivative rules of their own (the Laplace method's mode, the ensemble's gain), whose fourth
@@ -56,16 +56,16 @@ class Outer:
     Evaluations run here (the members split over the cores) or, with ``evaluator`` (a
     [`ClusterEvaluator`][greyid.population.distributed.ClusterEvaluator]), by chunks of members on a Dask cluster.
     ``hessian``: ``"exact"`` (the members' exact outer Hessians, whose program compiles in the background from the
-    start) or ``"differences"`` (central differences of the exact gradient, no program of its own).
+    start) or ``"differences"`` (the members' second derivatives by central differences of their exact first
+    derivatives, by the gradient's programs).
     """
 
     def __init__(self, programs: laplace.LaplacePrograms | None, members: Members, spec: PopulationSpec,
                  workers: int | None = None, evaluator=None, hessian: str = "exact"):
         self.members = members
         self.hessian = hessian
-        # The differences' steps, in conditional standard deviations: from the search's own curvature (set by
-        # `_search`), then from each Hessian so found (``scaled``).
-        self.scales, self.scaled = np.ones(len(spec.phi0())), False
+        # hessian="differences": each member's steps along its free parameters' scales (NaN: not found yet).
+        self.steps = np.full((len(members.names), len(spec.free)), np.nan)
         self.u = np.zeros((len(members.names), spec.n_random))
         self.evaluations = 0
         # (φ, modes, values, gradients, path) of the last finite gradient evaluation (path: the Hessian's T, λ)
@@ -131,23 +131,24 @@ class Outer:
         return float(np.sum(values)), np.asarray(gradients).sum(axis=0), 0.5 * (H + H.T)
 
     def _differenced(self, phi):
-        """Value, gradient and the Hessian by central differences of the exact gradient: the first time by
-        [`scaled_difference_hessian()`][greyid.estimate.lbfgs.scaled_difference_hessian] (two passes, as
-        ``optimizer="lbfgs"`` takes it), later once with the last Hessian's conditional standard deviations."""
+        """Value, gradient and the Hessian with the members' filters' second derivatives by central differences of
+        their exact first derivatives
+        ([`hessian_by_differences()`][greyid.population.laplace.MemberPrograms.hessian_by_differences]: the
+        gradient's programs at the modes of φ, nothing more to compile); each member's steps are kept for later
+        calls."""
         n = len(phi)
         if self._at_last_gradient(phi):  # where the quasi-Newton stage ended
-            _, _, values, gradients, _ = self.last_gradient
-            value, gradient = float(np.sum(values)), gradients.sum(axis=0)
+            _, modes, values, gradients, path = self.last_gradient
         else:
-            value, gradient = self.value_and_gradient(phi)
-        if not (np.isfinite(value) and np.all(np.isfinite(gradient))):
+            values, gradients, modes = self.member_gradients(phi)
+            path = self.last_gradient[4] if self._at_last_gradient(phi) else None
+        if path is None or not (np.all(np.isfinite(values)) and np.all(np.isfinite(gradients))):
             return np.inf, np.full(n, np.nan), np.full((n, n), np.nan)
-        if self.scaled:
-            H = difference_hessian(self.value_and_gradient, phi, self.scales)
-        else:
-            H = scaled_difference_hessian(self.value_and_gradient, phi, self.scales)
-        self.scales, self.scaled = conditional_scales(np.diag(H), self.scales), True
-        return float(value), np.asarray(gradient, dtype=float), H
+        hessians, (self.steps,) = self.evaluator(np.asarray(phi, dtype=float), modes.u, "differences",
+                                                 (*path, self.steps))[3:5]
+        self.evaluations += 1
+        H = np.asarray(hessians).sum(axis=0)
+        return float(np.sum(values)), np.asarray(gradients).sum(axis=0), 0.5 * (H + H.T)
 
     def close(self):
         if self.programs is not None:
@@ -231,8 +232,6 @@ def _search(outer: Outer, phi0: np.ndarray, maxiter: int, progress=False):
     except NotFiniteError:
         raise ModelError("the Laplace marginal likelihood is not finite at the initial values (a member's "
                          "filter fails there): give other initial values (init=...) or omega_init") from None
-    if optimum.hessian is not None:  # the differences' first steps, where they are taken
-        outer.scales = conditional_scales(np.diag(optimum.hessian), outer.scales)
     final = Search(optimum.z, max(maxiter - optimum.iterations, 1), _progress_report(progress), scoring=False,
                    value=True)
     polished = run_alone(final, {EXACT: outer.exact, VALUE: outer.value})
@@ -304,11 +303,13 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
         compiles) and each step of the outer search; a callable receives one dict per event instead
         (``phase`` and ``message``, or ``iteration``, ``stage``, ``value``, ``max_gradient``).
     hessian : {"exact", "differences"}, optional
-        The outer Hessian, for the last Newton steps and the standard errors: the exact one, or central
-        differences of the exact gradient (4 gradients per population parameter; standard errors within
-        about 1e-6 relative of the exact Hessian's).  Default: differences for ``method="laplace"`` and
-        ``"enkf"``, whose exact Hessian is a program minutes to compile; the exact one otherwise, which a
-        large population's later fits run faster.
+        The outer Hessian, for the last Newton steps and the standard errors: the exact one, or the same
+        formula with each member's second derivatives in its free parameters' scales by central differences
+        of its exact first derivatives (``2n + 1`` runs of the gradient's filter program, n free parameters,
+        and ``2n`` more the first time to find each member's steps; no program of its own to compile;
+        standard errors within about 1e-8 relative of the exact Hessian's).  Default: differences for
+        ``method="laplace"`` and ``"enkf"``, whose exact Hessian is a program minutes to compile; the exact
+        one otherwise.
     **options
         The filter's settings (``form``, ``substeps``, ``iterations``, ...),
         ``time_unit`` and ``columns``; not ``steady_state``.
@@ -364,8 +365,8 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
         raise ModelError(f"fit_population does not take '{sorted(unknown)[0]}'; it takes time, hold, method, init, "
                          f"omega_init, maxiter, progress, hessian and the filter's options {list(FILTER_OPTIONS)}")
     if hessian is not None and hessian not in HESSIANS:
-        raise ModelError(f"hessian is '{hessian}'; use 'exact' (the exact outer Hessian) or 'differences' (central "
-                         "differences of the exact gradient)")
+        raise ModelError(f"hessian is '{hessian}'; use 'exact' (the exact outer Hessian) or 'differences' (the "
+                         "members' second derivatives by central differences of their exact first derivatives)")
     if options.get("steady_state"):
         raise ModelError("steady_state=True is for single fits (model.fit, model.likelihood): a population "
                          "evaluates its members together in one program, where each member's switch would run "
@@ -406,7 +407,7 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
         outer = Outer(population_programs(structure, spec, fo), members, spec, hessian=hessian)
     phi0 = spec.phi0()
     try:
-        last = "the exact Hessian" if hessian == "exact" else "the Hessian by differences of the gradient"
+        last = "the exact Hessian" if hessian == "exact" else "the Hessian by differences of the members' slopes"
         _say(progress, "search", f"the outer search (the members' modes, the gradient, then {last})")
         optimum = _search(outer, phi0, maxiter, progress)
         modes = outer.modes(optimum.z)

@@ -355,6 +355,20 @@ def laplace_values(modes: Modes) -> np.ndarray:
 #: fastest in one chunk per thread.
 DERIVATIVE_MEMBERS = 32
 
+#: With ``hessian="differences"``: the steps of the central differences of a member's slopes along its free
+#: parameters' scales ψ_j, in conditional standard deviations of its likelihood K along ψ_j (1/√K_jj), so that
+#: they do not depend on the parameters' units; and the first steps, relative to |ψ_j|, that find K_jj.
+DIFFERENCE_STEP = 1e-4
+SCALE_STEP = 1e-4
+
+
+def next_steps(curvatures, steps) -> np.ndarray:
+    """``DIFFERENCE_STEP``/√K_jj for each member and ψ_j from the members' curvatures ∂²K/∂ψ² (members × n × n),
+    ``steps`` where K_jj is not a positive finite number."""
+    d = np.diagonal(np.asarray(curvatures, dtype=float), axis1=-2, axis2=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(np.isfinite(d) & (d > 0), DIFFERENCE_STEP / np.sqrt(np.abs(d)), steps)
+
 
 def _cut(x, data, count: int) -> list[tuple]:
     """The members cut into ``count`` chunks of equal size, the last padded with copies of its first
@@ -490,6 +504,57 @@ class MemberPrograms:
             closed_form.executable(*arguments(part, self.programs.shaped(len(part[1]), 2)))
             pending.result()  # (an error there is raised here)
         return self._run(steps, self.derivative_parts)
+
+    def _curvatures_by_differences(self, phi, u, steps, part) -> tuple:
+        """For one chunk: ψ at the modes ``u``, P and its slopes there, and P's second derivatives in ψ by central
+        differences of the slopes at ψ ± ``steps[i, j]``·e_j, symmetrised ([..., k, j] = ∂²P/∂ψ_k∂ψ_j)."""
+        base, slopes = self.base, self.programs.slopes
+        psi = np.asarray(self.programs.scales(phi, u[part[1]], part[2], base), dtype=float)
+        P0, P1 = jax.device_get(slopes(psi, base, part[3]))
+        h = steps[part[1]]
+        columns = []
+        for j in range(psi.shape[1]):
+            shift = np.zeros_like(psi)
+            shift[:, j] = h[:, j]
+            ahead = jax.device_get(slopes(psi + shift, base, part[3])[1])
+            behind = jax.device_get(slopes(psi - shift, base, part[3])[1])
+            columns.append([(np.asarray(a) - np.asarray(b)) / (2 * h[:, j]).reshape((-1,) + (1,) * (np.ndim(a) - 1))
+                            for a, b in zip(ahead, behind)])
+        P2 = tuple(np.stack([column[k] for column in columns], axis=-1) for k in range(len(P0)))
+        return psi, P0, P1, tuple(0.5 * (a + np.swapaxes(a, -1, -2)) for a in P2)
+
+    def hessian_by_differences(self, phi, u, tangents, multipliers, steps):
+        """ℓ_i'' per member as `hessian` gives it, with P's second derivatives in ψ by central differences of
+        its exact first derivatives (the gradient's own ``slopes`` program: no program of the filter's to
+        compile), along ψ_j a step ``steps[i, j]`` for member i.  Where a member's steps are not all positive
+        numbers, a first pass with steps of ``SCALE_STEP``·|ψ_j| gives them.  Returns ``(ℓ_i'', steps for a later
+        call)``: ``DIFFERENCE_STEP`` conditional standard deviations of each member's K along each ψ_j
+        ([`next_steps()`][greyid.population.laplace.next_steps]), the steps used where those are not positive."""
+        phi, u = jnp.asarray(phi), np.asarray(u)
+        tangents, multipliers = np.asarray(tangents), np.asarray(multipliers)
+        steps = np.array(steps, dtype=float)
+        unknown = ~np.all(np.isfinite(steps) & (steps > 0), axis=1)
+        parts = self.derivative_parts
+        if unknown.any():
+            psi = self._run([(self.programs.scales, lambda part, _: (phi, u[part[1]], part[2], self.base))], parts)
+            psi = np.asarray(psi, dtype=float)
+            steps[unknown] = (SCALE_STEP * np.where(psi != 0.0, np.abs(psi), 1.0))[unknown]
+            first = _joined(list(self.pool.map(lambda part: self._curvatures_by_differences(phi, u, steps, part),
+                                               parts)), parts)
+            steps[unknown] = next_steps(first[3][0], steps)[unknown]
+        closed_form = self.programs.hessian
+        part = parts[0]
+        psi, P = self.programs.shaped(len(part[1]), 2)
+        # Compiled (or loaded) once here, not by each thread at once.
+        closed_form.executable(phi, u[part[1]], tangents[part[1]], multipliers[part[1]], part[2], self.base, psi, *P)
+
+        def run(part):
+            psi, P0, P1, P2 = self._curvatures_by_differences(phi, u, steps, part)
+            return jax.device_get(closed_form(phi, u[part[1]], tangents[part[1]], multipliers[part[1]], part[2],
+                                              self.base, psi, P0, P1, P2)), (P2[0],)
+
+        hessians, (curvatures,) = _joined(list(self.pool.map(run, parts)), parts)
+        return np.asarray(hessians), next_steps(curvatures, steps)
 
     def close(self):
         self.pool.shutdown()

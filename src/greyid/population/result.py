@@ -99,7 +99,7 @@ class PopulationResult:
         ``omega_<parameter>`` (the standard deviation of η; for a lognormal
         parameter about its coefficient of variation) and ``corr_<a>_<b>``; with
         standard errors from the Hessian of the Laplace marginal likelihood (the
-        exact one, or central differences of the exact gradient: ``call["hessian"]``)
+        exact one, or with the members' second derivatives by differences: ``call["hessian"]``)
         and 95 % intervals taken where each quantity is unbounded, then mapped back.
     random_effects : pandas.DataFrame
         One row per member: each random parameter at the conditional mode of η,
@@ -410,7 +410,7 @@ class PopulationResult:
                  f"{self.n_params} population parameters",
                  f"converged: {self.converged} ({self.message}), {self.iterations} iterations",
                  f"filter: {self.call['method']}, {self.call['substeps']} sub-step(s) per sampling interval; "
-                 + ("standard errors from the Hessian by differences of the exact gradient"
+                 + ("standard errors from the Hessian with the members' second derivatives by differences"
                     if self.call.get("hessian") == "differences" else "standard errors from the exact Hessian"),
                  "random effects: " + ", ".join(f"{spec.names[i]} {k}" for i, k in zip(spec.random, spec.kinds))
                  + f"; Ω {'full' if spec.full else 'diagonal'}"]
