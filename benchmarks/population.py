@@ -66,6 +66,9 @@ def time_the_steps(spent: dict) -> None:
 
     laplace.MemberPrograms.gradient = timed("outer gradients", laplace.MemberPrograms.gradient)
     laplace.MemberPrograms.hessian = timed("outer Hessian", laplace.MemberPrograms.hessian)
+    if hasattr(laplace.MemberPrograms, "hessian_by_differences"):  # (not in an older checkout)
+        laplace.MemberPrograms.hessian_by_differences = timed("outer Hessian by differences",
+                                                              laplace.MemberPrograms.hessian_by_differences)
     laplace.conditional_modes = timed("members' modes", laplace.conditional_modes)  # as evaluate() calls it
 
 

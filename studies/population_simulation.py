@@ -13,7 +13,7 @@ Each house has its own
 floor areas uniform on 80–200 m².  Two methods are fitted to the same fleet:
 
 * the population model (greyid.fit_population, UA and C lognormal, β on floor
-  area): Wald intervals from the exact Hessian of the Laplace marginal likelihood;
+  area): Wald intervals from the Hessian of the Laplace marginal likelihood;
 * the two-stage method: greyid.fit_many, then the weighted regression of
   log UA_i on the floor area (greyid.fleet.relate's least squares, weights
   1/SE² by the delta method), ω from the residual spread of log UA_i and

@@ -54,8 +54,7 @@ def test_a_population_by_the_ensemble_kalman_filter_approaches_the_exact_one_and
 def test_a_population_by_the_laplace_method_over_the_states_equals_the_kalman_filters():
     """Laplace's method over the states (exact transitions of a linear Gaussian model) gives each member the
     Kalman filter's likelihood exactly, so the nested Laplace over the random effects must reproduce the
-    Kalman population fit: log-likelihood to 1e-6, estimates and standard errors to 1e-4 relative (the
-    Kalman filter's from the exact Hessian, the Laplace method's with its second derivatives by differences)."""
+    Kalman population fit: log-likelihood to 1e-6, estimates and standard errors to 1e-4 relative."""
     from test_particle import ou_data, ou_gaussian
 
     m = ou_gaussian()
@@ -67,9 +66,7 @@ def test_a_population_by_the_laplace_method_over_the_states_equals_the_kalman_fi
     exact = greyid.fit_population(m, data, random={"mu": "normal"}, method="kalman")
     marginal = greyid.fit_population(m, data, random={"mu": "normal"}, method="laplace")
     assert exact.converged and marginal.converged
-    # The Laplace method's standard errors with its second derivatives by differences (its default), the Kalman
-    # filter's from the exact Hessian.
-    assert (marginal.call["hessian"], exact.call["hessian"]) == ("differences", "exact")
+    assert (marginal.call["hessian"], exact.call["hessian"]) == ("differences", "differences")
     assert exact.params.loc["omega_mu", "estimate"] > 0.1  # a real random effect, not one at its bound
     assert marginal.loglik == pytest.approx(exact.loglik, abs=1e-6)
     for column in ("estimate", "std_error"):
@@ -246,22 +243,23 @@ def test_standard_errors_are_the_dense_likelihoods_curvature(gain_fit, dense_cur
 
 
 def test_the_hessian_by_differences_of_the_members_slopes_equals_the_exact_one(gain_problem, gain_fit, monkeypatch):
-    """``hessian="differences"`` (the members' second derivatives by central differences of their exact first
-    derivatives, the default of the Laplace method over the states and the ensemble filter) ends at the exact
-    Hessian's optimum with its standard errors to 1e-8 relative, says so, and compiles no Hessian program of the
-    filter; an unknown setting is named."""
+    """By default (``hessian="differences"``: the members' second derivatives by central differences of their
+    exact first derivatives) the fit compiles no Hessian program of the filter, says so, and ends at the exact
+    Hessian's optimum (``hessian="exact"``) with its standard errors to 1e-8 relative; an unknown setting is
+    named."""
     model, _, datasets = gain_problem
-    assert gain_fit.call["hessian"] == "exact" and "from the exact Hessian" in gain_fit.summary()
+    assert gain_fit.call["hessian"] == "differences"
+    assert "from the Hessian with the members' second derivatives by differences" in gain_fit.summary()
+    exact = fit_population(model, datasets, {"b11": "normal"}, hessian="exact")
+    assert exact.call["hessian"] == "exact" and "from the exact Hessian" in exact.summary()
+    assert gain_fit.loglik == pytest.approx(exact.loglik, abs=1e-9)
+    np.testing.assert_allclose(gain_fit.params["estimate"], exact.params["estimate"], rtol=1e-7)
+    np.testing.assert_allclose(gain_fit.params["std_error"], exact.params["std_error"], rtol=1e-8)
     called = []
     for name in ("compile_hessian", "hessian"):
         monkeypatch.setattr(laplace.MemberPrograms, name, lambda *args, name=name: called.append(name))
-    differenced = fit_population(model, datasets, {"b11": "normal"}, hessian="differences")
-    assert called == []
-    assert differenced.call["hessian"] == "differences"
-    assert "from the Hessian with the members' second derivatives by differences" in differenced.summary()
-    assert differenced.loglik == pytest.approx(gain_fit.loglik, abs=1e-9)
-    np.testing.assert_allclose(differenced.params["estimate"], gain_fit.params["estimate"], rtol=1e-7)
-    np.testing.assert_allclose(differenced.params["std_error"], gain_fit.params["std_error"], rtol=1e-8)
+    again = fit_population(model, datasets, {"b11": "normal"})
+    assert called == [] and again.loglik == pytest.approx(gain_fit.loglik, abs=1e-9)
     with pytest.raises(greyid.ModelError, match="hessian is 'numeric'; use 'exact'.*'differences'"):
         fit_population(model, datasets, {"b11": "normal"}, hessian="numeric")
     with pytest.raises(greyid.ModelError, match="does not take 'hesian'.*progress, hessian and"):
@@ -302,17 +300,16 @@ def test_population_on_a_dask_cluster_equals_the_local_fit(gain_problem, gain_fi
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
                                   dashboard_address=None) as cluster, distributed.Client(cluster) as client:
         fit = fit_population(model, datasets, {"b11": "normal"}, scheduler=client, chunk_size=3, progress=True)
-        # The Hessian with the members' second derivatives by differences, on the workers too (their steps
-        # come back with each chunk's Hessian).
-        differenced = fit_population(model, datasets, {"b11": "normal"}, scheduler=client, chunk_size=3,
-                                     hessian="differences")
+        # (the Hessian by default with the members' second derivatives by differences, their steps coming back
+        # with each chunk's Hessian; then the exact one)
+        exact = fit_population(model, datasets, {"b11": "normal"}, scheduler=client, chunk_size=3, hessian="exact")
     assert fit.loglik == pytest.approx(gain_fit.loglik, rel=1e-10)
     np.testing.assert_allclose(fit.params["estimate"], gain_fit.params["estimate"], rtol=1e-7)
     np.testing.assert_allclose(fit.params["std_error"], gain_fit.params["std_error"], rtol=1e-6)
     assert "population step 1: log-likelihood" in capsys.readouterr().err
-    assert differenced.call["hessian"] == "differences"
-    np.testing.assert_allclose(differenced.params["estimate"], gain_fit.params["estimate"], rtol=1e-7)
-    np.testing.assert_allclose(differenced.params["std_error"], gain_fit.params["std_error"], rtol=1e-6)
+    assert (fit.call["hessian"], exact.call["hessian"]) == ("differences", "exact")
+    np.testing.assert_allclose(exact.params["estimate"], gain_fit.params["estimate"], rtol=1e-7)
+    np.testing.assert_allclose(exact.params["std_error"], gain_fit.params["std_error"], rtol=1e-6)
 
 
 @pytest.mark.slow
@@ -771,12 +768,12 @@ def test_command_line_population(nonlinear_problem, tmp_path, capsys):
     with_table = tmp_path / "decay_population.toml"
     with_table.write_text(m.to_toml())
     assert "[population]" in with_table.read_text()
-    # ... with the members' second derivatives by differences: the same optimum, the same standard errors.
+    # ... with the exact Hessian: the same optimum, the same standard errors.
     code = main(["population", str(with_table), str(folder), "--out", str(tmp_path / "again"), "--hessian",
-                 "differences", "-q"])
+                 "exact", "-q"])
     assert code == 0
-    assert "second derivatives by differences" in (tmp_path / "again" / "summary.txt").read_text()
-    assert "from the exact Hessian" in (out / "summary.txt").read_text()
+    assert "from the exact Hessian" in (tmp_path / "again" / "summary.txt").read_text()
+    assert "second derivatives by differences" in (out / "summary.txt").read_text()
     first = pd.read_csv(out / "parameters.csv", index_col=0)
     again = pd.read_csv(tmp_path / "again" / "parameters.csv", index_col=0)
     np.testing.assert_allclose(again["estimate"], first["estimate"], rtol=1e-7)

@@ -347,10 +347,9 @@ def population_command(
                                              help="each member's likelihood: "
                                                   + ", ".join(m for m in METHODS if m != "particle")),
         hessian: Optional[str] = typer.Option(None, metavar="exact|differences",
-                                              help="the outer Hessian (the standard errors): exact, or with the "
-                                                   "members' second derivatives by central differences of their "
-                                                   "exact first derivatives (default: differences for the "
-                                                   "methods laplace and enkf, else exact)"),
+                                              help="the outer Hessian (the standard errors): with the members' "
+                                                   "second derivatives by central differences of their exact "
+                                                   "first derivatives (differences, the default), or exact"),
         hold: Optional[str] = typer.Option(None, metavar="zoh|foh", help="input hold between samples: zoh or foh"),
         time_column: Optional[str] = typer.Option(None, "--time", metavar="COLUMN", help="name of the time column"),
         out_dir: Optional[Path] = typer.Option(None, "--out", metavar="DIR",
@@ -389,8 +388,8 @@ def population_command(
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", PopulationWarning)  # the summary lists the members left out
             result = fit_population(m, files, kinds or None, covariates=table, effects=effects or None, omega=omega,
-                                    time=time_column, hold=hold, method=method, hessian=hessian,
-                                    progress=not quiet)
+                                    time=time_column, hold=hold, method=method, progress=not quiet,
+                                    **({} if hessian is None else dict(hessian=hessian)))
         if not quiet:
             err.print(f"fitted in {time.perf_counter() - started:.2f} s")
         out.print(result.summary())

@@ -9,10 +9,11 @@ and evaluates Σ_i ℓ_i(φ) with exact derivatives ([`laplace`][greyid.populati
 search is greyid's trust-region search (`greyid.estimate.trust_region`):
 BFGS steps on the exact gradient from the members' outer-product information
 Σ_i ∇ℓ_i∇ℓ_iᵀ, then Newton steps on the Hessian at the end (see
-[`_search()`][greyid.population.fit._search]); the standard errors come from that Hessian.  The Hessian is
-the exact one for the Gaussian filters; for the Laplace method over the states and the ensemble filter, whose
-exact one is a program of their own derivative rules' fourth derivatives (minutes to compile), the same formula
-with the members' second derivatives by central differences of their exact first derivatives (``hessian=``).
+[`_search()`][greyid.population.fit._search]); the standard errors come from that Hessian.  The Hessian takes
+the members' second derivatives by central differences of their exact first derivatives, which the gradient's
+programs give (``hessian="differences"``), or exactly (``hessian="exact"``: the filter differentiated to fourth
+order in a program of its own, several times the gradient's to compile, minutes for the Laplace method over the
+states and the ensemble filter, whose derivative rules it differentiates again).
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from ..errors import DataError, ModelError
 from ..estimate.objective import worker_count
 from ..estimate.optimize import EXACT, GRADIENT, VALUE, NotFiniteError, run_alone
 from ..estimate.trust_region import Search
-from ..filters.protocol import ENKF, LAPLACE, PARTICLE
+from ..filters.protocol import PARTICLE
 from ..data.files import named_datasets, read_covariates, read_source
 from ..model.options import rename_columns
 from . import laplace
@@ -44,10 +45,6 @@ from .spec import PopulationSpec, make_spec
 #: the same formula with each member's second derivatives in its parameters' scales by central differences of its
 #: exact first derivatives (the gradient's program: nothing more to compile).
 HESSIANS = ("exact", "differences")
-#: The members' methods whose outer Hessian is taken by differences unless ``hessian="exact"`` is asked for: their
-#: likelihoods run derivative rules of their own (the Laplace method's mode, the ensemble's gain), whose fourth
-#: derivatives are a program many times the gradient's to trace and compile (docs/performance.md).
-DIFFERENCED = (LAPLACE, ENKF)
 
 
 class Outer:
@@ -243,7 +240,7 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
                    omega: str | None = None, time: str | None = None, hold: str | None = None,
                    method: str | None = None, init=None, omega_init=None, start: str = "pooled",
                    maxiter: int = 200, scheduler=None, chunk_size: int | None = None,
-                   worker_timeout: float | None = None, progress=False, hessian: str | None = None, **options):
+                   worker_timeout: float | None = None, progress=False, hessian: str = "differences", **options):
     """Fit a population (nonlinear mixed-effects) SDE model to many data sets.
 
     Every data set (a house, a patient, an engine) has its own parameters, drawn
@@ -302,14 +299,14 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
         Print to standard error each phase (the pooled start, the members' programs, which a first run
         compiles) and each step of the outer search; a callable receives one dict per event instead
         (``phase`` and ``message``, or ``iteration``, ``stage``, ``value``, ``max_gradient``).
-    hessian : {"exact", "differences"}, optional
-        The outer Hessian, for the last Newton steps and the standard errors: the exact one, or the same
-        formula with each member's second derivatives in its free parameters' scales by central differences
-        of its exact first derivatives (``2n + 1`` runs of the gradient's filter program, n free parameters,
-        and ``2n`` more the first time to find each member's steps; no program of its own to compile;
-        standard errors within about 1e-8 relative of the exact Hessian's).  Default: differences for
-        ``method="laplace"`` and ``"enkf"``, whose exact Hessian is a program minutes to compile; the exact
-        one otherwise.
+    hessian : {"differences", "exact"}, default "differences"
+        The outer Hessian, for the last Newton steps and the standard errors: the exact formula with each
+        member's second derivatives in its free parameters' scales by central differences of its exact first
+        derivatives (``2n + 1`` runs of the gradient's filter program for n free parameters, steps of 1e-4
+        conditional standard deviations found the first time by second differences of each member's
+        likelihood; nothing more to compile; standard errors within about 1e-8 relative of the exact
+        Hessian's), or the exact one, whose program (the filter's fourth derivatives) compiles for about as
+        long as the rest of a first fit, minutes with ``method="laplace"`` or ``"enkf"``.
     **options
         The filter's settings (``form``, ``substeps``, ``iterations``, ...),
         ``time_unit`` and ``columns``; not ``steady_state``.
@@ -364,7 +361,7 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
     if unknown:
         raise ModelError(f"fit_population does not take '{sorted(unknown)[0]}'; it takes time, hold, method, init, "
                          f"omega_init, maxiter, progress, hessian and the filter's options {list(FILTER_OPTIONS)}")
-    if hessian is not None and hessian not in HESSIANS:
+    if hessian not in HESSIANS:
         raise ModelError(f"hessian is '{hessian}'; use 'exact' (the exact outer Hessian) or 'differences' (the "
                          "members' second derivatives by central differences of their exact first derivatives)")
     if options.get("steady_state"):
@@ -395,8 +392,6 @@ def fit_population(model, datasets, random=None, covariates: pd.DataFrame | None
     members = prepare_members(model, names, sources, spec, raw, time, hold, time_unit, columns)
     structure = model.structure
     fo = population_filter(model, spec, members, method, time, hold, time_unit, options)
-    if hessian is None:
-        hessian = "differences" if fo.method in DIFFERENCED else "exact"
     _say(progress, "programs", f"the members' programs for {len(members.names)} members (a first run compiles "
                                "them, which can take a minute; greyid's cache folder keeps them for later runs)")
     if scheduler is not None:

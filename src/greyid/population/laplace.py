@@ -357,9 +357,10 @@ DERIVATIVE_MEMBERS = 32
 
 #: With ``hessian="differences"``: the steps of the central differences of a member's slopes along its free
 #: parameters' scales ψ_j, in conditional standard deviations of its likelihood K along ψ_j (1/√K_jj), so that
-#: they do not depend on the parameters' units; and the first steps, relative to |ψ_j|, that find K_jj.
+#: they do not depend on the parameters' units; and the steps, relative to |ψ_j|, of the second differences of
+#: K that find K_jj first.
 DIFFERENCE_STEP = 1e-4
-SCALE_STEP = 1e-4
+SCALE_STEP = 1e-3
 
 
 def next_steps(curvatures, steps) -> np.ndarray:
@@ -523,11 +524,28 @@ class MemberPrograms:
         P2 = tuple(np.stack([column[k] for column in columns], axis=-1) for k in range(len(P0)))
         return psi, P0, P1, tuple(0.5 * (a + np.swapaxes(a, -1, -2)) for a in P2)
 
+    def _curvature_diagonal(self, phi, u, part) -> tuple:
+        """For one chunk of the inner programs' (which have compiled): each member's ∂²K/∂ψ_j² by second
+        differences of K (the ``on_random`` program's first output) at ψ ± h_j e_j, h_j = ``SCALE_STEP``·|ψ_j|
+        (1 where ψ_j = 0), and those h."""
+        base, on_random = self.base, self.programs.on_random
+        psi = np.asarray(self.programs.scales(phi, u[part[1]], part[2], base), dtype=float)
+        h = SCALE_STEP * np.where(psi != 0.0, np.abs(psi), 1.0)
+        centre = np.asarray(on_random(psi, base, part[3])[0])
+        curvatures = np.empty_like(psi)
+        for j in range(psi.shape[1]):
+            shift = np.zeros_like(psi)
+            shift[:, j] = h[:, j]
+            ahead, behind = (np.asarray(on_random(psi + sign * shift, base, part[3])[0]) for sign in (1.0, -1.0))
+            curvatures[:, j] = (ahead - 2.0 * centre + behind) / h[:, j] ** 2
+        return curvatures, h
+
     def hessian_by_differences(self, phi, u, tangents, multipliers, steps):
         """ℓ_i'' per member as `hessian` gives it, with P's second derivatives in ψ by central differences of
         its exact first derivatives (the gradient's own ``slopes`` program: no program of the filter's to
         compile), along ψ_j a step ``steps[i, j]`` for member i.  Where a member's steps are not all positive
-        numbers, a first pass with steps of ``SCALE_STEP``·|ψ_j| gives them.  Returns ``(ℓ_i'', steps for a later
+        numbers, second differences of K by the inner programs give each member's curvatures along ψ_j first
+        (`_curvature_diagonal`).  Returns ``(ℓ_i'', steps for a later
         call)``: ``DIFFERENCE_STEP`` conditional standard deviations of each member's K along each ψ_j
         ([`next_steps()`][greyid.population.laplace.next_steps]), the steps used where those are not positive."""
         phi, u = jnp.asarray(phi), np.asarray(u)
@@ -536,12 +554,10 @@ class MemberPrograms:
         unknown = ~np.all(np.isfinite(steps) & (steps > 0), axis=1)
         parts = self.derivative_parts
         if unknown.any():
-            psi = self._run([(self.programs.scales, lambda part, _: (phi, u[part[1]], part[2], self.base))], parts)
-            psi = np.asarray(psi, dtype=float)
-            steps[unknown] = (SCALE_STEP * np.where(psi != 0.0, np.abs(psi), 1.0))[unknown]
-            first = _joined(list(self.pool.map(lambda part: self._curvatures_by_differences(phi, u, steps, part),
-                                               parts)), parts)
-            steps[unknown] = next_steps(first[3][0], steps)[unknown]
+            curvatures, guess = _joined(list(self.pool.map(lambda part: self._curvature_diagonal(phi, u, part),
+                                                           self.parts)), self.parts)
+            steps[unknown] = np.where(np.isfinite(curvatures) & (curvatures > 0),
+                                      DIFFERENCE_STEP / np.sqrt(np.abs(curvatures)), guess)[unknown]
         closed_form = self.programs.hessian
         part = parts[0]
         psi, P = self.programs.shaped(len(part[1]), 2)

@@ -99,7 +99,7 @@ class PopulationResult:
         ``omega_<parameter>`` (the standard deviation of η; for a lognormal
         parameter about its coefficient of variation) and ``corr_<a>_<b>``; with
         standard errors from the Hessian of the Laplace marginal likelihood (the
-        exact one, or with the members' second derivatives by differences: ``call["hessian"]``)
+        members' second derivatives by differences, or the exact one: ``call["hessian"]``)
         and 95 % intervals taken where each quantity is unbounded, then mapped back.
     random_effects : pandas.DataFrame
         One row per member: each random parameter at the conditional mode of η,
