@@ -363,12 +363,12 @@ DIFFERENCE_STEP = 1e-4
 SCALE_STEP = 1e-3
 
 
-def next_steps(curvatures, steps) -> np.ndarray:
-    """``DIFFERENCE_STEP``/√K_jj for each member and ψ_j from the members' curvatures ∂²K/∂ψ² (members × n × n),
-    ``steps`` where K_jj is not a positive finite number."""
-    d = np.diagonal(np.asarray(curvatures, dtype=float), axis1=-2, axis2=-1)
+def next_steps(curvatures, fallback) -> np.ndarray:
+    """``DIFFERENCE_STEP``/√K_jj for each member and ψ_j from the members' curvatures K_jj = ∂²K/∂ψ_j² (members ×
+    n), ``fallback`` where K_jj is not a positive finite number."""
+    d = np.asarray(curvatures, dtype=float)
     with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(np.isfinite(d) & (d > 0), DIFFERENCE_STEP / np.sqrt(np.abs(d)), steps)
+        return np.where(np.isfinite(d) & (d > 0), DIFFERENCE_STEP / np.sqrt(np.abs(d)), fallback)
 
 
 def _cut(x, data, count: int) -> list[tuple]:
@@ -527,7 +527,7 @@ class MemberPrograms:
     def _curvature_diagonal(self, phi, u, part) -> tuple:
         """For one chunk of the inner programs' (which have compiled): each member's ∂²K/∂ψ_j² by second
         differences of K (the ``on_random`` program's first output) at ψ ± h_j e_j, h_j = ``SCALE_STEP``·|ψ_j|
-        (1 where ψ_j = 0), and those h."""
+        (``SCALE_STEP`` where ψ_j = 0), and those h."""
         base, on_random = self.base, self.programs.on_random
         psi = np.asarray(self.programs.scales(phi, u[part[1]], part[2], base), dtype=float)
         h = SCALE_STEP * np.where(psi != 0.0, np.abs(psi), 1.0)
@@ -545,8 +545,8 @@ class MemberPrograms:
         its exact first derivatives (the gradient's own ``slopes`` program: no program of the filter's to
         compile), along ψ_j a step ``steps[i, j]`` for member i.  Where a member's steps are not all positive
         numbers, second differences of K by the inner programs give each member's curvatures along ψ_j first
-        (`_curvature_diagonal`).  Returns ``(ℓ_i'', steps for a later
-        call)``: ``DIFFERENCE_STEP`` conditional standard deviations of each member's K along each ψ_j
+        (`_curvature_diagonal`).  Returns ``(ℓ_i'', steps for a later call)``: ``DIFFERENCE_STEP`` conditional
+        standard deviations of each member's K along each ψ_j
         ([`next_steps()`][greyid.population.laplace.next_steps]), the steps used where those are not positive."""
         phi, u = jnp.asarray(phi), np.asarray(u)
         tangents, multipliers = np.asarray(tangents), np.asarray(multipliers)
@@ -556,8 +556,7 @@ class MemberPrograms:
         if unknown.any():
             curvatures, guess = _joined(list(self.pool.map(lambda part: self._curvature_diagonal(phi, u, part),
                                                            self.parts)), self.parts)
-            steps[unknown] = np.where(np.isfinite(curvatures) & (curvatures > 0),
-                                      DIFFERENCE_STEP / np.sqrt(np.abs(curvatures)), guess)[unknown]
+            steps[unknown] = next_steps(curvatures, guess)[unknown]
         closed_form = self.programs.hessian
         part = parts[0]
         psi, P = self.programs.shaped(len(part[1]), 2)
@@ -570,7 +569,7 @@ class MemberPrograms:
                                               self.base, psi, P0, P1, P2)), (P2[0],)
 
         hessians, (curvatures,) = _joined(list(self.pool.map(run, parts)), parts)
-        return np.asarray(hessians), next_steps(curvatures, steps)
+        return np.asarray(hessians), next_steps(np.diagonal(curvatures, axis1=-2, axis2=-1), steps)
 
     def close(self):
         self.pool.shutdown()
