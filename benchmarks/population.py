@@ -19,7 +19,7 @@ then fits, in the same process and on the same houses, the nested layouts a mode
 selection compares: a full Ω, and a covariate effect of a floor area (drawn per
 house) on Ro, printing the first call of each.  ``--method`` sets each member's likelihood (e.g. ``laplace``,
 the Laplace method over the states; ``enkf``) and ``--hessian`` the outer Hessian (``fit_population``'s
-``hessian=``: by default differences of the gradient for those two methods, the exact one otherwise).
+``hessian=``: by default the members' second derivatives by differences of their slopes, or ``exact``).
 """
 
 from __future__ import annotations
