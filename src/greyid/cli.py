@@ -346,10 +346,10 @@ def population_command(
         method: Optional[str] = typer.Option(None, metavar="NAME",
                                              help="each member's likelihood: "
                                                   + ", ".join(m for m in METHODS if m != "particle")),
-        hessian: Optional[str] = typer.Option(None, metavar="exact|differences",
-                                              help="the outer Hessian (the standard errors): with the members' "
-                                                   "second derivatives by central differences of their exact "
-                                                   "first derivatives (differences, the default), or exact"),
+        hessian: str = typer.Option("differences", metavar="differences|exact",
+                                    help="the outer Hessian (the standard errors): with the members' second "
+                                         "derivatives by central differences of their exact first derivatives, "
+                                         "or exact"),
         hold: Optional[str] = typer.Option(None, metavar="zoh|foh", help="input hold between samples: zoh or foh"),
         time_column: Optional[str] = typer.Option(None, "--time", metavar="COLUMN", help="name of the time column"),
         out_dir: Optional[Path] = typer.Option(None, "--out", metavar="DIR",
@@ -388,8 +388,8 @@ def population_command(
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", PopulationWarning)  # the summary lists the members left out
             result = fit_population(m, files, kinds or None, covariates=table, effects=effects or None, omega=omega,
-                                    time=time_column, hold=hold, method=method, progress=not quiet,
-                                    **({} if hessian is None else dict(hessian=hessian)))
+                                    time=time_column, hold=hold, method=method, hessian=hessian,
+                                    progress=not quiet)
         if not quiet:
             err.print(f"fitted in {time.perf_counter() - started:.2f} s")
         out.print(result.summary())

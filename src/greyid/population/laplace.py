@@ -57,6 +57,7 @@ import numpy as np
 
 from ..runtime.jit import jit, kept_key
 from ..estimate.criteria import log_criterion
+from ..estimate.lbfgs import DIFFERENCE_STEP, conditional_scales
 from ..filters.api import compiled_filter
 
 
@@ -355,20 +356,26 @@ def laplace_values(modes: Modes) -> np.ndarray:
 #: fastest in one chunk per thread.
 DERIVATIVE_MEMBERS = 32
 
-#: With ``hessian="differences"``: the steps of the central differences of a member's slopes along its free
-#: parameters' scales ψ_j, in conditional standard deviations of its likelihood K along ψ_j (1/√K_jj), so that
-#: they do not depend on the parameters' units; and the steps, relative to |ψ_j|, of the second differences of
-#: K that find K_jj first.
-DIFFERENCE_STEP = 1e-4
+#: With ``hessian="differences"``: the steps, relative to |ψ_j|, of the second differences of a member's
+#: likelihood K that find K_jj, whose conditional standard deviations 1/√K_jj scale the central differences of
+#: its slopes (``DIFFERENCE_STEP`` of them, as ``optimizer="lbfgs"`` takes its steps), so that they do not depend
+#: on the parameters' units.
 SCALE_STEP = 1e-3
 
 
 def next_steps(curvatures, fallback) -> np.ndarray:
     """``DIFFERENCE_STEP``/√K_jj for each member and ψ_j from the members' curvatures K_jj = ∂²K/∂ψ_j² (members ×
     n), ``fallback`` where K_jj is not a positive finite number."""
-    d = np.asarray(curvatures, dtype=float)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(np.isfinite(d) & (d > 0), DIFFERENCE_STEP / np.sqrt(np.abs(d)), fallback)
+    scales = conditional_scales(curvatures, np.nan)
+    return np.where(np.isnan(scales), fallback, DIFFERENCE_STEP * scales)
+
+
+def _shifted(psi, h):
+    """``(j, ψ + h_j e_j, ψ − h_j e_j)`` for each free parameter's scale j (members along the first axis)."""
+    for j in range(psi.shape[1]):
+        shift = np.zeros_like(psi)
+        shift[:, j] = h[:, j]
+        yield j, psi + shift, psi - shift
 
 
 def _cut(x, data, count: int) -> list[tuple]:
@@ -514,11 +521,9 @@ class MemberPrograms:
         P0, P1 = jax.device_get(slopes(psi, base, part[3]))
         h = steps[part[1]]
         columns = []
-        for j in range(psi.shape[1]):
-            shift = np.zeros_like(psi)
-            shift[:, j] = h[:, j]
-            ahead = jax.device_get(slopes(psi + shift, base, part[3])[1])
-            behind = jax.device_get(slopes(psi - shift, base, part[3])[1])
+        for j, up, down in _shifted(psi, h):
+            ahead = jax.device_get(slopes(up, base, part[3])[1])
+            behind = jax.device_get(slopes(down, base, part[3])[1])
             columns.append([(np.asarray(a) - np.asarray(b)) / (2 * h[:, j]).reshape((-1,) + (1,) * (np.ndim(a) - 1))
                             for a, b in zip(ahead, behind)])
         P2 = tuple(np.stack([column[k] for column in columns], axis=-1) for k in range(len(P0)))
@@ -533,10 +538,8 @@ class MemberPrograms:
         h = SCALE_STEP * np.where(psi != 0.0, np.abs(psi), 1.0)
         centre = np.asarray(on_random(psi, base, part[3])[0])
         curvatures = np.empty_like(psi)
-        for j in range(psi.shape[1]):
-            shift = np.zeros_like(psi)
-            shift[:, j] = h[:, j]
-            ahead, behind = (np.asarray(on_random(psi + sign * shift, base, part[3])[0]) for sign in (1.0, -1.0))
+        for j, up, down in _shifted(psi, h):
+            ahead, behind = (np.asarray(on_random(at, base, part[3])[0]) for at in (up, down))
             curvatures[:, j] = (ahead - 2.0 * centre + behind) / h[:, j] ** 2
         return curvatures, h
 
