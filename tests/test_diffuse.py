@@ -213,8 +213,12 @@ def test_laplace_method_with_a_flat_prior_is_the_diffuse_likelihood():
     trend, params = trend_model(), {"s1": 0.4, "sb": 0.15, "s2": 0.3}
     assert trend.loglik(params, frame(y, 0.5), time="t", method="laplace") == pytest.approx(
         trend.loglik(params, frame(y, 0.5), time="t"), rel=1e-12)
-    # Its one-step residuals (the Gaussian predictive's) are the diffuse filter's standardized innovations, with none
-    # at the first row, whose level nothing before it determines.
+    # Its one-step residuals (the Gaussian predictive's, a Laplace mode per observation: a diffuse state's density is
+    # not Gaussian) are the diffuse filter's standardized innovations, with none at the first row, whose level
+    # nothing before it determines.
+    from greyid.filters.laplace import gaussian_joint
+
+    assert not gaussian_joint(m.structure)
     residuals = laplace_residuals(m, LEVEL, data.iloc[:30], time="t")["y"]
     innovations = m.filter(LEVEL, data.iloc[:30], time="t").standardized_innovations["y"]
     assert np.isnan(residuals.iloc[0]) and np.isnan(innovations.iloc[0])

@@ -13,6 +13,8 @@ from greyid.errors import ModelError
 from greyid.estimate.approximations import particle_loglik
 from greyid.filters.api import laplace_residuals
 from greyid.report.html import _approximation_section, html_report
+from test_correlated_noise import TRUE as CORRELATED
+from test_correlated_noise import correlated_model
 from test_particle import grid_loglik, point_mass_grid, poisson_data, poisson_model
 
 A, MU, S, R = 0.5, 1.0, 0.4, 0.04
@@ -302,6 +304,11 @@ def test_the_one_step_method_is_the_gaussian_predictive_where_it_is_exact_and_ch
     nonlinear.add_system("dx = (x - x^3)*dt + sigma*dw1")
     nonlinear.add_observation("y = x", variance="e^2")
     nonlinear.set_initial_state(mean={"x": 1.0}, covariance=[[0.01]])
+    from greyid.filters.laplace import gaussian_joint
+
+    # The Gaussian residuals in one pass forward where the joint density is Gaussian, a mode per observation elsewhere.
+    assert gaussian_joint(ou_model().structure) and not gaussian_joint(nonlinear.structure)
+    assert not gaussian_joint(poisson_model().structure)
     assert one_step_method(ou_model().structure, None) == "gaussian"
     assert one_step_method(nonlinear.structure, None) == "cdf"
     assert one_step_method(nonlinear.structure, "gaussian") == "gaussian"
@@ -347,11 +354,58 @@ def test_the_one_step_residuals_evaluate_every_row_in_one_vectorised_program():
              if any(isinstance(value, (ClosedJaxpr, Jaxpr))
                     for value in eqn.params.values())]
     assert loops == ["scan"]
-    # The Gaussian predictive's residuals run the rows one at a time: one scan over the rows, nothing vectorised.
+    # The Gaussian predictive's residuals of this linear Gaussian model: one pass forward, a scan over the rows
+    # with no Newton search (while loop) anywhere in it.
     structure, options = settings[0]
+    jaxpr = jax.make_jaxpr(laplace.one_step_gaussian(structure, options))(theta, inputs).jaxpr
+    lengths = [eqn.params["length"] for eqn in jaxpr.eqns if eqn.primitive.name == "scan"]
+    assert lengths.count(inputs.t.shape[0]) == 1 and "while" not in str(jaxpr)
+    # Where the joint density is not Gaussian (a nonlinear model asking for the Gaussian predictive) they run the
+    # rows one at a time, a Laplace mode each: one scan over the rows, nothing vectorised.
+    nonlinear = greyid.Model("double well")
+    nonlinear.add_system("dx = (x - x^3)*dt + s*dw1")
+    nonlinear.add_observation("y = x", variance="r")
+    nonlinear.set_initial_state(mean={"x": 1.0}, covariance=[[0.1]])
+    _, theta, prepared, _ = api._laplace_program(nonlinear, dict(s=0.4, r=0.04), data, "t", "zoh", None,
+                                                 "one-step-test", make, {})
+    inputs = prepared[0][1]
+    structure, options = settings[-1]
     jaxpr = jax.make_jaxpr(laplace.one_step_gaussian(structure, options))(theta, inputs).jaxpr
     loops = [eqn for eqn in jaxpr.eqns if any(isinstance(value, (ClosedJaxpr, Jaxpr)) for value in eqn.params.values())]
     assert [eqn.primitive.name for eqn in loops] == ["scan"] and loops[0].params["length"] == inputs.t.shape[0]
+    assert "while" in str(loops[0])
+
+
+@pytest.mark.parametrize("settings", [dict(scheme="ctsmtmb"), dict(scheme="euler", substeps=3),
+                                      dict(substeps=2)])
+def test_the_gaussian_one_step_residuals_in_one_pass_are_the_predictive_of_each_observation(settings):
+    """Where the joint density is Gaussian the one-step Gaussian residuals come from one pass forward over the grid
+    (``Laplace.one_step``): equal to rounding to each observation's predictive from the Laplace mode given the data
+    before it (``Laplace.predictive``, what a nonlinear model's residuals run), on two states with an input held by
+    first-order hold, correlated output noise, a missing output and an irregular interval, by each scheme."""
+    import jax
+
+    from greyid.filters import api, laplace
+
+    m, params = correlated_model(), CORRELATED
+    t = np.concatenate([np.arange(12.0), [12.7], np.arange(14.0, 30.0)])
+    data = pd.DataFrame({"t": t, "u": np.sin(0.4 * t)})
+    frame = m.simulate(params, data, seed=5, hold="foh").frame()
+    data = data.assign(y1=frame["y1"].to_numpy(), y2=frame["y2"].to_numpy())
+    data.loc[7, "y1"] = np.nan
+    assert laplace.gaussian_joint(m.structure)
+    _, theta, prepared, _ = api._laplace_program(m, params, data, "t", "foh", None, "one-step-test",
+                                                 laplace.one_step_gaussian, settings)
+    options = api.accurate_options(m.structure, theta, prepared, "laplace", **settings)[0]
+    built = laplace.build(m.structure, options)
+    inputs = prepared[0][1]
+    one_pass = np.asarray(jax.jit(built.one_step)(theta, inputs))
+    each = np.asarray(jax.jit(lambda th, d: laplace.each_observation(
+        d, 2, lambda before, k, i: built.predictive(th, before, k, i), 0.0, most=1))(theta, inputs))
+    rows = len(data)
+    assert np.isfinite(one_pass[:rows]).all() and one_pass[7, 0] == 0.0 and each[7, 0] == 0.0
+    np.testing.assert_allclose(one_pass[:rows], each[:rows], rtol=0, atol=1e-12)
+    assert np.max(np.abs(one_pass[:rows])) > 0.5
 
 
 @pytest.mark.slow

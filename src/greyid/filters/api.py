@@ -450,7 +450,8 @@ def laplace_residuals(model, params, data, time="t", hold="zoh", time_unit=None,
     ``one_step="gaussian"`` (TMB's ``oneStepPredict`` method "oneStepGaussian", what ctsmTMB runs): each output
     standardized by its one-step Gaussian predictive, the mode and curvature of the joint density of the states
     and the output given the data before it, exact for a linear Gaussian model
-    (``greyid.filters.laplace.one_step_gaussian``).  ``one_step="cdf"`` (method "cdf"):
+    (``greyid.filters.laplace.one_step_gaussian``; where the joint density is Gaussian, one pass forward over the
+    grid, in time linear in the series' length).  ``one_step="cdf"`` (method "cdf"):
     Φ⁻¹ of the probability integral transform, both of its tails by Laplace's method, for any model and
     distribution (``greyid.filters.laplace.one_step_transforms``).
 
@@ -489,8 +490,6 @@ def laplace_residuals(model, params, data, time="t", hold="zoh", time_unit=None,
     >>> from greyid.filters.api import laplace_residuals
     >>> residuals = laplace_residuals(model, fit.values, data)   # doctest: +SKIP
     """
-    from scipy.stats import norm
-
     options.pop("method", None)
     one_step = one_step_method(model.structure, one_step)
     make = laplace.one_step_gaussian if one_step == "gaussian" else laplace.one_step_transforms
@@ -502,10 +501,12 @@ def laplace_residuals(model, params, data, time="t", hold="zoh", time_unit=None,
         if one_step == "gaussian":
             residuals = np.asarray(program(jnp.asarray(theta), inputs))[:series.n_rows]
         else:
+            from scipy.special import ndtri
+
             uniforms = np.zeros(inputs.y.shape)
             uniforms[:series.n_rows] = np.random.default_rng([seed, i]).uniform(size=series.outputs.shape)
             u = np.asarray(program(jnp.asarray(theta), inputs, jnp.asarray(uniforms)))[:series.n_rows]
-            residuals = norm.ppf(np.clip(u, 1e-300, 1 - 1e-16))
+            residuals = ndtri(np.clip(u, 1e-300, 1 - 1e-16))  # Φ⁻¹ (scipy.stats.norm.ppf's own function)
         residuals = np.where(observed, residuals, np.nan)
         out.append(pd.DataFrame(residuals, index=series.index, columns=list(structure.output_names)))
     return out[0] if isinstance(data, pd.DataFrame) else out

@@ -182,12 +182,14 @@ class Laplace(NamedTuple):
     """The Laplace method's functions of (θ, data): ``marginal`` (the value with exact derivatives in θ, and
     the mode), ``value(theta, data, cdf=None)`` (the value alone, optionally with CDF terms),
     ``smoothed(theta, data)`` (the mode at the sample times with its marginal covariances) and
-    ``predictive(theta, data, k, i)`` (output i of row k standardized by its one-step Gaussian predictive)."""
+    ``predictive(theta, data, k, i)`` (output i of row k standardized by its one-step Gaussian predictive) and
+    ``one_step(theta, data)`` (every output so, in one pass forward, where the joint density is Gaussian)."""
 
     marginal: Callable
     value: Callable
     smoothed: Callable
     predictive: Callable
+    one_step: Callable
 
 
 def build(structure: Structure, options: FilterOptions) -> Laplace:
@@ -419,17 +421,12 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
         """The Laplace value alone (no derivatives in θ), with the ``cdf`` terms of ``pieces``."""
         return value_at(pieces(theta, data, cdf), newton(theta, data, cdf))
 
-    def predictive(theta, data: FilterInputs, k, i):
-        """Output i of row k standardized by its one-step Gaussian predictive given the outputs that ``data``'s
-        mask observes: (y − h_i(x̂)) / √(S_i + ∇h_i Σ_k ∇h_iᵀ), x̂ the states' mode given them at row k, Σ_k
-        its marginal covariance there (the block of (−∂²J/∂X²)⁻¹), S_i the noise variance at the mode (NaN where
-        that is not finite).  This is the mode and curvature of the joint density of the states and y_ki, exact
-        for a linear Gaussian model.
-        With correlated noise, output i whitened given the row's outputs before it (``observed``)."""
-        terms = pieces(theta, data)
-        X = newton(theta, data)
-        factor, couplings = block_cholesky(*blocks(terms, X))
-        y, mask, u, t = (a[k] for a in terms.rows[:4])
+    def standardized(theta, row, i, x, spread):
+        """Output i of ``row`` = (y, mask, u, t) standardized by its Gaussian predictive at the states' mean ``x``,
+        (y − h_i(x)) / √(S_i + ∇h_i Σ ∇h_iᵀ), with ``spread(v)`` = Σ v for the states' covariance Σ; NaN where the
+        variance is not a positive number.  With correlated noise, output i whitened given the outputs before it
+        that the mask observes (``observed``)."""
+        y, mask, u, t = row
 
         def centred(x):
             """(y_i − h_i(x), both whitened where the noise is correlated; S_i)."""
@@ -440,14 +437,85 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
             L = observed_root(full(zeros, u, t, theta), seen)
             return whiten(L, seen, y)[i] - whiten(L, seen, mean)[i], 1.0
 
-        x = X[k * s]
         # The slope is −∇h_i: its sign cancels in the variance.
         (residual, variance), slope = jax.value_and_grad(centred, has_aux=True)(x)
-        spread = block_solve(factor, couplings, jnp.zeros_like(X).at[k * s].set(slope))[k * s]
-        total = variance + slope @ spread
+        total = variance + slope @ spread(slope)
         # No predictive where the states are not determined (a diffuse state before any observation of it):
         # NaN, as the exact diffuse filter has no innovation there.
         return jnp.where(jnp.isfinite(total) & (total > 0), residual / jnp.sqrt(total), jnp.nan)
+
+    def predictive(theta, data: FilterInputs, k, i):
+        """Output i of row k standardized by its one-step Gaussian predictive given the outputs that ``data``'s
+        mask observes: (y − h_i(x̂)) / √(S_i + ∇h_i Σ_k ∇h_iᵀ), x̂ the states' mode given them at row k, Σ_k
+        its marginal covariance there (the block of (−∂²J/∂X²)⁻¹), S_i the noise variance at the mode (NaN where
+        that is not finite).  This is the mode and curvature of the joint density of the states and y_ki, exact
+        for a linear Gaussian model.
+        With correlated noise, output i whitened given the row's outputs before it (``observed``)."""
+        terms = pieces(theta, data)
+        X = newton(theta, data)
+        factor, couplings = block_cholesky(*blocks(terms, X))
+
+        def spread(slope):
+            return block_solve(factor, couplings, jnp.zeros_like(X).at[k * s].set(slope))[k * s]
+
+        return standardized(theta, tuple(a[k] for a in terms.rows[:4]), i, X[k * s], spread)
+
+    def one_step(theta, data: FilterInputs):
+        """Every output standardized by its one-step Gaussian predictive, as ``predictive`` gives each, for a
+        model whose joint log-density J is quadratic in the states (linear dynamics and observations, Gaussian
+        outputs and initial state, none diffuse): one pass forward over the grid (N, outputs), 0 where unobserved.
+
+        The states' density given the data before is carried as a mean m and a precision Λ (a Gaussian).
+        A grid step takes the joint of x_j ~ N(m, Λ⁻¹) and the transition's term T(x_j, x_{j+1}) to its mode and
+        x_{j+1}'s marginal precision Q₂₂ − Q₂₁(Λ + Q₁₁)⁻¹Q₁₂ (Q = −∂²T); an observed output then adds its
+        term's curvature to Λ and moves m by one Newton step.  Where J is quadratic each step is exact, so these
+        are the predictive's mode and curvature given the same data (the information filter of the grid's
+        discretization), in time and compilation linear in the series' length instead of quadratic."""
+        terms = pieces(theta, data)
+        n_rows, outputs = data.t.shape[0], jnp.arange(len(families))
+
+        def symmetric(A):
+            return 0.5 * (A + A.T)
+
+        def grid_step(belief, step):
+            m, precision = belief
+            guess = m + terms.drift(m, step.u_start, step.start) * step.length  # near the mode: small steps
+            pair = jnp.concatenate([m, guess])
+            slope = jax.grad(terms.transition)(pair, step)
+            Q = -jax.hessian(terms.transition)(pair, step)
+            joint_precision = Q.at[:n, :n].add(precision)
+            mode = pair + small.cho_solve(small.cholesky(symmetric(joint_precision)), slope)
+            linked = small.cho_solve(small.cholesky(symmetric(joint_precision[:n, :n])), Q[:n, n:])
+            return (mode[n:], symmetric(Q[n:, n:] - Q[n:, :n] @ linked)), None
+
+        def row_step(belief, part):
+            first, steps, row = part
+            predicted, _ = jax.lax.scan(grid_step, belief, steps)
+            belief = jax.tree_util.tree_map(lambda a, b: jnp.where(first, a, b), belief, predicted)
+            y, mask, u, t = row
+
+            def output(belief, i):
+                m, precision = belief
+                before, through = mask * (outputs < i), mask * (outputs <= i)
+                factor = small.cholesky(precision)
+                residual = standardized(theta, (y, before, u, t), i, m,
+                                        lambda v: small.cho_solve(factor, v))
+                # Output i's own term given the outputs before it (whitened where the noise is correlated).
+                def term(x):
+                    return terms.observed(x, (y, through, u, t)) - terms.observed(x, (y, before, u, t))
+
+                precision = symmetric(precision - jax.hessian(term)(m))
+                m = m + small.cho_solve(small.cholesky(precision), jax.grad(term)(m))
+                return (m, precision), jnp.where(mask[i] > 0, residual, 0.0)
+
+            return jax.lax.scan(output, belief, outputs)
+
+        start = (terms.x0, symmetric(-jax.hessian(terms.prior)(terms.x0)))
+        # The grid's steps into each row; row 0 has none (its own are a copy of row 1's, left unused).
+        into = jax.tree_util.tree_map(lambda a: a.reshape(n_rows - 1, s, *a.shape[1:]), terms.grid)
+        into = jax.tree_util.tree_map(lambda a: jnp.concatenate([a[:1], a]), into)
+        rows = tuple(terms.rows[:4])
+        return jax.lax.scan(row_step, start, (jnp.arange(n_rows) == 0, into, rows))[1]
 
     def smoothed(theta, data: FilterInputs):
         """The mode's states at the sample times (N, n) and their covariances (N, n, n): the diagonal blocks of
@@ -457,7 +525,7 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
         factor, couplings = block_cholesky(*blocks(pieces(theta, data), X))
         return X[::s], block_inverse_diagonal(factor, couplings)[::s]
 
-    return Laplace(marginal, value, smoothed, predictive)
+    return Laplace(marginal, value, smoothed, predictive, one_step)
 
 
 def prepare(structure: Structure, options: FilterOptions):
@@ -515,6 +583,14 @@ def each_observation(data: FilterInputs, n_out: int, evaluate, unobserved: float
     return jax.lax.map(at, batched, batch_size=size)[:n_rows]
 
 
+def gaussian_joint(structure: Structure) -> bool:
+    """Whether the Laplace method's joint density of the states and the data is Gaussian for any θ: linear
+    dynamics and observations (``structure.is_linear``), Gaussian outputs and a Gaussian initial state with no
+    diffuse part."""
+    return (structure.is_linear and all(family == NORMAL for family in structure.output_families)
+            and not structure.initial_covariance.diffuse)
+
+
 def one_step_gaussian(structure: Structure, options: FilterOptions):
     """``residuals(theta, data) -> (N, outputs)``: each Gaussian observation standardized by its one-step-ahead
     predictive under the Laplace method, as ctsmTMB's one-step-ahead residuals (TMB's ``oneStepPredict``, method
@@ -526,10 +602,13 @@ def one_step_gaussian(structure: Structure, options: FilterOptions):
     where they are the Kalman filter's innovation and its variance.  TMB finds the mode of its Laplace
     approximation of p(y_ki, D) in y_ki instead, whose log-determinant moves with y_ki where the observation
     or the transitions are nonlinear in the states: the two differ there by that term.  Cost: one Laplace mode
-    per observation over the series up to it, so quadratic in the series' length.
+    per observation over the series up to it, so quadratic in the series' length; where the joint density is
+    Gaussian (``gaussian_joint``) one pass forward instead (``Laplace.one_step``), linear in it.
     """
     laplace = build(structure, options)
     n_out = len(structure.output_families)
+    if gaussian_joint(structure):
+        return laplace.one_step
 
     def residuals(theta, data: FilterInputs):
         # One row at a time: vectorised over rows, the Newton searches (a loop whose rows all run until the
