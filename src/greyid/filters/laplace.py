@@ -474,6 +474,15 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
         terms = pieces(theta, data)
         n_rows, outputs = data.t.shape[0], jnp.arange(len(families))
 
+        def slope_and_curvature(fun, x):
+            """(∇fun, −∇²fun) at x, forward over reverse in one trace of ``fun``."""
+            def slope(x):
+                g = jax.grad(fun)(x)
+                return g, g
+
+            H, g = jax.jacfwd(slope, has_aux=True)(x)
+            return g, -H
+
         def symmetric(A):
             return 0.5 * (A + A.T)
 
@@ -481,8 +490,7 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
             m, precision = belief
             guess = m + terms.drift(m, step.u_start, step.start) * step.length  # near the mode: small steps
             pair = jnp.concatenate([m, guess])
-            slope = jax.grad(terms.transition)(pair, step)
-            Q = -jax.hessian(terms.transition)(pair, step)
+            slope, Q = slope_and_curvature(lambda x: terms.transition(x, step), pair)
             joint_precision = Q.at[:n, :n].add(precision)
             mode = pair + small.cho_solve(small.cholesky(symmetric(joint_precision)), slope)
             linked = small.cho_solve(small.cholesky(symmetric(joint_precision[:n, :n])), Q[:n, n:])
@@ -504,8 +512,9 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
                 def term(x):
                     return terms.observed(x, (y, through, u, t)) - terms.observed(x, (y, before, u, t))
 
-                precision = symmetric(precision - jax.hessian(term)(m))
-                m = m + small.cho_solve(small.cholesky(precision), jax.grad(term)(m))
+                slope, curvature = slope_and_curvature(term, m)
+                precision = symmetric(precision + curvature)
+                m = m + small.cho_solve(small.cholesky(precision), slope)
                 return (m, precision), jnp.where(mask[i] > 0, residual, 0.0)
 
             return jax.lax.scan(output, belief, outputs)
