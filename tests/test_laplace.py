@@ -408,6 +408,26 @@ def test_the_gaussian_one_step_residuals_in_one_pass_are_the_predictive_of_each_
     assert np.max(np.abs(one_pass[:rows])) > 0.5
 
 
+@pytest.mark.filterwarnings("ignore:.*at a bound")  # the Euler fit's diffusion, on 40 rows
+def test_a_laplace_fit_of_a_linear_gaussian_model_filters_and_predicts_by_the_exact_kalman_filter():
+    """Where the Laplace value is the exact Kalman filter's likelihood (a linear time-invariant model with Gaussian
+    outputs and the exact transitions), a Laplace fit's filter() and predict() are that filter's, deterministic;
+    with Euler–Maruyama transitions (ctsmTMB's scheme) its likelihood is another model's: the particle filter."""
+    from greyid.filters.laplace import exact_kalman
+
+    m, data = ou_model(), ou_data()
+    fit = m.fit(data, method="laplace", substeps=2)
+    assert exact_kalman(m.structure, "auto") and not exact_kalman(m.structure, "ctsmtmb")
+    assert not exact_kalman(poisson_model().structure, None)
+    assert fit.filter().method == "kalman"
+    np.testing.assert_allclose(fit.filter().filtered.to_numpy(),
+                               m.filter(fit.values, data, method="kalman").filtered.to_numpy(), rtol=1e-12)
+    pd.testing.assert_frame_equal(fit.predict(steps=2), m.predict(fit.values, data, steps=2, method="kalman"))
+    assert fit.loglik == pytest.approx(m.loglik(fit.values, data, method="kalman"), abs=1e-8)
+    euler = m.fit(data, method="laplace", scheme="ctsmtmb")
+    assert euler._filtering_settings()["method"] == "particle"
+
+
 @pytest.mark.slow
 def test_a_laplace_fit_validates_on_its_one_step_residuals():
     m, data = poisson_model(), poisson_data(150, seed=8)

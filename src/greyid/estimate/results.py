@@ -32,7 +32,8 @@ from .calls import filter_at, laplace_residuals_at, predict_at, simulate_at, smo
 from .settings import FitSettings, filter_settings
 
 
-#: A Laplace fit's filter() and predict() run the particle filter with this many particles.
+#: A Laplace fit's filter() and predict() run the particle filter with this many particles (where its value is not
+#: the exact Kalman filter's likelihood).
 LAPLACE_FILTER_PARTICLES = 1000
 
 
@@ -436,16 +437,24 @@ class Estimates:
 
     def _filtering_settings(self):
         """The settings of the filter behind ``filter()`` and ``predict()``: the fit's own; for a Laplace fit,
-        whose method has no filter, the particle filter's (LAPLACE_FILTER_PARTICLES particles, the fit's seed)."""
+        whose method has no filter, the exact Kalman filter where the Laplace value is its likelihood (a linear
+        time-invariant model with Gaussian outputs and the exact transitions,
+        [`exact_kalman()`][greyid.filters.laplace.exact_kalman]), else the particle filter's
+        (LAPLACE_FILTER_PARTICLES particles, the fit's seed)."""
+        from ..filters.laplace import exact_kalman
+
         settings = self._filter_settings()
         if settings["method"] != "laplace":
             return settings
+        scheme = settings.get("scheme")
         settings = {k: v for k, v in settings.items() if k not in ("scheme", "substeps")}
+        if exact_kalman(self.model.structure, scheme):
+            return dict(settings, method="kalman")
         return dict(settings, method="particle", particles=LAPLACE_FILTER_PARTICLES, seed=self.settings["seed"])
 
     def filter(self, data=None):
-        """The filter run at the estimates (for a Laplace fit, the particle filter: the Laplace method has no
-        filter).
+        """The filter run at the estimates (for a Laplace fit, which has no filter of its own, the exact Kalman filter
+        where the Laplace value is its likelihood, else the particle filter: see ``_filtering_settings``).
 
         Parameters
         ----------
@@ -477,7 +486,7 @@ class Estimates:
 
     def predict(self, data=None, steps: int = 1, states: bool = False, interval: float | None = None):
         """Output (and state) predictions ``steps`` samples ahead at the estimates, with standard deviations (for
-        a Laplace fit, the particle filter's, as ``filter()``).
+        a Laplace fit, the filter of ``filter()``).
 
         Parameters
         ----------

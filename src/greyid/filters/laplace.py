@@ -600,6 +600,14 @@ def gaussian_joint(structure: Structure) -> bool:
             and not structure.initial_covariance.diffuse)
 
 
+def exact_kalman(structure: Structure, scheme: str | None) -> bool:
+    """Whether the Laplace method's value is the exact Kalman filter's likelihood for any θ: a linear time-invariant
+    model (exact transitions, ``scheme="auto"``) with Gaussian outputs; a diffuse initial state included (the
+    Kalman filter's exact diffuse start)."""
+    return (structure.is_linear and structure.linear_dynamics is not None and scheme in (None, "auto")
+            and all(family == NORMAL for family in structure.output_families))
+
+
 def one_step_gaussian(structure: Structure, options: FilterOptions):
     """``residuals(theta, data) -> (N, outputs)``: each Gaussian observation standardized by its one-step-ahead
     predictive under the Laplace method, as ctsmTMB's one-step-ahead residuals (TMB's ``oneStepPredict``, method
