@@ -408,6 +408,29 @@ def test_the_gaussian_one_step_residuals_in_one_pass_are_the_predictive_of_each_
     assert np.max(np.abs(one_pass[:rows])) > 0.5
 
 
+def test_the_one_step_searches_stop_sooner_at_the_same_mode():
+    """The one-step transforms' Laplace values stop their Newton search at a full step shorter than
+    ONE_STEP_TOLERANCE: after the last full step the value equals the likelihood's (whose search runs to
+    NEWTON_TOLERANCE) to 1e-10, on Poisson counts, with and without a tail term."""
+    import jax
+
+    from greyid.filters import api, laplace
+
+    m, data = poisson_model(), poisson_data(60, seed=3)
+    params = dict(a=0.5, mu=2.0, s=0.5)
+    _, theta, prepared, _ = api._laplace_program(m, params, data, "t", "zoh", None, "one-step-test",
+                                                 laplace.one_step_transforms, dict(substeps=2))
+    built = laplace.build(m.structure, api.accurate_options(m.structure, theta, prepared, "laplace", substeps=2)[0])
+    inputs = prepared[0][1]
+    assert laplace.ONE_STEP_TOLERANCE > 1e3 * laplace.NEWTON_TOLERANCE
+    value = float(jax.jit(built.value)(theta, inputs))
+    assert value == pytest.approx(float(jax.jit(built.marginal)(theta, inputs)[0]), rel=1e-12, abs=1e-10)
+    on = np.zeros(inputs.mask.shape)
+    on[30, 0] = 1.0
+    tail = float(jax.jit(built.value)(theta, inputs, (on, np.zeros_like(on), np.zeros_like(on))))
+    assert np.isfinite(tail) and tail < value  # P(Y < y, past) < p(past)
+
+
 @pytest.mark.filterwarnings("ignore:.*at a bound")  # the Euler fit's diffusion, on 40 rows
 def test_a_laplace_fit_of_a_linear_gaussian_model_filters_and_predicts_by_the_exact_kalman_filter():
     """Where the Laplace value is the exact Kalman filter's likelihood (a linear time-invariant model with Gaussian

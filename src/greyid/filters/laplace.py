@@ -51,6 +51,9 @@ from .updates import observed_root, whiten
 #: Newton steps at most, and the largest step (relative to the states' size) that ends the search.
 NEWTON_STEPS = 50
 NEWTON_TOLERANCE = 1e-10
+#: The one-step residuals' searches (a mode per observation) stop at a full Newton step this short: the step after
+#: the loop takes the mode to about its square, as close as NEWTON_TOLERANCE's loop takes it, one step sooner.
+ONE_STEP_TOLERANCE = 1e-6
 #: No devices named: the abstract mesh JAX traces a jitted function's body under (see ``mode`` in
 #: [`build()`][greyid.filters.laplace.build]).
 EMPTY_MESH = jax.sharding.AbstractMesh((), ())
@@ -330,14 +333,16 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
         _, path = jax.lax.scan(step, terms.x0, terms.grid)
         return jnp.concatenate([terms.x0[None], path])
 
-    def newton(theta, data, cdf=None):
+    def newton(theta, data, cdf=None, tolerance=NEWTON_TOLERANCE):
+        """The mode X̂: damped Newton steps until one is shorter than NEWTON_TOLERANCE (relative to X), or, with a
+        larger ``tolerance``, until a full Newton step is shorter than that; then one more full step."""
         terms = pieces(theta, data, cdf)
 
         def gradient(X):
             return jax.grad(joint, argnums=1)(terms, X)
 
         def improve(carry):
-            X, value, count, _ = carry
+            X, value, count, *_ = carry
             g = gradient(X)
             diagonal, lower = blocks(terms, X)
             factor, couplings = block_cholesky(diagonal, lower)
@@ -346,7 +351,8 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
             # state), −H may not be positive definite and its factor fails: a gradient step scaled by
             # the diagonal's size instead.
             scale = jnp.maximum(jnp.abs(jnp.diagonal(diagonal, axis1=1, axis2=2)), MIN_CURVATURE)
-            direction = jnp.where(jnp.all(jnp.isfinite(newton_direction)), newton_direction, g / scale)
+            newton_ok = jnp.all(jnp.isfinite(newton_direction))
+            direction = jnp.where(newton_ok, newton_direction, g / scale)
 
             def shorter(search):
                 length, _ = search
@@ -361,16 +367,18 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
             taken = trial > value
             step = jnp.where(taken, length, 0.0) * direction
             size = jnp.max(jnp.abs(step)) / (1.0 + jnp.max(jnp.abs(X)))
-            return X + step, jnp.where(taken, trial, value), count + 1, size
+            full = taken & (length == 1.0) & newton_ok
+            return X + step, jnp.where(taken, trial, value), count + 1, size, full
 
         def going(carry):
-            _, _, count, size = carry
-            return (count < NEWTON_STEPS) & (size > NEWTON_TOLERANCE)
+            _, _, count, size, full = carry
+            return (count < NEWTON_STEPS) & (size > NEWTON_TOLERANCE) & ~(full & (size <= tolerance))
 
         X0 = start(terms)
-        X, *_ = jax.lax.while_loop(going, improve, (X0, joint(terms, X0), 0, jnp.inf))
-        # One more full step: Newton's quadratic convergence takes the mode to rounding, so that the
-        # value (whose log-determinant moves to first order with the mode) is smooth in θ.
+        X, *_ = jax.lax.while_loop(going, improve, (X0, joint(terms, X0), 0, jnp.inf, jnp.asarray(False)))
+        # One more full step: Newton's quadratic convergence takes the mode to rounding (from a full step
+        # shorter than ``tolerance``, to about its square), so that the value (whose log-determinant moves to
+        # first order with the mode) is smooth in θ.
         factor, couplings = block_cholesky(*blocks(terms, X))
         last = X + block_solve(factor, couplings, gradient(X))
         return jnp.where(jnp.all(jnp.isfinite(last)), last, X)
@@ -418,8 +426,9 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
         return value_at(pieces(theta, data), X), X
 
     def value(theta, data: FilterInputs, cdf=None):
-        """The Laplace value alone (no derivatives in θ), with the ``cdf`` terms of ``pieces``."""
-        return value_at(pieces(theta, data, cdf), newton(theta, data, cdf))
+        """The Laplace value alone (no derivatives in θ), with the ``cdf`` terms of ``pieces``; its mode to
+        ONE_STEP_TOLERANCE (the one-step transforms evaluate it once per observation)."""
+        return value_at(pieces(theta, data, cdf), newton(theta, data, cdf, ONE_STEP_TOLERANCE))
 
     def standardized(theta, row, i, x, spread):
         """Output i of ``row`` = (y, mask, u, t) standardized by its Gaussian predictive at the states' mean ``x``,
@@ -452,7 +461,7 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
         for a linear Gaussian model.
         With correlated noise, output i whitened given the row's outputs before it (``observed``)."""
         terms = pieces(theta, data)
-        X = newton(theta, data)
+        X = newton(theta, data, tolerance=ONE_STEP_TOLERANCE)
         factor, couplings = block_cholesky(*blocks(terms, X))
 
         def spread(slope):
