@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
+from scipy.special import ndtri
 
 from ..runtime.jit import structure_program
 from ..data.prepare import Series, as_frames, prepare_series
@@ -432,9 +433,9 @@ def one_step_method(structure: Structure, one_step: str | None) -> str:
     """The one-step method ``laplace_residuals`` runs: ``one_step``, checked, or where None "gaussian" for a linear
     model with Gaussian outputs (where the Gaussian predictive is exact) and "cdf" otherwise (where it is not, the
     tails by Laplace's method are closer to the exact transforms: docs/guide/filters.md)."""
-    others = [name for name, family in zip(structure.output_names, structure.output_families) if family != NORMAL]
     if one_step is None:
-        return "gaussian" if structure.is_linear and not others else "cdf"
+        return "gaussian" if laplace.linear_gaussian(structure) else "cdf"
+    others = [name for name, family in zip(structure.output_names, structure.output_families) if family != NORMAL]
     if one_step not in ONE_STEP:
         raise ModelError(f"one_step={one_step!r} is not a one-step method; use one of {', '.join(map(repr, ONE_STEP))}")
     if one_step == "gaussian" and others:
@@ -501,8 +502,6 @@ def laplace_residuals(model, params, data, time="t", hold="zoh", time_unit=None,
         if one_step == "gaussian":
             residuals = np.asarray(program(jnp.asarray(theta), inputs))[:series.n_rows]
         else:
-            from scipy.special import ndtri
-
             uniforms = np.zeros(inputs.y.shape)
             uniforms[:series.n_rows] = np.random.default_rng([seed, i]).uniform(size=series.outputs.shape)
             u = np.asarray(program(jnp.asarray(theta), inputs, jnp.asarray(uniforms)))[:series.n_rows]

@@ -46,7 +46,7 @@ from .delays import Pieces, piece_drift, step_pieces
 from .discretize import discretize, discretize_each
 from .gaussian import initial_state
 from .protocol import FilterInputs, FilterOptions, series_rows
-from .updates import observed_root, whiten
+from .updates import observed_root, symmetrize, whiten
 
 #: Newton steps at most, and the largest step (relative to the states' size) that ends the search.
 NEWTON_STEPS = 50
@@ -492,18 +492,15 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
             H, g = jax.jacfwd(slope, has_aux=True)(x)
             return g, -H
 
-        def symmetric(A):
-            return 0.5 * (A + A.T)
-
         def grid_step(belief, step):
             m, precision = belief
             guess = m + terms.drift(m, step.u_start, step.start) * step.length  # near the mode: small steps
             pair = jnp.concatenate([m, guess])
             slope, Q = slope_and_curvature(lambda x: terms.transition(x, step), pair)
             joint_precision = Q.at[:n, :n].add(precision)
-            mode = pair + small.cho_solve(small.cholesky(symmetric(joint_precision)), slope)
-            linked = small.cho_solve(small.cholesky(symmetric(joint_precision[:n, :n])), Q[:n, n:])
-            return (mode[n:], symmetric(Q[n:, n:] - Q[n:, :n] @ linked)), None
+            mode = pair + small.cho_solve(small.cholesky(symmetrize(joint_precision)), slope)
+            linked = small.cho_solve(small.cholesky(symmetrize(joint_precision[:n, :n])), Q[:n, n:])
+            return (mode[n:], symmetrize(Q[n:, n:] - Q[n:, :n] @ linked)), None
 
         def row_step(belief, part):
             first, steps, row = part
@@ -522,13 +519,13 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
                     return terms.observed(x, (y, through, u, t)) - terms.observed(x, (y, before, u, t))
 
                 slope, curvature = slope_and_curvature(term, m)
-                precision = symmetric(precision + curvature)
+                precision = symmetrize(precision + curvature)
                 m = m + small.cho_solve(small.cholesky(precision), slope)
                 return (m, precision), jnp.where(mask[i] > 0, residual, 0.0)
 
             return jax.lax.scan(output, belief, outputs)
 
-        start = (terms.x0, symmetric(-jax.hessian(terms.prior)(terms.x0)))
+        start = (terms.x0, symmetrize(-jax.hessian(terms.prior)(terms.x0)))
         # The grid's steps into each row; row 0 has none (its own are a copy of row 1's, left unused).
         into = jax.tree_util.tree_map(lambda a: a.reshape(n_rows - 1, s, *a.shape[1:]), terms.grid)
         into = jax.tree_util.tree_map(lambda a: jnp.concatenate([a[:1], a]), into)
@@ -601,20 +598,22 @@ def each_observation(data: FilterInputs, n_out: int, evaluate, unobserved: float
     return jax.lax.map(at, batched, batch_size=size)[:n_rows]
 
 
+def linear_gaussian(structure: Structure) -> bool:
+    """Linear dynamics and observations (``structure.is_linear``) and Gaussian outputs."""
+    return structure.is_linear and all(family == NORMAL for family in structure.output_families)
+
+
 def gaussian_joint(structure: Structure) -> bool:
-    """Whether the Laplace method's joint density of the states and the data is Gaussian for any θ: linear
-    dynamics and observations (``structure.is_linear``), Gaussian outputs and a Gaussian initial state with no
-    diffuse part."""
-    return (structure.is_linear and all(family == NORMAL for family in structure.output_families)
-            and not structure.initial_covariance.diffuse)
+    """Whether the Laplace method's joint density of the states and the data is Gaussian for any θ: a linear
+    Gaussian model (``linear_gaussian``) whose initial state has no diffuse part."""
+    return linear_gaussian(structure) and not structure.initial_covariance.diffuse
 
 
 def exact_kalman(structure: Structure, scheme: str | None) -> bool:
-    """Whether the Laplace method's value is the exact Kalman filter's likelihood for any θ: a linear time-invariant
-    model (exact transitions, ``scheme="auto"``) with Gaussian outputs; a diffuse initial state included (the
-    Kalman filter's exact diffuse start)."""
-    return (structure.is_linear and structure.linear_dynamics is not None and scheme in (None, "auto")
-            and all(family == NORMAL for family in structure.output_families))
+    """Whether the Laplace method's value is the exact Kalman filter's likelihood for any θ: a linear Gaussian
+    model with time-invariant dynamics (exact transitions, ``scheme="auto"``); a diffuse initial state included
+    (the Kalman filter's exact diffuse start)."""
+    return linear_gaussian(structure) and structure.linear_dynamics is not None and scheme in (None, "auto")
 
 
 def one_step_gaussian(structure: Structure, options: FilterOptions):
