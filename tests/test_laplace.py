@@ -431,6 +431,41 @@ def test_the_one_step_searches_stop_sooner_at_the_same_mode():
     assert np.isfinite(tail) and tail < value  # P(Y < y, past) < p(past)
 
 
+def test_the_newton_search_takes_its_last_full_step_in_its_loop(monkeypatch):
+    """The search's last full step is the loop's last pass, not a copy of the step after the loop: tracing
+    Laplace.value factorises −H twice (the loop's step, and the value's log-determinant at the mode), and
+    Laplace.smoothed twice (the loop's, and the covariances'), where a step after the loop would add a third
+    copy of the step to each program.  The value is the likelihood's to rounding."""
+    import traceback
+
+    import jax
+
+    from greyid.filters import api, laplace
+
+    m, data = poisson_model(), poisson_data(40, seed=5)
+    params = dict(a=0.5, mu=2.0, s=0.5)
+    _, theta, prepared, _ = api._laplace_program(m, params, data, "t", "zoh", None, "one-step-test",
+                                                 laplace.one_step_transforms, {})
+    options = api.accurate_options(m.structure, theta, prepared, "laplace")[0]
+    inputs = prepared[0][1]
+    places, factor = [], laplace.block_cholesky
+
+    def counting(*args):
+        callers = [frame.name for frame in traceback.extract_stack()[:-1]
+                   if frame.filename.endswith(str(Path("filters", "laplace.py")))]
+        places.append(callers[-1])
+        return factor(*args)
+
+    monkeypatch.setattr(laplace, "block_cholesky", counting)
+    built = laplace.build(m.structure, options)
+    value = float(jax.jit(built.value)(theta, inputs))
+    assert places == ["improve", "value_at"]
+    places.clear()
+    mode, _ = jax.jit(built.smoothed)(theta, inputs)
+    assert places == ["improve", "smoothed"]
+    assert value == pytest.approx(float(jax.jit(built.marginal)(theta, inputs)[0]), rel=1e-12)
+
+
 @pytest.mark.filterwarnings("ignore:.*at a bound")  # the Euler fit's diffusion, on 40 rows
 def test_a_laplace_fit_of_a_linear_gaussian_model_filters_and_predicts_by_the_exact_kalman_filter():
     """Where the Laplace value is the exact Kalman filter's likelihood (a linear time-invariant model with Gaussian

@@ -51,8 +51,8 @@ from .updates import observed_root, symmetrize, whiten
 #: Newton steps at most, and the largest step (relative to the states' size) that ends the search.
 NEWTON_STEPS = 50
 NEWTON_TOLERANCE = 1e-10
-#: The one-step residuals' searches (a mode per observation) stop at a full Newton step this short: the step after
-#: the loop takes the mode to about its square, as close as NEWTON_TOLERANCE's loop takes it, one step sooner.
+#: The one-step residuals' searches (a mode per observation) stop at a full Newton step this short: the search's last
+#: full step takes the mode to about its square, as close as NEWTON_TOLERANCE's loop takes it, one step sooner.
 ONE_STEP_TOLERANCE = 1e-6
 #: No devices named: the abstract mesh JAX traces a jitted function's body under (see ``mode`` in
 #: [`build()`][greyid.filters.laplace.build]).
@@ -64,6 +64,8 @@ CTSMTMB_JITTER = 1e-8
 #: a gradient step is scaled by.
 MIN_STEP_LENGTH = 2.0**-20
 MIN_CURVATURE = 1e-12
+#: The stages of a Newton search's loop: damped steps, the last full step, done.
+SEARCHING, LAST, DONE = (np.int32(stage) for stage in range(3))
 
 
 class Grid(NamedTuple):
@@ -335,15 +337,13 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
 
     def newton(theta, data, cdf=None, tolerance=NEWTON_TOLERANCE):
         """The mode X̂: damped Newton steps until one is shorter than NEWTON_TOLERANCE (relative to X), or, with a
-        larger ``tolerance``, until a full Newton step is shorter than that; then one more full step."""
+        larger ``tolerance``, until a full Newton step is shorter than that; then one more full step, as the
+        loop's last pass (one copy of the step's work in the program)."""
         terms = pieces(theta, data, cdf)
 
-        def gradient(X):
-            return jax.grad(joint, argnums=1)(terms, X)
-
         def improve(carry):
-            X, value, count, *_ = carry
-            g = gradient(X)
+            X, value, count, stage = carry
+            g = jax.grad(joint, argnums=1)(terms, X)
             diagonal, lower = blocks(terms, X)
             factor, couplings = block_cholesky(diagonal, lower)
             newton_direction = block_solve(factor, couplings, g)
@@ -353,6 +353,7 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
             scale = jnp.maximum(jnp.abs(jnp.diagonal(diagonal, axis1=1, axis2=2)), MIN_CURVATURE)
             newton_ok = jnp.all(jnp.isfinite(newton_direction))
             direction = jnp.where(newton_ok, newton_direction, g / scale)
+            searching = stage == SEARCHING
 
             def shorter(search):
                 length, _ = search
@@ -360,7 +361,7 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
 
             def worse(search):
                 length, trial = search
-                return ~(trial > value) & (length > MIN_STEP_LENGTH)
+                return searching & ~(trial > value) & (length > MIN_STEP_LENGTH)
 
             # The longest of 1, 1/2, 1/4, ... that increases J (a damped Newton method).
             length, trial = jax.lax.while_loop(worse, shorter, (1.0, joint(terms, X + direction)))
@@ -368,20 +369,19 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
             step = jnp.where(taken, length, 0.0) * direction
             size = jnp.max(jnp.abs(step)) / (1.0 + jnp.max(jnp.abs(X)))
             full = taken & (length == 1.0) & newton_ok
-            return X + step, jnp.where(taken, trial, value), count + 1, size, full
-
-        def going(carry):
-            _, _, count, size, full = carry
-            return (count < NEWTON_STEPS) & (size > NEWTON_TOLERANCE) & ~(full & (size <= tolerance))
+            going = (count + 1 < NEWTON_STEPS) & (size > NEWTON_TOLERANCE) & ~(full & (size <= tolerance))
+            # The last pass (stage LAST) takes the full Newton step whatever J does there: Newton's quadratic
+            # convergence takes the mode to rounding (from a full step shorter than ``tolerance``, to about its
+            # square), so that the value (whose log-determinant moves to first order with the mode) is smooth
+            # in θ.
+            last = X + newton_direction
+            X = jnp.where(searching, X + step, jnp.where(jnp.all(jnp.isfinite(last)), last, X))
+            return (X, jnp.where(taken, trial, value), count + 1,
+                    jnp.where(searching, jnp.where(going, SEARCHING, LAST), DONE))
 
         X0 = start(terms)
-        X, *_ = jax.lax.while_loop(going, improve, (X0, joint(terms, X0), 0, jnp.inf, jnp.asarray(False)))
-        # One more full step: Newton's quadratic convergence takes the mode to rounding (from a full step
-        # shorter than ``tolerance``, to about its square), so that the value (whose log-determinant moves to
-        # first order with the mode) is smooth in θ.
-        factor, couplings = block_cholesky(*blocks(terms, X))
-        last = X + block_solve(factor, couplings, gradient(X))
-        return jnp.where(jnp.all(jnp.isfinite(last)), last, X)
+        X, *_ = jax.lax.while_loop(lambda carry: carry[3] != DONE, improve, (X0, joint(terms, X0), 0, SEARCHING))
+        return X
 
     # Each level of forward differentiation asks for the mode, and for the blocks and mixed derivative
     # of its rule below, again: as jitted functions the levels reuse their traces instead of tracing
