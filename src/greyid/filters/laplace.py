@@ -569,33 +569,42 @@ def row_batches(n_rows: int, most: int = ONE_STEP_BATCH) -> tuple[int, int]:
     return count, -(-n_rows // count)
 
 
-def each_observation(data: FilterInputs, n_out: int, evaluate, unobserved: float, most: int = ONE_STEP_BATCH):
+def each_observation(data: FilterInputs, n_out: int, evaluate, unobserved: float, most: int = ONE_STEP_BATCH,
+                     parts: int = 1):
     """``evaluate(data_before, k, i)`` for every row k and output i, ``unobserved`` where y_ki is not observed: the
     data before y_ki are the rows before k and the outputs before i of row k (the mask), the rows after k left out
-    (their intervals set to length 0, whose steps integrate to one exactly).
+    (their intervals set to length 0, whose steps integrate to one exactly).  With ``parts`` > 1,
+    ``evaluate(data_before, k, i, part)`` for each part (N, parts, outputs).
 
     The outputs run one after the other in a scan, so that the evaluation is traced and compiled once whatever
-    their number; the rows one at a time (``most=1``) or vectorised in batches of at most ``most``, all of one
-    size (the last row repeated), because ``lax.map`` vectorises rows left over by whole batches apart, a second
-    copy of the evaluation for XLA to compile."""
+    their number; the rows one at a time (``most=1``) or vectorised in batches of at most ``most`` rows (their
+    parts in the same batch, one vectorisation rather than one in another, which JAX traces in about half the
+    time), all of one size (the last row repeated), because ``lax.map`` vectorises rows left over by whole
+    batches apart, a second copy of the evaluation for XLA to compile."""
     n_rows = data.t.shape[0]
     rows, outputs = jnp.arange(n_rows), jnp.arange(n_out)
 
-    def at(k):
+    def at(pair):
+        k, part = pair // parts, pair % parts
         truncated = data._replace(dt=jnp.where(rows > k, 0.0, data.dt))
         before = jnp.where((rows < k)[:, None], data.mask, 0.0)
 
         def output(_, i):
             mask = before.at[k].set(data.mask[k] * (outputs < i))
-            return None, jnp.where(data.mask[k, i] > 0, evaluate(truncated._replace(mask=mask), k, i), unobserved)
+            value = evaluate(truncated._replace(mask=mask), k, i, *((part,) if parts > 1 else ()))
+            return None, jnp.where(data.mask[k, i] > 0, value, unobserved)
 
         return jax.lax.scan(output, None, outputs)[1]
 
+    n_pairs = n_rows * parts
     if most == 1:
-        return jax.lax.map(at, rows)
-    count, size = row_batches(n_rows, most)
-    batched = rows if count * size == n_rows else jnp.minimum(jnp.arange(count * size), n_rows - 1)
-    return jax.lax.map(at, batched, batch_size=size)[:n_rows]
+        values = jax.lax.map(at, jnp.arange(n_pairs))
+    else:
+        count, size = row_batches(n_rows, most)
+        pairs = jnp.arange(n_pairs) if count * size == n_rows else jnp.minimum(jnp.arange(count * size * parts),
+                                                                              n_pairs - 1)
+        values = jax.lax.map(at, pairs, batch_size=size * parts)[:n_pairs]
+    return values if parts == 1 else values.reshape(n_rows, parts, n_out)
 
 
 def linear_gaussian(structure: Structure) -> bool:
@@ -670,22 +679,22 @@ def one_step_transforms(structure: Structure, options: FilterOptions):
         is_count = [family in COUNTS for family in families]
         counts, n_parts = jnp.array(is_count), 3 if any(is_count) else 2
 
-        def transform(before, k, i):
-            mask = before.mask
+        def part_value(before, k, i, part):
+            # Y ≤ y (< y for counts), Y > y and, for counts, Y = y (the density observed): (mask, on, shift,
+            # upper) of each; a model with counts among its outputs takes the third for every output, left out
+            # of the others' transforms.
             on = zero.at[k, i].set(1.0)
-            # Y ≤ y (< y for counts) and Y > y; for counts Y = y too (the density observed): one vectorised
-            # Laplace evaluation of the two or three (mask, on, shift, upper); a model with counts among its
-            # outputs takes the third for every output, left out of the others' transforms.
-            parts = [(mask, on, jnp.where(counts[i], on, zero), zero), (mask, on, zero, on)]
-            if n_parts == 3:
-                parts.append((mask.at[k, i].set(1.0), zero, zero, zero))
-            stacked = [jnp.stack(a) for a in zip(*parts)]
-            values = jax.vmap(lambda mask, *cdf: laplace.value(theta, before._replace(mask=mask), cdf))(*stacked)
-            if n_parts == 3:  # a third part for counts only
-                values = jnp.where(jnp.stack([True, True, counts[i]]), values, -jnp.inf)
-            p = jnp.exp(values - jnp.max(values))
-            return (p[0] + (uniforms[k, i] * p[2] if n_parts == 3 else 0.0)) / jnp.sum(p)
+            lower_tail, upper_tail = part == 0, part == 1
+            mask = jnp.where(part == 2, before.mask.at[k, i].set(1.0), before.mask)
+            cdf = (jnp.where(part < 2, on, zero), jnp.where(lower_tail & counts[i], on, zero),
+                   jnp.where(upper_tail, on, zero))
+            value = laplace.value(theta, before._replace(mask=mask), cdf)
+            return jnp.where((part < 2) | counts[i], value, -jnp.inf)
 
-        return each_observation(data, n_out, transform, 0.5)
+        values = each_observation(data, n_out, part_value, -jnp.inf, parts=n_parts)  # (N, parts, outputs)
+        p = jnp.exp(values - jnp.max(values, axis=1, keepdims=True))
+        point = uniforms * p[:, 2] if n_parts == 3 else 0.0
+        transform = (p[:, 0] + point) / jnp.sum(p, axis=1)
+        return jnp.where(data.mask > 0, transform, 0.5)
 
     return transforms
