@@ -472,6 +472,54 @@ def test_the_cdf_transforms_vectorised_over_rows_and_parts_are_each_observations
         assert transforms[k, 0] == pytest.approx((p[0] + uniforms[k, 0] * p[2]) / p.sum(), rel=1e-10, abs=1e-13)
 
 
+@pytest.mark.parametrize("upper", [False, True])
+def test_the_laplace_value_with_a_tail_term_is_the_dense_laplace_approximation(upper):
+    """Laplace.value with one count's tail among its terms (log P(N < n | l_k) or log P(N > n | l_k), the "cdf"
+    transforms' parts, taken at that row alone) against Laplace's approximation computed densely in the test: the
+    joint log-density of all states written out (stationary prior, exact OU transitions, Poisson counts before
+    row k, the tail at row k, the states after k integrated out exactly), its mode by SciPy, −½ log det of its
+    full Hessian; to 1e-8."""
+    import jax
+    import jax.numpy as jnp
+    from jax.scipy.special import gammaincc
+    from jax.scipy.stats import norm, poisson
+    from scipy import optimize
+
+    from greyid.filters import api, laplace
+
+    m, data = poisson_model(), poisson_data(9, seed=7)
+    a, mu, s = 0.5, 2.0, 0.5
+    _, theta, prepared, _ = api._laplace_program(m, dict(a=a, mu=mu, s=s), data, "t", "zoh", None, "one-step-test",
+                                                 laplace.one_step_transforms, dict(substeps=1))
+    options = api.accurate_options(m.structure, theta, prepared, "laplace", substeps=1)[0]
+    inputs = prepared[0][1]
+    k, counts = 6, data["n"].to_numpy(dtype=float)
+    rows = np.arange(inputs.t.shape[0])
+    before = inputs._replace(dt=np.where(rows > k, 0.0, inputs.dt),
+                             mask=np.where((rows < k)[:, None], inputs.mask, 0.0))
+    on, none = np.zeros(inputs.mask.shape), np.zeros(inputs.mask.shape)
+    on[k, 0] = 1.0
+    cdf = (on, none, on) if upper else (on, on, none)
+    value = float(jax.jit(laplace.build(m.structure, options).value)(theta, before, cdf))
+
+    sd, decay = s / np.sqrt(2 * a), np.exp(-a)
+    step_sd = sd * np.sqrt(1 - decay**2)
+
+    def joint(x):  # x_0 … x_k: the states after row k integrate to one
+        value = norm.logpdf(x[0], mu, sd) + jnp.sum(norm.logpdf(x[1:], mu + (x[:-1] - mu) * decay, step_sd))
+        value = value + jnp.sum(poisson.logpmf(counts[:k], jnp.exp(x[:k])))
+        below = gammaincc(counts[k], jnp.exp(x[k]))  # P(N ≤ n − 1 | l_k)
+        above = 1 - gammaincc(counts[k] + 1, jnp.exp(x[k]))  # P(N > n | l_k)
+        return value + jnp.log(above if upper else below)
+
+    negative = jax.jit(lambda x: -joint(x))
+    found = optimize.minimize(negative, np.full(k + 1, mu), jac=jax.jit(jax.grad(negative)),
+                              hess=jax.jit(jax.hessian(negative)), method="trust-exact", options=dict(gtol=1e-12))
+    _, logdet = np.linalg.slogdet(np.asarray(jax.hessian(negative)(found.x)))
+    dense = -found.fun + 0.5 * (k + 1) * np.log(2 * np.pi) - 0.5 * logdet
+    assert counts[k] > 0 and value == pytest.approx(dense, rel=1e-8, abs=1e-8)
+
+
 def test_the_newton_search_takes_its_last_full_step_in_its_loop(monkeypatch):
     """The search's last full step is the loop's last pass, not a copy of the step after the loop: tracing
     Laplace.value factorises −H twice (the loop's step, and the value's log-determinant at the mode), and

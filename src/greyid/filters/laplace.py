@@ -91,6 +91,9 @@ class Terms(NamedTuple):
     rows: tuple
     x0: jnp.ndarray
     drift: Callable
+    #: The ``cdf`` terms of ``pieces`` (one row's) as a function of that row's states, and their index in X.
+    tail: Callable | None = None
+    tail_at: jnp.ndarray | None = None
 
 
 def fine_grid(data: FilterInputs, substeps: int, linear_inputs: bool) -> Grid:
@@ -219,7 +222,7 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
         """The joint log-density's terms at θ, on the grid of ``data``: computed once per θ, outside the
         Newton loop that evaluates them many times.  ``cdf = (on, shift, upper)`` (N, outputs) adds, where
         ``on``, log P(Y ≤ y − shift | x) of each output, or log P(Y > y | x) where ``upper`` (the one-step
-        transforms')."""
+        transforms'); ``on`` marks outputs of one row at most (``Terms.tail``, taken at that row alone)."""
         series = series_rows(structure, theta, data)
         data = series.data
         grid = fine_grid(data, s, linear_inputs=ctsmtmb)
@@ -271,23 +274,33 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
             mean = jnp.where(still, x_now, mean)
             return gaussian(small.cholesky(V), x_next - mean)
 
-        def observed(x, row):
+        def law_of(x, row):
+            """(y, the outputs' law) of ``row`` at x, both whitened where the noise is correlated, and L."""
             y, mask, u, t = row[:4]
             law = structure.observation_law(x, u, t, theta)
-            if full is not None:
-                # Correlated noise: the observed outputs (and the one whose tail is taken) whitened by the
-                # Cholesky factor L of their noise covariance, the density the whitened one's over det L.  A
-                # whitened output's tail given the outputs before it is the output's own (L is triangular with
-                # a positive diagonal), so the one-step transforms keep their meaning.
-                seen = mask if cdf is None else jnp.maximum(mask, row[4])
-                L = observed_root(full(zeros, u, t, theta), seen)
-                y, law = whiten(L, seen, y), (whiten(L, seen, law[0]), jnp.ones_like(law[1]), law[2])
+            if full is None:
+                return y, law, None
+            # Correlated noise: the observed outputs (and the one whose tail is taken) whitened by the
+            # Cholesky factor L of their noise covariance, the density the whitened one's over det L.  A
+            # whitened output's tail given the outputs before it is the output's own (L is triangular with
+            # a positive diagonal), so the one-step transforms keep their meaning.
+            seen = mask if cdf is None else jnp.maximum(mask, row[4])
+            L = observed_root(full(zeros, u, t, theta), seen)
+            return whiten(L, seen, y), (whiten(L, seen, law[0]), jnp.ones_like(law[1]), law[2]), L
+
+        def observed(x, row):
+            y, law, L = law_of(x, row)
+            mask = row[1]
             value = observations_log_density(families, y, mask, *law)
             if full is not None:
                 value = value - jnp.sum(jnp.where(mask > 0, jnp.log(jnp.diag(L)), 0.0))
-            if cdf is None:
-                return value
+            return value
+
+        def tail(x, row):
+            """The ``cdf`` terms of one row (its outputs where ``on``)."""
+            y, law, _ = law_of(x, row)
             on, shift, upper = row[4:]
+            value = 0.0
             for i, family in enumerate(families):
                 # (y itself where off: a finite value whose derivatives are finite, which the where discards)
                 at = jnp.where(on[i] > 0, y[i] - shift[i], y[i])
@@ -307,13 +320,20 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
             return (-0.5 * (z @ z) - jnp.sum(jnp.log(jnp.diag(prior_root))) - 0.5 * len(kept) * jnp.log(2 * jnp.pi)
                     - flat)
 
-        return Terms(grid, transition, observed, prior, rows, x0, drift)
+        if cdf is None:
+            return Terms(grid, transition, observed, prior, rows, x0, drift)
+        # The cdf terms are one observation's (the one-step transforms'): taken at its row alone, not computed at
+        # every row and discarded (a tail such as Poisson's incomplete gamma function is an iteration each).
+        k = jnp.argmax(jnp.any(cdf[0] > 0, axis=1))
+        row = tuple(a[k] for a in rows)
+        return Terms(grid, transition, observed, prior, rows, x0, drift, lambda x: tail(x, row), k * s)
 
     def joint(terms: Terms, X):
         """J(X, θ) of the terms at θ: X (T + 1, n)."""
         pairs = jnp.concatenate([X[:-1], X[1:]], axis=1)
-        return (terms.prior(X[0]) + jnp.sum(jax.vmap(terms.transition)(pairs, terms.grid))
-                + jnp.sum(jax.vmap(terms.observed)(X[::s], terms.rows)))
+        value = (terms.prior(X[0]) + jnp.sum(jax.vmap(terms.transition)(pairs, terms.grid))
+                 + jnp.sum(jax.vmap(terms.observed)(X[::s], terms.rows)))
+        return value if terms.tail is None else value + terms.tail(X[terms.tail_at])
 
     def blocks(terms: Terms, X):
         """−∂²J/∂X²: its diagonal blocks (T + 1, n, n) and those below them (T, n, n)."""
@@ -323,6 +343,8 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
         diagonal = jnp.zeros((X.shape[0], n, n))
         diagonal = diagonal.at[:-1].add(H_pairs[:, :n, :n]).at[1:].add(H_pairs[:, n:, n:])
         diagonal = diagonal.at[::s].add(H_obs).at[0].add(jax.hessian(terms.prior)(X[0]))
+        if terms.tail is not None:
+            diagonal = diagonal.at[terms.tail_at].add(jax.hessian(terms.tail)(X[terms.tail_at]))
         return -diagonal, -H_pairs[:, n:, :n]
 
     def start(terms: Terms):
