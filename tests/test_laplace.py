@@ -694,3 +694,26 @@ def test_the_derivatives_trace_the_mode_search_once(monkeypatch):
     x = np.array([PARAMS[n] for n in m.likelihood(data).names])
     m.likelihood(data, method="laplace").hessian(x)
     assert sum(searches) == 1
+
+
+def test_the_selected_inverse_bands_are_the_dense_inverses_blocks():
+    """block_inverse_bands: the diagonal blocks of A⁻¹ and those right of them, against numpy's dense inverse of a
+    random symmetric positive definite block-tridiagonal A (5 blocks of 3), to 1e-12."""
+    from greyid.filters.laplace import block_cholesky, block_inverse_bands
+
+    rng = np.random.default_rng(12)
+    T, n = 4, 3
+    lower = rng.normal(size=(T, n, n)) * 0.3
+    diagonal = np.stack([np.eye(n) * 3 + 0.1 * (a + a.T) for a in rng.normal(size=(T + 1, n, n))])
+    dense = np.zeros(((T + 1) * n, (T + 1) * n))
+    for j in range(T + 1):
+        dense[j * n:(j + 1) * n, j * n:(j + 1) * n] = diagonal[j]
+    for j in range(T):
+        dense[(j + 1) * n:(j + 2) * n, j * n:(j + 1) * n] = lower[j]
+        dense[j * n:(j + 1) * n, (j + 1) * n:(j + 2) * n] = lower[j].T
+    inverse = np.linalg.inv(dense)
+    inner, crosses = block_inverse_bands(*block_cholesky(diagonal, lower))
+    for j in range(T + 1):
+        np.testing.assert_allclose(inner[j], inverse[j * n:(j + 1) * n, j * n:(j + 1) * n], atol=1e-12)
+    for j in range(T):
+        np.testing.assert_allclose(crosses[j], inverse[j * n:(j + 1) * n, (j + 1) * n:(j + 2) * n], atol=1e-12)

@@ -152,8 +152,9 @@ def block_solve(factor, couplings, b):
     return jnp.concatenate([earlier, last[None]])
 
 
-def block_inverse_diagonal(factor, couplings):
-    """The diagonal blocks of A⁻¹ from A's block Cholesky factor (L_j, W_j) (Takahashi's selected inversion).
+def block_inverse_bands(factor, couplings):
+    """The diagonal blocks of A⁻¹ (T+1, n, n) and the blocks right of them, Σ_{j,j+1} (T, n, n), from A's block
+    Cholesky factor (L_j, W_j) (Takahashi's selected inversion).
 
     Lᵀ Σ = L⁻¹ is block lower triangular with diagonal blocks L_j⁻¹, so from the last block back,
     Σ_{j,j+1} = −L_j⁻ᵀ W_{j+1}ᵀ Σ_{j+1,j+1} and Σ_jj = L_j⁻ᵀ (L_j⁻¹ − W_{j+1}ᵀ Σ_{j+1,j}): the covariances
@@ -173,10 +174,15 @@ def block_inverse_diagonal(factor, couplings):
         inverse_L = small.solve_lower(L, eye)
         block = small.solve_upper_transposed(L, inverse_L - small.mm(W_next.T, cross.T))
         block = 0.5 * (block + block.T)
-        return block, block
+        return block, (block, cross)
 
-    _, earlier = jax.lax.scan(backward, last, (factor[:-1], couplings), reverse=True)
-    return jnp.concatenate([earlier, last[None]])
+    _, (earlier, crosses) = jax.lax.scan(backward, last, (factor[:-1], couplings), reverse=True)
+    return jnp.concatenate([earlier, last[None]]), crosses
+
+
+def block_inverse_diagonal(factor, couplings):
+    """The diagonal blocks of A⁻¹ (see [`block_inverse_bands()`][greyid.filters.laplace.block_inverse_bands])."""
+    return block_inverse_bands(factor, couplings)[0]
 
 
 def block_matvec(diagonal, lower, x):
@@ -442,10 +448,33 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
         logdet = 2 * jnp.sum(jnp.log(jnp.diagonal(factor, axis1=1, axis2=2)))
         return joint(terms, X) + 0.5 * X.size * jnp.log(2 * jnp.pi) - 0.5 * logdet
 
-    def marginal(theta, data: FilterInputs):
-        """(log L(θ) by Laplace's method, the mode X̂ (T + 1, n))."""
+    @jax.custom_jvp
+    def laplace_marginal(theta, data):
         X = mode(theta, data)
         return value_at(pieces(theta, data), X), X
+
+    @laplace_marginal.defjvp
+    def laplace_marginal_jvp(primals, tangents):
+        """d log L = ∂J/∂θ dθ − ½ tr(A⁻¹ dA), A = −∂²J/∂X² at the mode (∂J/∂X = 0 there: the envelope theorem),
+        dA its blocks' derivative along (dθ, dX̂); the trace from A⁻¹'s diagonal and neighbouring blocks
+        (``block_inverse_bands``) rather than through the derivative of A's block Cholesky factorisation."""
+        theta, data = primals
+        dtheta, _ = tangents
+        X, dX = jax.jvp(lambda th: mode(th, data), (theta,), (dtheta,))
+        J, dJ = jax.jvp(lambda th: joint(pieces(th, data), X), (theta,), (dtheta,))
+        (diagonal, lower), (d_diagonal, d_lower) = jax.jvp(
+            lambda th, x: blocks(pieces(th, data), x), (theta, X), (dtheta, dX))
+        factor, couplings = block_cholesky(diagonal, lower)
+        logdet = 2 * jnp.sum(jnp.log(jnp.diagonal(factor, axis1=1, axis2=2)))
+        inner, crosses = block_inverse_bands(factor, couplings)
+        # tr(A⁻¹ dA): the diagonal blocks, and each block below the diagonal twice (A is symmetric).
+        d_logdet = jnp.sum(inner * d_diagonal) + 2 * jnp.sum(jnp.swapaxes(crosses, 1, 2) * d_lower)
+        value = J + 0.5 * X.size * jnp.log(2 * jnp.pi) - 0.5 * logdet
+        return (value, X), (dJ - 0.5 * d_logdet, dX)
+
+    def marginal(theta, data: FilterInputs):
+        """(log L(θ) by Laplace's method, the mode X̂ (T + 1, n))."""
+        return laplace_marginal(theta, data)
 
     def value(theta, data: FilterInputs, cdf=None):
         """The Laplace value alone (no derivatives in θ), with the ``cdf`` terms of ``pieces``; its mode to
