@@ -442,19 +442,23 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
                                          lambda _, b: block_solve(factor, couplings, b), symmetric=True)
         return X, dX
 
-    def value_at(terms: Terms, X):
-        """J(X̂) + (d/2) log 2π − ½ log det(−H) at the mode X̂."""
-        factor, _ = block_cholesky(*blocks(terms, X))
+    def laplace_value(J, X, factor):
+        """J(X̂) + (d/2) log 2π − ½ log det(−H) at the mode X̂, from −H's block Cholesky factor there."""
         logdet = 2 * jnp.sum(jnp.log(jnp.diagonal(factor, axis1=1, axis2=2)))
-        return joint(terms, X) + 0.5 * X.size * jnp.log(2 * jnp.pi) - 0.5 * logdet
+        return J + 0.5 * X.size * jnp.log(2 * jnp.pi) - 0.5 * logdet
+
+    def value_at(terms: Terms, X):
+        """``laplace_value`` of the terms at the mode X̂."""
+        return laplace_value(joint(terms, X), X, block_cholesky(*blocks(terms, X))[0])
 
     @jax.custom_jvp
-    def laplace_marginal(theta, data):
+    def marginal(theta, data: FilterInputs):
+        """(log L(θ) by Laplace's method, the mode X̂ (T + 1, n))."""
         X = mode(theta, data)
         return value_at(pieces(theta, data), X), X
 
-    @laplace_marginal.defjvp
-    def laplace_marginal_jvp(primals, tangents):
+    @marginal.defjvp
+    def marginal_jvp(primals, tangents):
         """d log L = ∂J/∂θ dθ − ½ tr(A⁻¹ dA), A = −∂²J/∂X² at the mode (∂J/∂X = 0 there: the envelope theorem),
         dA its blocks' derivative along (dθ, dX̂); the trace from A⁻¹'s diagonal and neighbouring blocks
         (``block_inverse_bands``) rather than through the derivative of A's block Cholesky factorisation."""
@@ -465,16 +469,10 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
         (diagonal, lower), (d_diagonal, d_lower) = jax.jvp(
             lambda th, x: blocks(pieces(th, data), x), (theta, X), (dtheta, dX))
         factor, couplings = block_cholesky(diagonal, lower)
-        logdet = 2 * jnp.sum(jnp.log(jnp.diagonal(factor, axis1=1, axis2=2)))
         inner, crosses = block_inverse_bands(factor, couplings)
         # tr(A⁻¹ dA): the diagonal blocks, and each block below the diagonal twice (A is symmetric).
         d_logdet = jnp.sum(inner * d_diagonal) + 2 * jnp.sum(jnp.swapaxes(crosses, 1, 2) * d_lower)
-        value = J + 0.5 * X.size * jnp.log(2 * jnp.pi) - 0.5 * logdet
-        return (value, X), (dJ - 0.5 * d_logdet, dX)
-
-    def marginal(theta, data: FilterInputs):
-        """(log L(θ) by Laplace's method, the mode X̂ (T + 1, n))."""
-        return laplace_marginal(theta, data)
+        return (laplace_value(J, X, factor), X), (dJ - 0.5 * d_logdet, dX)
 
     def value(theta, data: FilterInputs, cdf=None):
         """The Laplace value alone (no derivatives in θ), with the ``cdf`` terms of ``pieces``; its mode to
