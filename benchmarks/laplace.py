@@ -1,6 +1,6 @@
 """The Laplace method's cost beside ctsmTMB's (issue "strongly nonlinear and non-Gaussian models").
 
-    python benchmarks/laplace.py [--rows 50 1000 10000] [--calls 20] [--fits 1000 10000] [--optimizer lbfgs]
+    python benchmarks/laplace.py [--rows 50 1000 10000] [--calls 20] [--fits 1000 10000] [--optimizer newton]
         [--residuals 50] [--one-step cdf] [--per-observation]
 
 ctsmTMB's Ornstein2D example (``create.Ornstein2D.model()``: dx1 = θ(μ + u − x1)dt + σ1 dω1,
@@ -11,9 +11,10 @@ method="laplace", scheme=...)`` value and gradient per call (fastest of
 ``--calls`` after the first, which compiles), for ``scheme="ctsmtmb"`` (ctsmTMB's
 own computation: one Euler–Maruyama step per interval, 10⁻⁸ jitter) and greyid's
 default (exact transitions of these linear dynamics).  ``--fits``: a fit in this
-process (first, compiling) and again, by ``--optimizer`` (``lbfgs``: as ctsmTMB fits,
-quasi-Newton steps on the value and gradient and the Hessian by differences of the
-gradient).  ``--residuals``: a fit's one-step-ahead residuals (``fit.residuals``, the
+process (first, compiling) and again, by ``--optimizer`` (``auto``, the default, which for the
+Laplace method is ``lbfgs``: as ctsmTMB fits, quasi-Newton steps on the value and gradient and
+the Hessian by differences of the gradient; ``newton``: exact Newton steps and Hessian).
+``--residuals``: a fit's one-step-ahead residuals (``fit.residuals``, the
 first in the process, compiling, and again for a second fit, then the fastest of ``--calls``
 of ``laplace_residuals``); ``--one-step cdf`` by TMB's
 method "cdf" instead of the Gaussian predictive (ctsmTMB's "oneStepGaussian");
@@ -82,8 +83,9 @@ def main():
     parser.add_argument("--one-step", choices=("gaussian", "cdf"), default=None,
                         help="the residuals' method (default: the fit's, 'gaussian' for these Gaussian outputs)")
     parser.add_argument("--optimizer", default="auto",
-                        help="the fits' optimizer: auto (Newton steps on the exact Hessian) or lbfgs (L-BFGS, "
-                             "the Hessian by differences of the gradient, as TMB's sdreport)")
+                        help="the fits' optimizer: auto (for the Laplace method lbfgs: L-BFGS, the Hessian by "
+                             "differences of the gradient, as TMB's sdreport) or newton (exact Newton steps "
+                             "and Hessian)")
     parser.add_argument("--per-observation", action="store_true",
                         help="the Gaussian residuals by a Laplace mode per observation (a nonlinear model's way; "
                              "give it a cache folder of its own: the kept program has the same name)")

@@ -131,13 +131,14 @@ def test_a_laplace_fit_recovers_the_simulated_parameters_of_counts():
 
 def test_an_lbfgs_fit_reaches_newtons_optimum_without_a_hessian_program(monkeypatch):
     """optimizer="lbfgs" (L-BFGS on the value and exact gradient, the Hessian at the optimum by central
-    differences of the gradient, as TMB's sdreport): the default fit's optimum and standard errors, without
-    the exact Hessian's program (what a first Laplace fit spends most of its compilation on)."""
+    differences of the gradient, as TMB's sdreport), which "auto" takes for the Laplace method: Newton's
+    optimum and standard errors, without the exact Hessian's program (what a first Laplace fit by Newton's
+    steps spends most of its compilation on)."""
     from greyid.estimate import estimation, objective
 
     m, data = poisson_model(), poisson_data(300, seed=8)
     m.set_parameter("mu", init=1.5, lower=-5, upper=10)
-    newton = m.fit(data, method="laplace")
+    newton = m.fit(data, method="laplace", optimizer="newton")
 
     def refused(*args, **kwargs):
         raise AssertionError("the exact Hessian's programs were asked for")
@@ -145,17 +146,21 @@ def test_an_lbfgs_fit_reaches_newtons_optimum_without_a_hessian_program(monkeypa
     monkeypatch.setattr(estimation, "single_programs", refused)
     monkeypatch.setattr(objective.Derivatives, "__init__", refused)
     events = []
-    lbfgs = m.fit(data, method="laplace", optimizer="lbfgs", progress=events.append)
-    assert newton.converged and lbfgs.converged
-    assert lbfgs.loglik == pytest.approx(newton.loglik, abs=1e-7)
-    shift = (lbfgs.params["estimate"] - newton.params["estimate"]) / newton.params["std_error"]
+    by_default = m.fit(data, method="laplace", progress=events.append)
+    lbfgs = m.fit(data, method="laplace", optimizer="lbfgs")
+    assert newton.converged and by_default.converged
+    assert by_default.loglik == pytest.approx(newton.loglik, abs=1e-7)
+    shift = (by_default.params["estimate"] - newton.params["estimate"]) / newton.params["std_error"]
     assert np.max(np.abs(shift)) < 1e-3
-    np.testing.assert_allclose(lbfgs.params["std_error"], newton.params["std_error"], rtol=1e-4)
+    np.testing.assert_allclose(by_default.params["std_error"], newton.params["std_error"], rtol=1e-4)
+    np.testing.assert_array_equal(lbfgs.params["estimate"], by_default.params["estimate"])
     steps = [e for e in events if "iteration" in e]
     assert steps and {e["stage"] for e in steps} == {"lbfgs"}
-    assert [e["iteration"] for e in steps] == list(range(1, lbfgs.iterations + 1))
-    assert lbfgs.settings.optimizer == "lbfgs"
-    assert "covariance: hessian (the Hessian by central differences" in lbfgs.summary()
+    assert [e["iteration"] for e in steps] == list(range(1, by_default.iterations + 1))
+    assert (by_default.settings.optimizer, lbfgs.settings.optimizer) == ("auto", "lbfgs")
+    assert by_default.settings.hessian == lbfgs.settings.hessian == "differences"
+    assert newton.settings.hessian == "exact"
+    assert "covariance: hessian (the Hessian by central differences" in by_default.summary()
     assert "by central differences" not in newton.summary()
     with pytest.raises(greyid.ModelError, match="optimizer='lbfgs' is for single fits"):
         greyid.fit_many(m, {"a": data, "b": data}, method="laplace", optimizer="lbfgs")

@@ -110,13 +110,14 @@ class Model(ModelSpec):
             H⁻¹JH⁻¹, the default for k-step and robust criteria; ``"opg"``),
             ``optimizer`` (``"auto"``: Fisher scoring far from the optimum where a
             Hessian is costly, the quasi-Newton start where a Hessian of one block
-            carries many states, then exact Newton steps; ``"scoring"``; ``"newton"``;
+            carries many states, then exact Newton steps; for the Laplace method
+            ``"lbfgs"``, as ctsmTMB fits; ``"scoring"``; ``"newton"``;
             ``"quasi-newton"``: L-BFGS steps on the value and exact gradient, then
             Newton steps, the same optimum, faster compiled fits of small models, one
             program more to compile; ``"lbfgs"``: L-BFGS to the optimum and the Hessian
             there by central differences of the exact gradient, as TMB's ``sdreport``:
             no Hessian program to compile, so a first fit by the Laplace method takes
-            about two thirds of the time, standard errors to about 1e-6 relative; single
+            about 0.6 of Newton's time, standard errors to about 1e-6 relative; single
             fits only), ``steady_state`` (True: a regular series of 128
             rows or more of a linear time-invariant model is filtered in the filter's
             steady state once it has settled; later fits take about half the time, the

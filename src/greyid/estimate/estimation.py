@@ -48,7 +48,8 @@ CRITERIA = ("ml", "map")
 # L-BFGS steps on value and exact gradient from each start run alone, then exact Newton
 # steps (lbfgs.quasi_newton_start; a fit's starts run together take
 # Newton steps); "lbfgs": L-BFGS to the optimum and the Hessian there by central differences of the exact
-# gradient, as TMB's sdreport (lbfgs.lbfgs_search): no Hessian program to compile, each start alone.
+# gradient, as TMB's sdreport (lbfgs.lbfgs_search): no Hessian program to compile, each start alone;
+# "auto" takes it for the Laplace method (laplace_by_lbfgs).
 # The names are greyid.schema.OPTIMIZERS (model files are checked against them).
 
 #: Below this (padded rows × free parameters²) the exact Hessian is cheap enough that scoring does
@@ -211,6 +212,18 @@ def check_observed(prepared, n_free: int, where: str = "the data") -> None:
 
 def uses_scoring(optimizer: str, rows: int, n_free: int) -> bool:
     return optimizer == "scoring" or (optimizer == "auto" and rows * n_free ** 2 >= SCORING_WORK)
+
+
+def laplace_by_lbfgs(optimizer: str, method: str) -> bool:
+    """Whether a fit searches by L-BFGS with the Hessian by differences of the gradient: asked for by
+    ``optimizer="lbfgs"``, and taken by ``"auto"`` for the Laplace method, as ctsmTMB fits (``nlminb`` and
+    ``sdreport``).  A Laplace Hessian's program differentiates the mode's implicit derivative and the
+    log-determinant's rule once more and compiles about as long as the value and gradient's; without it a
+    first fit of ctsmTMB's Ornstein2D example takes about 0.6 of the time, and on that example the compiled
+    fits are faster too, at 10³ and 10⁴ rows (``benchmarks/laplace.py --optimizer``, docs/performance.md).
+    The standard errors carry the differences' error (about 1e-6 relative; ``optimizer="newton"`` gives
+    the exact Hessian's)."""
+    return optimizer == "lbfgs" or (optimizer == "auto" and method == LAPLACE)
 
 
 def one_block(rows: int, n_free: int) -> bool:
@@ -469,7 +482,8 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
     check_observed(prepared, len(free))
 
     rows = sum(series.n_rows for series, _ in prepared)
-    use_scoring = uses_scoring(optimizer, rows, len(free))
+    by_lbfgs = laplace_by_lbfgs(optimizer, problem.options.method)
+    use_scoring = uses_scoring(optimizer, rows, len(free)) and not by_lbfgs
     args = problem.arguments(theta0)
     nested = None
     if init_from is not None:
@@ -507,7 +521,7 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
             shown.begin_start(i)
             quasi = start and uses_quasi_start(optimizer, search.scoring, rows, len(free), structure.n_states)
             try:
-                optimum = alone.run(problem, search, quasi=quasi, lbfgs=optimizer == "lbfgs")
+                optimum = alone.run(problem, search, quasi=quasi and not by_lbfgs, lbfgs=by_lbfgs)
             except NotFiniteError:
                 raise not_finite(problem, z_start, i) from None
             finished(i, optimum)
@@ -515,7 +529,7 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
 
         # With the steady state each start runs alone: vectorised over starts, each start's switch
         # would run both forms.
-        if len(points) == 1 or problem.long_series or problem.options.steady_state or optimizer == "lbfgs":
+        if len(points) == 1 or problem.long_series or problem.options.steady_state or by_lbfgs:
             optima = [optimize(problem, z_start, i, newton_only[i], start=True) for i, z_start in enumerate(points)]
         else:
             # All starts together, each request kind evaluated for all of them by one
@@ -541,7 +555,8 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
             problem, best, substep_choice = _accurate_substeps(structure, problem, best, args, datasets,
                                                                lambda p, z: optimize(p, z, len(optima)))
     call = dict(time=time, hold=hold, criterion=criterion, robust=robust, horizon=int(horizon), starts=starts,
-                optimizer=optimizer, time_unit=time_unit, prior=prior, cov_type=cov_type, seed=seed)
+                optimizer=optimizer, time_unit=time_unit, prior=prior, cov_type=cov_type, seed=seed,
+                hessian="differences" if by_lbfgs else "exact")
     return finish(model, frames, problem, best, optima, args, datasets, theta0, call, labels, substep_choice)
 
 

@@ -209,7 +209,7 @@ class Estimates:
             f"log-likelihood: {self.loglik:<16.6f} observations: {self.n_obs:<10d} parameters: {self.n_params}",
             f"AIC: {self.aic:<16.4f} BIC: {self.bic:<16.4f} converged: {self.converged} ({self.iterations} iterations)",
             f"covariance: {self.cov_type}" + (" (the Hessian by central differences of the exact gradient)"
-                                               if s.get("optimizer") == "lbfgs" else ""),
+                                               if s.get("hessian") == "differences" else ""),
         ]
         if len(self.start_values) > 1:
             lines.append(f"starts: {self.start_spread()}")

@@ -66,6 +66,10 @@ class FitSettings(Mapping):
         The particle filter's proposal, ``"bootstrap"``, ``"ekf"`` or ``"ukf"`` (None for the other filters).
     scheme : str, optional
         The Laplace method's transitions, ``"auto"``, ``"euler"`` or ``"ctsmtmb"`` (None for the other methods).
+    hessian : str
+        How the Hessian at the optimum (and so the covariance ``"hessian"``) was computed: ``"exact"``
+        (derivatives of the exact gradient), or ``"differences"`` (central differences of the exact gradient:
+        ``optimizer="lbfgs"``, and ``"auto"`` for the Laplace method).
 
     Examples
     --------
@@ -98,6 +102,7 @@ class FitSettings(Mapping):
     inflation: float | None = None
     proposal: str | None = None
     scheme: str | None = None
+    hessian: str = "exact"
 
     # A mapping of the fields, so that code and users that read a fit's settings by key go on working.
     def __getitem__(self, key: str):
