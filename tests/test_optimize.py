@@ -254,3 +254,22 @@ def test_the_scaled_difference_hessian_recovers_a_badly_scaled_curvature():
     np.testing.assert_allclose(conditional_scales(np.diag(H), guessed), 1 / np.sqrt(np.diag(exact)), rtol=1e-7)
     # Where the curvature is not a positive finite number, the guess stays.
     np.testing.assert_array_equal(conditional_scales(np.array([-1.0, np.nan]), guessed), guessed)
+
+
+def test_an_lbfgs_search_whose_difference_hessian_is_not_finite_ends_unconverged_and_says_why():
+    """At an optimum on the edge of where the model is defined (here the gradient is NaN for z₀ > 0), a
+    difference step of the Hessian lands outside: the search ends, not converged, with the best point and a
+    message that says the Hessian by differences is not finite (not numpy's error from its eigenvalues)."""
+    from greyid.estimate.lbfgs import lbfgs_search
+
+    def value_and_grad(z):
+        gradient = np.array([z[0], 2.0 * z[1]])
+        if z[0] > 0:
+            gradient[0] = np.nan
+        return 0.5 * z[0] ** 2 + z[1] ** 2, gradient
+
+    optimum = lbfgs_search(value_and_grad, np.array([-1.0, 1.0]), maxiter=100)
+    assert not optimum.converged
+    assert "Hessian by differences of the gradient is not finite" in optimum.message
+    assert not np.all(np.isfinite(optimum.hessian))
+    assert optimum.value < 1e-10 and np.all(np.isfinite(optimum.z))

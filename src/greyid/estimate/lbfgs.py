@@ -156,12 +156,18 @@ def lbfgs_search(value_and_grad: Callable, z0: np.ndarray, maxiter: int, report:
     # Judged as a Newton search judges its end: the Newton decrement gᵀH⁻¹g negligible against |f| where the
     # Hessian is positive definite (L-BFGS itself stops where f no longer decreases, which the inner
     # optimisation's precision can reach before its own gradient tolerance).
+    largest = float(np.max(np.abs(best.gradient)))
+    if not np.all(np.isfinite(hessian)):
+        # A gradient a difference step away is not finite (the optimum on the edge of where the model is
+        # defined): no Hessian to judge the end by, nor standard errors from it.
+        return Optimum(best.z, best.value, best.gradient, hessian, best.iterations, evaluations, False,
+                       "L-BFGS stopped where the Hessian by differences of the gradient is not finite (a gradient "
+                       f"a step of {DIFFERENCE_STEP:g} standard deviations away is not; the gradient's largest "
+                       f"element {largest:.3g}): {result.message}")
     d = np.sqrt(np.abs(np.diag(hessian)))
     d = np.where(d > 0, d, 1.0)
     w, V = np.linalg.eigh(hessian / np.outer(d, d))
-    converged = bool(np.all(np.isfinite(hessian))) and _stationary(best.value, best.gradient / d, w,
-                                                                   V.T @ (best.gradient / d))
-    largest = float(np.max(np.abs(best.gradient)))
+    converged = _stationary(best.value, best.gradient / d, w, V.T @ (best.gradient / d))
     message = ("converged: Newton decrement below tolerance (L-BFGS, the Hessian by differences)" if converged else
                f"L-BFGS stopped short of the optimum (the gradient's largest element {largest:.3g}): {result.message}")
     return Optimum(best.z, best.value, best.gradient, hessian, best.iterations, evaluations, converged, message)
