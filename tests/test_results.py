@@ -202,8 +202,9 @@ def test_predict_gives_time_and_states(ou_case):
 def test_fit_settings_are_typed_read_as_a_mapping_and_survive_files_old_and_new(ou_case, tmp_path):
     """A fit's settings are a FitSettings: read by key as before (``fit.settings["method"]``), saved and
     loaded unchanged; a file written before a setting existed loads with its default, one with a
-    population member's random effects (``omega``) loads without them, and an unknown setting or a
-    missing one without a default is refused with the file named."""
+    population member's random effects (``omega``) loads without them, an ``optimizer="lbfgs"`` fit's with its
+    Hessian by differences, and an unknown setting or a missing one without a default is refused with the file
+    named."""
     import json
 
     import greyid
@@ -221,12 +222,17 @@ def test_fit_settings_are_typed_read_as_a_mapping_and_survive_files_old_and_new(
     assert greyid.load_fit(tmp_path / "fit.json").settings == s
     document = json.loads((tmp_path / "fit.json").read_text())
     old = dict(document, settings={k: v for k, v in document["settings"].items()
-                                   if k not in ("steady_state", "start_labels", "substeps_accurate")})
+                                   if k not in ("steady_state", "start_labels", "substeps_accurate", "hessian")})
     old["settings"]["omega"] = {"a": 0.1}
     (tmp_path / "old.json").write_text(json.dumps(old))
     loaded = greyid.load_fit(tmp_path / "old.json")
     assert loaded.settings == s.updated(start_labels=(), substeps_accurate=None) and "omega" not in loaded.settings
     assert loaded.loglik == fit.loglik
+    # A file of an optimizer="lbfgs" fit written before the Hessian's kind was kept: its Hessian was by differences.
+    old["settings"]["optimizer"] = "lbfgs"
+    (tmp_path / "old_lbfgs.json").write_text(json.dumps(old))
+    assert (loaded.settings.hessian, greyid.load_fit(tmp_path / "old_lbfgs.json").settings.hessian) == (
+        "exact", "differences")
     for name, settings, message in [
             ("unknown.json", dict(document["settings"], colour="red"), "unknown setting 'colour'"),
             ("missing.json", {k: v for k, v in document["settings"].items() if k != "hold"}, "no setting 'hold'")]:

@@ -152,6 +152,8 @@ class FitSettings(Mapping):
             known["robust"] = tuple(known["robust"])
         if "start_labels" in known:
             known["start_labels"] = tuple(known["start_labels"] or ())
+        if "hessian" not in known and known.get("optimizer") == "lbfgs":  # written before the setting was kept
+            known["hessian"] = "differences"
         return cls(**known)
 
 
