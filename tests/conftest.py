@@ -134,10 +134,22 @@ def random_linear_parameters(rng, n=3, nu=2, ny=2, nw=2):
 
 
 def van_loan(A, Q, tau):
-    """Φ, ∫e^{As}ds, (1/τ)∫e^{As}(τ−s)ds and Λ by plain block exponentials (SciPy)."""
+    """Φ, ∫e^{As}ds, (1/τ)∫e^{As}(τ−s)ds and Λ by plain block exponentials (SciPy).
+
+    Kept by (A, Q, τ): a dense reference evaluated at many parameter values (finite differences of a
+    dense likelihood) asks for the same intervals' discretization each time its A and Q stay.
+    """
+    A, Q = np.asarray(A, dtype=float), np.asarray(Q, dtype=float)
+    parts = _van_loan(A.shape[0], A.tobytes(), Q.tobytes(), float(tau))
+    return tuple(part.copy() for part in parts)
+
+
+@functools.lru_cache(maxsize=8192)
+def _van_loan(n, A_bytes, Q_bytes, tau):
     import scipy.linalg as sl
 
-    n = A.shape[0]
+    A = np.frombuffer(A_bytes).reshape(n, n)
+    Q = np.frombuffer(Q_bytes).reshape(n, n)
     Z, I = np.zeros((n, n)), np.eye(n)
     E = sl.expm(np.block([[A, I, Z], [Z, Z, I], [Z, Z, Z]]) * tau)
     F = sl.expm(np.block([[-A, Q], [Z, A.T]]) * tau)
