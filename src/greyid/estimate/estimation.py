@@ -49,7 +49,7 @@ CRITERIA = ("ml", "map")
 # steps (lbfgs.quasi_newton_start; a fit's starts run together take
 # Newton steps); "lbfgs": L-BFGS to the optimum and the Hessian there by central differences of the exact
 # gradient, as TMB's sdreport (lbfgs.lbfgs_search): no Hessian program to compile, each start alone;
-# "auto" takes it for the Laplace method (laplace_by_lbfgs).
+# "auto" takes it for the Laplace method (searches_by_lbfgs).
 # The names are greyid.schema.OPTIMIZERS (model files are checked against them).
 
 #: Below this (padded rows × free parameters²) the exact Hessian is cheap enough that scoring does
@@ -214,7 +214,7 @@ def uses_scoring(optimizer: str, rows: int, n_free: int) -> bool:
     return optimizer == "scoring" or (optimizer == "auto" and rows * n_free ** 2 >= SCORING_WORK)
 
 
-def laplace_by_lbfgs(optimizer: str, method: str) -> bool:
+def searches_by_lbfgs(optimizer: str, method: str) -> bool:
     """Whether a fit searches by L-BFGS with the Hessian by differences of the gradient: asked for by
     ``optimizer="lbfgs"``, and taken by ``"auto"`` for the Laplace method, as ctsmTMB fits (``nlminb`` and
     ``sdreport``).  A Laplace Hessian's program differentiates the mode's implicit derivative and the
@@ -482,7 +482,7 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
     check_observed(prepared, len(free))
 
     rows = sum(series.n_rows for series, _ in prepared)
-    by_lbfgs = laplace_by_lbfgs(optimizer, problem.options.method)
+    by_lbfgs = searches_by_lbfgs(optimizer, problem.options.method)
     use_scoring = uses_scoring(optimizer, rows, len(free)) and not by_lbfgs
     args = problem.arguments(theta0)
     nested = None
