@@ -521,7 +521,7 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
             shown.begin_start(i)
             quasi = start and uses_quasi_start(optimizer, search.scoring, rows, len(free), structure.n_states)
             try:
-                optimum = alone.run(problem, search, quasi=quasi and not by_lbfgs, lbfgs=by_lbfgs)
+                optimum = alone.run(problem, search, quasi=quasi, lbfgs=by_lbfgs)
             except NotFiniteError:
                 raise not_finite(problem, z_start, i) from None
             finished(i, optimum)
