@@ -581,3 +581,29 @@ def test_long_series_take_forward_mode_and_agree(ou, monkeypatch):
     for name in TRUE:
         assert forward.values[name] == pytest.approx(reverse.values[name], rel=1e-7, abs=1e-10)
         assert forward.bse[name] == pytest.approx(reverse.bse[name], rel=1e-6)
+
+
+def test_series_of_different_lengths_share_one_filter_and_each_keeps_its_likelihood():
+    """Four irregular series of 25–40 rows (four length buckets) pad to one shape, run by one vectorised
+    filter program; one of 10 rows keeps its own.  The fit's log-likelihood at its estimates is the sum of
+    each series' own log-likelihood (each padded as alone)."""
+    from greyid.filters.api import prepare_datasets, shared_lengths
+
+    model, rng = ou_model(), np.random.default_rng(31)
+    frames = []
+    for rows in (25, 31, 34, 40, 10):
+        frame = pd.DataFrame({"t": np.cumsum(rng.uniform(0.3, 0.9, rows)), "u": rng.normal(size=rows)})
+        frame["y"] = model.simulate(TRUE, frame, seed=rows).outputs[0, :, 0]
+        frame.loc[frame.index[3], "y"] = np.nan
+        frames.append(frame)
+    theta = model.parameter_vector(TRUE)
+    prepared = prepare_datasets(model.structure, theta, frames, "t", "zoh", None)
+    shared = shared_lengths(prepared)
+    shapes = [tuple(np.shape(leaf) for leaf in jax.tree_util.tree_leaves(inputs)) for _, inputs in shared]
+    assert len(set(shapes[:4])) == 1 and shapes[4] != shapes[0]
+    assert len({tuple(np.shape(leaf) for leaf in jax.tree_util.tree_leaves(i)) for _, i in prepared}) == 5
+    assert all(s is p for (s, _), (p, _) in zip(shared, prepared))
+
+    fit = model.fit(frames)
+    each = sum(model.loglik(fit.values, frame) for frame in frames)
+    assert fit.converged and fit.loglik == pytest.approx(each, abs=1e-9)

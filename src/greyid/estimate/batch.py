@@ -23,6 +23,7 @@ import numpy as np
 
 from ..runtime.jit import jit
 from ..errors import ModelError
+from ..filters.api import padded_inputs
 from .objective import Programs, combine_hessian, combine_scoring, direction_blocks, worker_count
 from .optimize import EXACT, SCORING, VALUE, Optimum, settle
 from .trust_region import Search, SearchState
@@ -299,31 +300,10 @@ def drive(searches: Sequence[Search], evaluate: Callable, prune: Callable | None
 
 
 def pad_series(series: Sequence, length: int, unique: int):
-    """Stack filter inputs of several series, each padded to ``length`` rows and ``unique`` intervals.
-
-    Padding rows repeat the last time and input, carry no observation and an
-    interval of length 0 (as [`filter_inputs()`][greyid.filters.api.filter_inputs] pads), so
-    they change nothing.
+    """Stack filter inputs of several series, each padded to ``length`` rows and ``unique`` intervals
+    ([`padded_inputs()`][greyid.filters.api.padded_inputs]: the padding changes nothing).
     """
-    padded = []
     slots = max(len(s.delay_slots) for s in series)
-    # A longer diffuse period than a member's own changes nothing: once P∞ is zero its steps are ordinary.
     head = max(len(s.diffuse_rows) for s in series)
-    for s in series:
-        s = jax.device_get(s)
-        n, extra = len(s.t), length - len(s.t)
-        zero = int(np.flatnonzero(s.unique_dt == 0.0)[0])
-        last = s.t[-1]
-        padded.append(type(s)(
-            t=np.concatenate([s.t, np.full(extra, last)]),
-            t_prev=np.concatenate([s.t_prev, np.full(extra, last)]),
-            dt=np.concatenate([s.dt, np.zeros(extra)]),
-            u_prev=np.concatenate([s.u_prev, np.repeat(s.u_cur[-1:], extra, axis=0)]),
-            u_cur=np.concatenate([s.u_cur, np.repeat(s.u_cur[-1:], extra, axis=0)]),
-            y=np.concatenate([s.y, np.zeros((extra, s.y.shape[1]))]),
-            mask=np.concatenate([s.mask, np.zeros((extra, s.mask.shape[1]))]),
-            dt_index=np.concatenate([s.dt_index, np.full(extra, zero, dtype=s.dt_index.dtype)]),
-            unique_dt=np.concatenate([s.unique_dt, np.zeros(unique - len(s.unique_dt))]),
-            first_interval=s.first_interval, foh=s.foh, delay_slots=np.zeros(slots), diffuse_rows=np.zeros(head)))
-        assert n <= length
+    padded = [padded_inputs(jax.device_get(s), length, unique, slots, head) for s in series]
     return _stack(padded)

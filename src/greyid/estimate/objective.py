@@ -125,6 +125,13 @@ def summed_over_datasets(criterion: Callable, theta, datasets):
     return total
 
 
+def evaluates_together(problem: Problem) -> bool:
+    """Whether the criterion runs the data sets of one shape through one vectorised filter
+    ([`summed_over_datasets()`][greyid.estimate.objective.summed_over_datasets]): not with the steady state,
+    whose switch decides by ``lax.cond`` per data set (vectorised, both branches would run)."""
+    return not (problem.long_series or problem.options.steady_state)
+
+
 def criterion_functions(structure, problem: Problem, forward_only: bool = False):
     """``(terms, negative)``: θ, data ↦ the filter's per-step terms, and θ ↦ the negative log-criterion
     (3.18, or the robust or k-step criterion) summed over the data sets, minus the log-prior (MAP).
@@ -154,8 +161,7 @@ def criterion_functions(structure, problem: Problem, forward_only: bool = False)
         def criterion(theta, data):
             return log_criterion(terms(theta, data), problem.robust)
 
-    # The steady-state switch decides by lax.cond per data set: vectorised, both branches would run.
-    together = not (problem.long_series or problem.options.steady_state)
+    together = evaluates_together(problem)
 
     def negative(theta, prior_mean, prior_chol, datasets):
         total = summed_over_datasets(criterion, theta, datasets) if together else \

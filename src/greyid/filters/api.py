@@ -122,6 +122,63 @@ def filter_inputs(series: Series, hold: str, on_device: bool = True, diffuse: tu
     return FilterInputs(**(jax.device_put(arrays) if on_device else arrays))
 
 
+def padded_inputs(inputs: FilterInputs, length: int, unique: int, slots: int, head: int) -> FilterInputs:
+    """``inputs`` (NumPy arrays) padded to ``length`` rows, ``unique`` sampling-interval slots, ``slots``
+    delay cuts and a diffuse period of ``head`` rows.
+
+    Padding rows repeat the last time and input, carry no observation and an interval of length 0 (as
+    [`filter_inputs()`][greyid.filters.api.filter_inputs] pads), so they change nothing; nor does a longer
+    diffuse period than the series' own (once P∞ is zero its steps are ordinary).
+    """
+    extra = length - len(inputs.t)
+    if extra < 0:
+        raise ValueError(f"cannot pad {len(inputs.t)} rows to {length}")
+    zero = int(np.flatnonzero(inputs.unique_dt == 0.0)[0])
+    last, last_input = inputs.t[-1], inputs.u_cur[-1:]
+    return type(inputs)(
+        t=np.concatenate([inputs.t, np.full(extra, last)]),
+        t_prev=np.concatenate([inputs.t_prev, np.full(extra, last)]),
+        dt=np.concatenate([inputs.dt, np.zeros(extra)]),
+        u_prev=np.concatenate([inputs.u_prev, np.repeat(last_input, extra, axis=0)]),
+        u_cur=np.concatenate([inputs.u_cur, np.repeat(last_input, extra, axis=0)]),
+        y=np.concatenate([inputs.y, np.zeros((extra, inputs.y.shape[1]))]),
+        mask=np.concatenate([inputs.mask, np.zeros((extra, inputs.mask.shape[1]))]),
+        dt_index=np.concatenate([inputs.dt_index, np.full(extra, zero, dtype=inputs.dt_index.dtype)]),
+        unique_dt=np.concatenate([inputs.unique_dt, np.zeros(unique - len(inputs.unique_dt))]),
+        first_interval=inputs.first_interval, foh=inputs.foh, delay_slots=np.zeros(slots),
+        diffuse_rows=np.zeros(head))
+
+
+def shared_lengths(prepared: list) -> list:
+    """The data sets of one evaluation, ``[(series, filter inputs), ...]``, padded to shared shapes where that
+    pads little: the longest data set left leads a group that every other of more than half its rows joins;
+    the group's data sets take its rows and its most sampling-interval slots
+    ([`padded_inputs()`][greyid.filters.api.padded_inputs]).
+
+    Data sets of one shape run through one vectorised filter (a fit's criterion sums them so, (3.18)), so a
+    fit to several series of different lengths traces and compiles its filter once instead of once per
+    length, and runs them side by side.  Data sets whose delay or diffuse arrays differ in shape stay apart.
+    """
+    if len(prepared) < 2:
+        return list(prepared)
+    on_device = isinstance(prepared[0][1].t, jax.Array)
+    host = [jax.device_get(inputs) for _, inputs in prepared]
+    order = sorted(range(len(host)), key=lambda i: -len(host[i].t))
+    out = list(prepared)
+    while order:
+        lead = host[order[0]]
+        length = len(lead.t)
+        group = [i for i in order if 2 * len(host[i].t) > length and host[i].delay_slots.shape == lead.delay_slots.shape
+                 and host[i].diffuse_rows.shape == lead.diffuse_rows.shape]
+        order = [i for i in order if i not in group]
+        unique = max(len(host[i].unique_dt) for i in group)
+        for i in group:
+            if len(group) > 1 and (len(host[i].t), len(host[i].unique_dt)) != (length, unique):
+                padded = padded_inputs(host[i], length, unique, len(lead.delay_slots), len(lead.diffuse_rows))
+                out[i] = (out[i][0], jax.device_put(padded) if on_device else padded)
+    return out
+
+
 #: Euler–Maruyama steps per sampling interval of the particle and ensemble filters where ``substeps`` is not given
 #: (a model that is not linear and time-invariant; such a model's transition is sampled exactly).
 PARTICLE_SUBSTEPS = 8
