@@ -586,7 +586,8 @@ def test_long_series_take_forward_mode_and_agree(ou, monkeypatch):
 def test_series_of_different_lengths_share_one_filter_and_each_keeps_its_likelihood():
     """Four irregular series of 25–40 rows (four length buckets) pad to one shape, run by one vectorised
     filter program; one of 10 rows keeps its own.  The fit's log-likelihood at its estimates is the sum of
-    each series' own log-likelihood (each padded as alone)."""
+    each series' own log-likelihood (each padded as alone), and a refit (profiles, bootstrap) evaluates the
+    fit's shapes."""
     from greyid.filters.api import prepare_datasets, shared_lengths
 
     model, rng = ou_model(), np.random.default_rng(31)
@@ -607,3 +608,7 @@ def test_series_of_different_lengths_share_one_filter_and_each_keeps_its_likelih
     fit = model.fit(frames)
     each = sum(model.loglik(fit.values, frame) for frame in frames)
     assert fit.converged and fit.loglik == pytest.approx(each, abs=1e-9)
+    # Profiles, bootstrap and samplers evaluate the fit's shapes, so its compiled programs serve them.
+    from greyid.estimate.refit import Refit
+
+    assert [tuple(np.shape(leaf) for leaf in jax.tree_util.tree_leaves(i)) for i in Refit(fit).datasets] == shapes

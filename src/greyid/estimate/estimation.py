@@ -21,10 +21,9 @@ from ..data.prepare import as_frames
 from ..errors import DataError, ModelError
 from ..schema import OPTIMIZERS
 from ..filters.accuracy import LOGLIK_TOLERANCE, MAX_SUBSTEPS, SubstepChoice, chooses_substeps
-from ..filters.api import (check_at_parameters, check_equations_finite, filter_options, prepare_datasets,
-                           shared_lengths)
+from ..filters.api import check_at_parameters, check_equations_finite, filter_options, prepare_datasets
 from ..filters.kalman import takes_steady_state
-from ..filters.protocol import ENKF, GAUSSIAN_METHODS, LAPLACE, PARTICLE, STOCHASTIC
+from ..filters.protocol import ENKF, LAPLACE, PARTICLE, STOCHASTIC
 from ..model.delays import delay_parameters
 from ..model.options import DATA_KEYS, ESTIMATION_KEYS, FILTER_KEYS
 from ..progress import FitProgress
@@ -479,11 +478,7 @@ def fit(model, data, time="t", hold="zoh", method=None, criterion="ml", prior=No
     prepared = prepare_datasets(structure, theta0, frames, time, hold, time_unit, check=False)
     if sum(series.n_rows for series, _ in prepared) > objective.LONG_SERIES:
         problem = replace(problem, long_series=True)  # memory independent of the series' length
-    if objective.evaluates_together(problem) and problem.options.method in GAUSSIAN_METHODS:
-        # Several series of different lengths: one filter program for them all.  (The particle and
-        # ensemble filters draw their random numbers by the padded shape, the Laplace method's grid
-        # grows with it: their data sets keep their own.)
-        prepared = shared_lengths(prepared)
+    prepared = objective.evaluated_datasets(problem, prepared)  # several lengths: one filter program
     datasets = [inputs for _, inputs in prepared]
     check_observed(prepared, len(free))
 

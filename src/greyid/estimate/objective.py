@@ -20,9 +20,9 @@ import numpy as np
 
 from ..runtime.jit import jit, kept_key
 from ..filters import small
-from ..filters.api import compiled_filter
+from ..filters.api import compiled_filter, shared_lengths
 from ..filters.driver import make_ahead, make_summed_filter
-from ..filters.protocol import KALMAN, LAPLACE, STOCHASTIC, FilterOptions
+from ..filters.protocol import GAUSSIAN_METHODS, KALMAN, LAPLACE, STOCHASTIC, FilterOptions
 from .criteria import GaussianPrior, log_criterion, scale_consistency, step_criterion
 from .transforms import Transform
 
@@ -130,6 +130,18 @@ def evaluates_together(problem: Problem) -> bool:
     ([`summed_over_datasets()`][greyid.estimate.objective.summed_over_datasets]): not with the steady state,
     whose switch decides by ``lax.cond`` per data set (vectorised, both branches would run)."""
     return not (problem.long_series or problem.options.steady_state)
+
+
+def evaluated_datasets(problem: Problem, prepared: list) -> list:
+    """The data sets ``[(series, filter inputs), ...]`` as the criterion evaluates them: where a Gaussian
+    filter runs them together ([`evaluates_together()`][greyid.estimate.objective.evaluates_together]),
+    series of different lengths padded to shared shapes
+    ([`shared_lengths()`][greyid.filters.api.shared_lengths]: one filter program for them all).  The particle
+    and ensemble filters draw their random numbers by the padded shape and the Laplace method's grid grows
+    with it: their data sets keep their own."""
+    if evaluates_together(problem) and problem.options.method in GAUSSIAN_METHODS:
+        return shared_lengths(prepared)
+    return list(prepared)
 
 
 def criterion_functions(structure, problem: Problem, forward_only: bool = False):

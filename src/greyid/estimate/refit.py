@@ -67,10 +67,11 @@ class Refit:
                                     (s.get("robust"), s.get("horizon", 1), s.get("prior")), rerun)
         prepared = prepare_datasets(self.structure, self.theta_hat, fit_data(fit), s["time"], s["hold"],
                                     s.get("time_unit"), check=False)
-        self.datasets = [inputs for _, inputs in prepared]
         rows = sum(series.n_rows for series, _ in prepared)
         if rows > objective.LONG_SERIES:
             self.problem = replace(self.problem, long_series=True)
+        # The shapes the fit evaluated: its compiled programs serve the refits.
+        self.datasets = [inputs for _, inputs in objective.evaluated_datasets(self.problem, prepared)]
         self.scoring = uses_scoring(s.get("optimizer", "auto"), rows, len(free))
         self.maxiter = maxiter
         free_names = [self.names[i] for i in free]
