@@ -413,6 +413,38 @@ def test_the_gaussian_one_step_residuals_in_one_pass_are_the_predictive_of_each_
     assert np.max(np.abs(one_pass[:rows])) > 0.5
 
 
+@pytest.mark.parametrize("settings", [dict(scheme="ctsmtmb"), dict(substeps=2)])
+def test_the_one_pass_with_independent_noise_takes_each_output_s_own_density(settings):
+    """Independent output noise: the pass takes an output's own density term (not the difference of two), equal to
+    rounding to each observation's predictive from its Laplace mode, with a missing output and an irregular
+    interval."""
+    import jax
+
+    from greyid.filters import api, laplace
+
+    m = greyid.Model("two_outputs")
+    m.add_system("dx = -a*(x - mu)*dt + s*dw1")
+    m.add_observation("y1 = x", variance="r")
+    m.add_observation("y2 = 0.5*x + 1", variance="4*r")
+    m.set_initial_state(mean={"x": 1.0}, covariance=[[0.1]])
+    params = dict(a=0.5, mu=1.0, s=0.4, r=0.04)
+    t = np.concatenate([np.arange(9.0), [9.4], np.arange(11.0, 20.0)])
+    data = m.simulate(params, t, seed=4).frame()[["t", "y1", "y2"]]
+    data.loc[5, "y2"] = np.nan
+    assert laplace.gaussian_joint(m.structure) and m.structure.observation_covariance is None
+    _, theta, prepared, _ = api._laplace_program(m, params, data, "t", "zoh", None, "one-step-test",
+                                                 laplace.one_step_gaussian, settings)
+    built = laplace.build(m.structure, api.accurate_options(m.structure, theta, prepared, "laplace", **settings)[0])
+    inputs = prepared[0][1]
+    one_pass = np.asarray(jax.jit(built.one_step)(theta, inputs))
+    each = np.asarray(jax.jit(lambda th, d: laplace.each_observation(
+        d, 2, lambda before, k, i: built.predictive(th, before, k, i), 0.0, most=1))(theta, inputs))
+    rows = len(data)
+    assert one_pass[5, 1] == 0.0 and np.isfinite(one_pass[:rows]).all()
+    np.testing.assert_allclose(one_pass[:rows], each[:rows], rtol=0, atol=1e-12)
+    assert np.max(np.abs(one_pass[:rows])) > 0.5
+
+
 def test_the_one_step_searches_stop_sooner_at_the_same_mode():
     """The one-step transforms' Laplace values stop their Newton search at a full step shorter than
     ONE_STEP_TOLERANCE: after the last full step the value equals the likelihood's (whose search runs to

@@ -523,7 +523,8 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
         model whose joint log-density J is quadratic in the states (linear dynamics and observations, Gaussian
         outputs and initial state, none diffuse): one pass forward over the grid (N, outputs), 0 where unobserved.
 
-        The states' density given the data before is carried as a mean m and a precision Λ (a Gaussian).
+        The states' density given the data before is carried as a mean m and a precision Λ (a Gaussian), with
+        Λ's Cholesky factor.
         A grid step takes the joint of x_j ~ N(m, Λ⁻¹) and the transition's term T(x_j, x_{j+1}) to its mode and
         x_{j+1}'s marginal precision Q₂₂ − Q₂₁(Λ + Q₁₁)⁻¹Q₁₂ (Q = −∂²T); an observed output then adds its
         term's curvature to Λ and moves m by one Newton step.  Where J is quadratic each step is exact, so these
@@ -542,14 +543,17 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
             return g, -H
 
         def grid_step(belief, step):
-            m, precision = belief
+            m, precision, root = belief
             guess = m + terms.drift(m, step.u_start, step.start) * step.length  # near the mode: small steps
-            pair = jnp.concatenate([m, guess])
-            slope, Q = slope_and_curvature(lambda x: terms.transition(x, step), pair)
-            joint_precision = Q.at[:n, :n].add(precision)
-            mode = pair + small.cho_solve(small.cholesky(symmetrize(joint_precision)), slope)
-            linked = small.cho_solve(small.cholesky(symmetrize(joint_precision[:n, :n])), Q[:n, n:])
-            return (mode[n:], symmetrize(Q[n:, n:] - Q[n:, :n] @ linked)), None
+            slope, Q = slope_and_curvature(lambda x: terms.transition(x, step), jnp.concatenate([m, guess]))
+            # The joint's mode by its blocks: with A = Λ + Q₁₁ and the Schur complement S = Q₂₂ − Q₂₁A⁻¹Q₁₂
+            # (x_{j+1}'s marginal precision), x_{j+1} moves by S⁻¹(g₂ − Q₂₁A⁻¹g₁): two factorisations of
+            # n × n blocks instead of the joint's 2n × 2n one, and S's factor is carried to the next step.
+            linked = small.cho_solve(small.cholesky(symmetrize(Q[:n, :n] + precision)), Q[:n, n:])  # A⁻¹Q₁₂
+            marginal_precision = symmetrize(Q[n:, n:] - Q[n:, :n] @ linked)
+            root = small.cholesky(marginal_precision)
+            shift = small.cho_solve(root, slope[n:] - linked.T @ slope[:n])
+            return (guess + shift, marginal_precision, root), None
 
         def row_step(belief, part):
             first, steps, row = part
@@ -558,23 +562,25 @@ def build(structure: Structure, options: FilterOptions) -> Laplace:
             y, mask, u, t = row
 
             def output(belief, i):
-                m, precision = belief
+                m, precision, root = belief
                 before, through = mask * (outputs < i), mask * (outputs <= i)
-                factor = small.cholesky(precision)
-                residual = standardized(theta, (y, before, u, t), i, m,
-                                        lambda v: small.cho_solve(factor, v))
-                # Output i's own term given the outputs before it (whitened where the noise is correlated).
+                residual = standardized(theta, (y, before, u, t), i, m, lambda v: small.cho_solve(root, v))
+                # Output i's own term given the outputs before it: its density alone where the outputs' noise
+                # is independent, the difference of two where it is correlated (whitened).
                 def term(x):
+                    if full is None:
+                        return terms.observed(x, (y, mask * (outputs == i), u, t))
                     return terms.observed(x, (y, through, u, t)) - terms.observed(x, (y, before, u, t))
 
                 slope, curvature = slope_and_curvature(term, m)
                 precision = symmetrize(precision + curvature)
-                m = m + small.cho_solve(small.cholesky(precision), slope)
-                return (m, precision), jnp.where(mask[i] > 0, residual, 0.0)
+                root = small.cholesky(precision)
+                return (m + small.cho_solve(root, slope), precision, root), jnp.where(mask[i] > 0, residual, 0.0)
 
             return jax.lax.scan(output, belief, outputs)
 
-        start = (terms.x0, symmetrize(-jax.hessian(terms.prior)(terms.x0)))
+        prior_precision = symmetrize(-jax.hessian(terms.prior)(terms.x0))
+        start = (terms.x0, prior_precision, small.cholesky(prior_precision))
         # The grid's steps into each row; row 0 has none (its own are a copy of row 1's, left unused).
         into = jax.tree_util.tree_map(lambda a: a.reshape(n_rows - 1, s, *a.shape[1:]), terms.grid)
         into = jax.tree_util.tree_map(lambda a: jnp.concatenate([a[:1], a]), into)
