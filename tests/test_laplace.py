@@ -262,6 +262,16 @@ def test_laplace_one_step_residuals_match_the_kalman_filter_and_the_grid_filter(
     assert stats.kstest(wrong, "norm").pvalue < 1e-3
 
 
+def two_output_model(second_variance: str):
+    """One Ornstein–Uhlenbeck state seen by two outputs with independent noise (the second's variance given)."""
+    m = greyid.Model("two_outputs")
+    m.add_system("dx = -a*(x - mu)*dt + s*dw1")
+    m.add_observation("y1 = x", variance="r")
+    m.add_observation("y2 = 0.5*x + 1", variance=second_variance)
+    m.set_initial_state(mean={"x": 1.0}, covariance=[[0.1]])
+    return m
+
+
 def test_the_one_step_residuals_of_two_outputs_trace_the_laplace_value_once(monkeypatch):
     """The outputs in a scan, the rows in batches of one size: the Laplace value of the "cdf" method is traced once,
     not once per output and again for rows left over by the batches.
@@ -281,11 +291,7 @@ def test_the_one_step_residuals_of_two_outputs_trace_the_laplace_value_once(monk
         return built._replace(value=value)
 
     monkeypatch.setattr(laplace, "build", counting)  # (switches the kept programs off: it traces)
-    m = greyid.Model("two_outputs")
-    m.add_system("dx = -a*(x - mu)*dt + s*dw1")
-    m.add_observation("y1 = x", variance="r")
-    m.add_observation("y2 = 0.5*x + 1", variance="r")
-    m.set_initial_state(mean={"x": 1.0}, covariance=[[0.1]])
+    m = two_output_model("r")
     params = dict(a=0.5, mu=1.0, s=0.4, r=0.04)
     data = m.simulate(params, np.arange(21.0), seed=3).frame()[["t", "y1", "y2"]]
     residuals = laplace_residuals(m, params, data, one_step="cdf")
@@ -422,11 +428,7 @@ def test_the_one_pass_with_independent_noise_takes_each_output_s_own_density(set
 
     from greyid.filters import api, laplace
 
-    m = greyid.Model("two_outputs")
-    m.add_system("dx = -a*(x - mu)*dt + s*dw1")
-    m.add_observation("y1 = x", variance="r")
-    m.add_observation("y2 = 0.5*x + 1", variance="4*r")
-    m.set_initial_state(mean={"x": 1.0}, covariance=[[0.1]])
+    m = two_output_model("4*r")
     params = dict(a=0.5, mu=1.0, s=0.4, r=0.04)
     t = np.concatenate([np.arange(9.0), [9.4], np.arange(11.0, 20.0)])
     data = m.simulate(params, t, seed=4).frame()[["t", "y1", "y2"]]
