@@ -255,11 +255,16 @@ def test_the_hessian_by_differences_of_the_members_slopes_equals_the_exact_one(g
     assert gain_fit.loglik == pytest.approx(exact.loglik, abs=1e-9)
     np.testing.assert_allclose(gain_fit.params["estimate"], exact.params["estimate"], rtol=1e-7)
     np.testing.assert_allclose(gain_fit.params["std_error"], exact.params["std_error"], rtol=1e-8)
-    called = []
-    for name in ("compile_hessian", "hessian"):
-        monkeypatch.setattr(laplace.MemberPrograms, name, lambda *args, name=name: called.append(name))
+    called, ahead = [], laplace.MemberPrograms.compile_ahead
+
+    def recorded(self, phi, u, hessian=False):
+        called.append(("ahead", hessian))
+        return ahead(self, phi, u, hessian)
+
+    monkeypatch.setattr(laplace.MemberPrograms, "compile_ahead", recorded)
+    monkeypatch.setattr(laplace.MemberPrograms, "hessian", lambda *args: called.append("hessian"))
     again = fit_population(model, datasets, {"b11": "normal"})
-    assert called == [] and again.loglik == pytest.approx(gain_fit.loglik, abs=1e-9)
+    assert called == [("ahead", False)] and again.loglik == pytest.approx(gain_fit.loglik, abs=1e-9)
     with pytest.raises(greyid.ModelError, match="hessian is 'numeric'; use 'exact'.*'differences'"):
         fit_population(model, datasets, {"b11": "normal"}, hessian="numeric")
     with pytest.raises(greyid.ModelError, match="does not take 'hesian'.*progress, hessian and"):
@@ -513,6 +518,32 @@ def test_nested_layouts_share_the_filters_programs(nonlinear_problem):
                              tuple(jnp.asarray(b) for b in spec.base()), _member(outer.members.data, i))
         for got, want in zip((gradients[i], tangents[i], multipliers[i]), map(np.asarray, expected)):
             np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-10 * np.abs(want).max())
+
+
+def test_the_outer_gradient_s_programs_compile_ahead_and_give_the_same_gradients(nonlinear_problem):
+    """``compile_ahead`` compiles the filter's programs of the outer gradient (and of the exact Hessian) in the
+    background: they are there before the first gradient, which compiles none of them again and equals the
+    gradient of members' programs that compiled as they went."""
+    m, data, _, spec, outer = nonlinear_problem
+    programs = laplace.build(m.structure, spec, filter_options(m.structure, None))
+    members, u = outer.members, np.zeros((len(data), spec.n_random))
+    phi = spec.phi0() + 0.05
+    ahead = laplace.MemberPrograms(programs, members.x, spec.base(), members.data, 1)
+    plain = laplace.MemberPrograms(programs, members.x, spec.base(), members.data, 1)
+    try:
+        ahead.compile_ahead(spec.phi0(), u, hessian=True)
+        assert set(ahead._pending) == {"gradient", "hessian"}
+        for pending in list(ahead._pending.values()):
+            pending.result()
+        assert len(programs.slopes.executables) == 1 and len(programs.curvatures.executables) == 1
+        slopes = dict(programs.slopes.executables)
+        first = ahead.gradient(phi, u)
+        assert "gradient" not in ahead._pending and programs.slopes.executables == slopes
+        for got, want in zip(first, plain.gradient(phi, u)):
+            np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+    finally:
+        ahead.close()
+        plain.close()
 
 
 def test_parameter_map_by_hand(nonlinear_problem):

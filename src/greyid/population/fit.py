@@ -52,9 +52,9 @@ class Outer:
 
     Evaluations run here (the members split over the cores) or, with ``evaluator`` (a
     [`ClusterEvaluator`][greyid.population.distributed.ClusterEvaluator]), by chunks of members on a Dask cluster.
-    ``hessian``: ``"exact"`` (the members' exact outer Hessians, whose program compiles in the background from the
-    start) or ``"differences"`` (the members' second derivatives by central differences of their exact first
-    derivatives, by the gradient's programs).
+    ``hessian``: ``"exact"`` (the members' exact outer Hessians) or ``"differences"`` (the members' second
+    derivatives by central differences of their exact first derivatives, by the gradient's programs).  The
+    filter's programs of the outer gradient (and of the exact Hessian) compile in the background from the start.
     """
 
     def __init__(self, programs: laplace.LaplacePrograms | None, members: Members, spec: PopulationSpec,
@@ -71,8 +71,7 @@ class Outer:
         if evaluator is None:
             self.programs = laplace.MemberPrograms(programs, members.x, spec.base(), members.data,
                                                    worker_count() if workers is None else workers)
-            if hessian == "exact":
-                self.programs.compile_hessian(spec.phi0(), self.u)
+            self.programs.compile_ahead(spec.phi0(), self.u, hessian=hessian == "exact")
             evaluator = functools.partial(evaluate, self.programs)
         self.evaluator = evaluator
 

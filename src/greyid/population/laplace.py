@@ -486,31 +486,42 @@ class MemberPrograms:
 
     def gradient(self, phi, u):
         """``(ℓ_i, ℓ_i', T_i, λ_i)`` per member at the modes ``u``; T and λ are what ``hessian`` takes."""
-        return self._run(self._gradient_steps(jnp.asarray(phi), np.asarray(u)), self.derivative_parts)
+        steps = self._gradient_steps(jnp.asarray(phi), np.asarray(u))
+        self._compiled_ahead("gradient", steps, 1)
+        return self._run(steps, self.derivative_parts)
 
-    def compile_hessian(self, phi, u) -> None:
-        """Compile the filter's program of the Hessian in the background (the arguments give only its shapes): it
-        is the largest and is needed last, so its compilation overlaps the search instead of following it."""
+    def compile_ahead(self, phi, u, hessian: bool = False) -> None:
+        """Compile the filter's programs of the outer gradient (and with ``hessian`` those of the exact Hessian
+        after them) in the background, the arguments giving only their shapes: the largest programs, needed
+        after the members' modes (the Hessian's last), so their compilation overlaps the modes' programs and the
+        search instead of following them."""
         from concurrent.futures import ThreadPoolExecutor
 
         n, p, q = len(u), len(phi), np.shape(u)[1]
-        steps = self._hessian_steps(jnp.asarray(phi), np.asarray(u), np.zeros((n, q + p, p)), np.zeros((n, q)))
+        phi, u, part = jnp.asarray(phi), np.asarray(u), self.derivative_parts[0]
         compiler = ThreadPoolExecutor(1)
-        self._hessian_compiled = compiler.submit(_executables, steps[:-1], self.derivative_parts[0])
+        self._pending = {"gradient": compiler.submit(_executables, self._gradient_steps(phi, u)[:-1], part)}
+        if hessian:
+            steps = self._hessian_steps(phi, u, np.zeros((n, q + p, p)), np.zeros((n, q)))
+            self._pending["hessian"] = compiler.submit(_executables, steps[:-1], part)
         compiler.shutdown(wait=False)
+
+    def _compiled_ahead(self, name: str, steps, order: int) -> None:
+        """Wait for the filter's programs of ``name`` compiling in the background (`compile_ahead`), where they
+        are, compiling the closed form ``steps[-1]`` meanwhile (for P's derivatives up to ``order``)."""
+        pending = getattr(self, "_pending", {}).pop(name, None)
+        if pending is not None:
+            part = self.derivative_parts[0]
+            closed_form, arguments = steps[-1]
+            closed_form.executable(*arguments(part, self.programs.shaped(len(part[1]), order)))
+            pending.result()  # (an error there is raised here)
 
     def hessian(self, phi, u, tangents, multipliers):
         """ℓ_i'' per member, from the modes ``u`` and the ``tangents`` T and ``multipliers`` λ that ``gradient``
         gave at the same φ; in chunks of [`DERIVATIVE_MEMBERS`][greyid.population.laplace.DERIVATIVE_MEMBERS], split
         over the threads as the gradient's."""
         steps = self._hessian_steps(jnp.asarray(phi), np.asarray(u), np.asarray(tangents), np.asarray(multipliers))
-        pending, self._hessian_compiled = getattr(self, "_hessian_compiled", None), None
-        if pending is not None:
-            # The closed form compiles here while the filter's program may still be compiling in the background.
-            part = self.derivative_parts[0]
-            closed_form, arguments = steps[-1]
-            closed_form.executable(*arguments(part, self.programs.shaped(len(part[1]), 2)))
-            pending.result()  # (an error there is raised here)
+        self._compiled_ahead("hessian", steps, 2)
         return self._run(steps, self.derivative_parts)
 
     def _curvatures_by_differences(self, phi, u, steps, part) -> tuple:
