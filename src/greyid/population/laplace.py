@@ -433,6 +433,7 @@ class MemberPrograms:
         self.derivative_parts = _cut(x, data, max(workers, -(-n // DERIVATIVE_MEMBERS)))
         self.base = tuple(jax.device_put(np.asarray(b, dtype=float)) for b in base)
         self.pool = ThreadPoolExecutor(len(self.parts))
+        self._pending: dict = {}  # programs compiling in the background, by name (see compile_ahead)
 
     def _run(self, steps, parts=None):
         """Programs run in turn on every chunk, the chunks side by side on the threads.  ``steps``: pairs
@@ -500,7 +501,7 @@ class MemberPrograms:
         n, p, q = len(u), len(phi), np.shape(u)[1]
         phi, u, part = jnp.asarray(phi), np.asarray(u), self.derivative_parts[0]
         compiler = ThreadPoolExecutor(1)
-        self._pending = {"gradient": compiler.submit(_executables, self._gradient_steps(phi, u)[:-1], part)}
+        self._pending["gradient"] = compiler.submit(_executables, self._gradient_steps(phi, u)[:-1], part)
         if hessian:
             steps = self._hessian_steps(phi, u, np.zeros((n, q + p, p)), np.zeros((n, q)))
             self._pending["hessian"] = compiler.submit(_executables, steps[:-1], part)
@@ -509,7 +510,7 @@ class MemberPrograms:
     def _compiled_ahead(self, name: str, steps, order: int) -> None:
         """Wait for the filter's programs of ``name`` compiling in the background (`compile_ahead`), where they
         are, compiling the closed form ``steps[-1]`` meanwhile (for P's derivatives up to ``order``)."""
-        pending = getattr(self, "_pending", {}).pop(name, None)
+        pending = self._pending.pop(name, None)
         if pending is not None:
             part = self.derivative_parts[0]
             closed_form, arguments = steps[-1]
