@@ -387,6 +387,23 @@ def test_the_one_step_residuals_evaluate_every_row_in_one_vectorised_program():
     assert "while" in str(loops[0])
 
 
+def one_pass_and_each_observation(m, params, data, hold, settings):
+    """The Gaussian one-step residuals of a two-output model (rows, 2) by the one pass forward
+    (``Laplace.one_step``) and by each observation's own Laplace predictive (``Laplace.predictive``)."""
+    import jax
+
+    from greyid.filters import api, laplace
+
+    _, theta, prepared, _ = api._laplace_program(m, params, data, "t", hold, None, "one-step-test",
+                                                 laplace.one_step_gaussian, settings)
+    built = laplace.build(m.structure, api.accurate_options(m.structure, theta, prepared, "laplace", **settings)[0])
+    inputs = prepared[0][1]
+    one_pass = np.asarray(jax.jit(built.one_step)(theta, inputs))
+    each = np.asarray(jax.jit(lambda th, d: laplace.each_observation(
+        d, 2, lambda before, k, i: built.predictive(th, before, k, i), 0.0, most=1))(theta, inputs))
+    return one_pass[:len(data)], each[:len(data)]
+
+
 @pytest.mark.parametrize("settings", [dict(scheme="ctsmtmb"), dict(scheme="euler", substeps=3),
                                       dict(substeps=2)])
 def test_the_gaussian_one_step_residuals_in_one_pass_are_the_predictive_of_each_observation(settings):
@@ -394,9 +411,7 @@ def test_the_gaussian_one_step_residuals_in_one_pass_are_the_predictive_of_each_
     (``Laplace.one_step``): equal to rounding to each observation's predictive from the Laplace mode given the data
     before it (``Laplace.predictive``, what a nonlinear model's residuals run), on two states with an input held by
     first-order hold, correlated output noise, a missing output and an irregular interval, by each scheme."""
-    import jax
-
-    from greyid.filters import api, laplace
+    from greyid.filters import laplace
 
     m, params = correlated_model(), CORRELATED
     t = np.concatenate([np.arange(12.0), [12.7], np.arange(14.0, 30.0)])
@@ -405,18 +420,10 @@ def test_the_gaussian_one_step_residuals_in_one_pass_are_the_predictive_of_each_
     data = data.assign(y1=frame["y1"].to_numpy(), y2=frame["y2"].to_numpy())
     data.loc[7, "y1"] = np.nan
     assert laplace.gaussian_joint(m.structure)
-    _, theta, prepared, _ = api._laplace_program(m, params, data, "t", "foh", None, "one-step-test",
-                                                 laplace.one_step_gaussian, settings)
-    options = api.accurate_options(m.structure, theta, prepared, "laplace", **settings)[0]
-    built = laplace.build(m.structure, options)
-    inputs = prepared[0][1]
-    one_pass = np.asarray(jax.jit(built.one_step)(theta, inputs))
-    each = np.asarray(jax.jit(lambda th, d: laplace.each_observation(
-        d, 2, lambda before, k, i: built.predictive(th, before, k, i), 0.0, most=1))(theta, inputs))
-    rows = len(data)
-    assert np.isfinite(one_pass[:rows]).all() and one_pass[7, 0] == 0.0 and each[7, 0] == 0.0
-    np.testing.assert_allclose(one_pass[:rows], each[:rows], rtol=0, atol=1e-12)
-    assert np.max(np.abs(one_pass[:rows])) > 0.5
+    one_pass, each = one_pass_and_each_observation(m, params, data, "foh", settings)
+    assert np.isfinite(one_pass).all() and one_pass[7, 0] == 0.0 and each[7, 0] == 0.0
+    np.testing.assert_allclose(one_pass, each, rtol=0, atol=1e-12)
+    assert np.max(np.abs(one_pass)) > 0.5
 
 
 @pytest.mark.parametrize("settings", [dict(scheme="ctsmtmb"), dict(substeps=2)])
@@ -424,9 +431,7 @@ def test_the_one_pass_with_independent_noise_takes_each_output_s_own_density(set
     """Independent output noise: the pass takes an output's own density term (not the difference of two), equal to
     rounding to each observation's predictive from its Laplace mode, with a missing output and an irregular
     interval."""
-    import jax
-
-    from greyid.filters import api, laplace
+    from greyid.filters import laplace
 
     m = two_output_model("4*r")
     params = dict(a=0.5, mu=1.0, s=0.4, r=0.04)
@@ -434,17 +439,10 @@ def test_the_one_pass_with_independent_noise_takes_each_output_s_own_density(set
     data = m.simulate(params, t, seed=4).frame()[["t", "y1", "y2"]]
     data.loc[5, "y2"] = np.nan
     assert laplace.gaussian_joint(m.structure) and m.structure.observation_covariance is None
-    _, theta, prepared, _ = api._laplace_program(m, params, data, "t", "zoh", None, "one-step-test",
-                                                 laplace.one_step_gaussian, settings)
-    built = laplace.build(m.structure, api.accurate_options(m.structure, theta, prepared, "laplace", **settings)[0])
-    inputs = prepared[0][1]
-    one_pass = np.asarray(jax.jit(built.one_step)(theta, inputs))
-    each = np.asarray(jax.jit(lambda th, d: laplace.each_observation(
-        d, 2, lambda before, k, i: built.predictive(th, before, k, i), 0.0, most=1))(theta, inputs))
-    rows = len(data)
-    assert one_pass[5, 1] == 0.0 and np.isfinite(one_pass[:rows]).all()
-    np.testing.assert_allclose(one_pass[:rows], each[:rows], rtol=0, atol=1e-12)
-    assert np.max(np.abs(one_pass[:rows])) > 0.5
+    one_pass, each = one_pass_and_each_observation(m, params, data, "zoh", settings)
+    assert one_pass[5, 1] == 0.0 and np.isfinite(one_pass).all()
+    np.testing.assert_allclose(one_pass, each, rtol=0, atol=1e-12)
+    assert np.max(np.abs(one_pass)) > 0.5
 
 
 def test_the_one_step_searches_stop_sooner_at_the_same_mode():
