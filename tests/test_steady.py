@@ -46,15 +46,15 @@ class SteadyCounts(collections.Counter):
 def count_steady_rows(monkeypatch):
     """A [`SteadyCounts`] of the steady-state form's calls."""
     counts = SteadyCounts()
-    rows = steady.steady_rows
+    means = steady.steady_means  # what steady_rows and a sum of the rest both run
 
     def counted(*args, **kwargs):
         counts.update(["traced"])
         if counts.counting:
             jax.debug.callback(lambda: counts.update(["steady"]))
-        return rows(*args, **kwargs)
+        return means(*args, **kwargs)
 
-    monkeypatch.setattr(steady, "steady_rows", counted)
+    monkeypatch.setattr(steady, "steady_means", counted)
     return counts
 
 
@@ -86,6 +86,42 @@ def test_riccati_solution_is_the_recursion_s_limit():
     np.testing.assert_allclose(solution, P, rtol=1e-11, atol=1e-14)
 
 
+def test_smith_sum_solves_the_stein_equation():
+    """The doubling sum Σ F^k X (F^k)ᵀ over 2^SMITH_DOUBLINGS terms (a loop of doublings) is the solution of
+    Y = F Y Fᵀ + X by the Kronecker form where F's powers vanish, with F^(2^d) beside it; and its derivatives of
+    first and second order and in reverse mode are the Kronecker solution's."""
+    rng = np.random.default_rng(3)
+    n = 3
+    F0 = rng.normal(size=(n, n))
+    F0 *= 0.8 / np.max(np.abs(np.linalg.eigvals(F0)))
+    G = rng.normal(size=(n, n))
+    X0, W = G @ G.T, rng.normal(size=(n, n))
+
+    def kronecker(F, X):
+        return jnp.linalg.solve(jnp.eye(n * n) - jnp.kron(F, F), X.reshape(-1)).reshape(n, n)
+
+    Y, power = steady.smith_sum(jnp.asarray(X0), jnp.asarray(F0))
+    np.testing.assert_allclose(np.asarray(Y), np.asarray(kronecker(jnp.asarray(F0), jnp.asarray(X0))),
+                               rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(power), np.linalg.matrix_power(F0, 2 ** steady.SMITH_DOUBLINGS),
+                               atol=1e-14)
+
+    def summary(solve, a):  # F and X both depend on a
+        F, X = jnp.asarray(F0) * (1 + a[0]) + a[1] * jnp.eye(n) * 0.1, jnp.asarray(X0) * a[2] + a[0]
+        return jnp.sum(jnp.asarray(W) * solve(F, X))
+
+    a = jnp.asarray([0.02, 0.3, 1.5])
+    for symmetric in (True, False):
+        def fast(a, symmetric=symmetric):
+            return summary(lambda F, X: steady.smith_sum(X, F, symmetric)[0], a)
+
+        def slow(a):
+            return summary(kronecker, a)
+
+        for derivative in (jax.jacfwd, jax.grad, lambda f: jax.jacfwd(jax.jacfwd(f))):
+            np.testing.assert_allclose(jax.jit(derivative(fast))(a), jax.jit(derivative(slow))(a), rtol=1e-9)
+
+
 def loop_recursion(F, v, start):
     """x_r = F x_{r−1} + v_r one row after the other (a scan: a Python loop over 1280 rows took
     100 s under the derivatives)."""
@@ -104,7 +140,7 @@ RECURSIONS = {"blocks": lambda F, v, start: steady.linear_recursion(steady.recur
                                         ("blocks", 40 * steady.BLOCK), ("short", 5 * steady.BLOCK),
                                         ("short", 3 * steady.BLOCK - 7), ("short", 1),
                                         ("doubling", 5 * steady.BLOCK), ("doubling", 3 * steady.BLOCK - 7),
-                                        ("doubling", 1)])
+                                        ("doubling", 1), ("doubling", 2)])
 def test_mean_recursions_are_the_loop(kind, rows):
     """Blocks carried by powers of F^BLOCK (up to a chunk's blocks) or by a scan (more), or by two
     triangular solves (short), or by doubling, a partial last block; and the derivatives of first and second order (the

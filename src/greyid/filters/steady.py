@@ -142,13 +142,14 @@ def riccati_solution(transition, noise, C, S):
     return P
 
 
-def steady_state(model: SteadyModel, predicted=None, rows: int | None = None) -> SteadyState:
+def steady_state(model: SteadyModel, predicted=None, rows: int | None = None, filtered: bool = True) -> SteadyState:
     """P∞ and the constant gain, innovation covariance (4.28–4.29) and filtered covariance of the steady state.
 
     ``predicted`` is P∞ where the caller has it (a shorter series); otherwise it
     comes from [`riccati_solution()`][greyid.filters.steady.riccati_solution].  F's powers for
     [`linear_recursion()`][greyid.filters.steady.linear_recursion]
-    are computed for ``rows`` (of the rest) beyond SHORT_REST.
+    are computed for ``rows`` (of the rest) beyond SHORT_REST.  Without ``filtered`` the filtered
+    covariance is None (a sum of the rest's criterion needs none).
     """
     P = predicted
     if P is None:
@@ -160,7 +161,10 @@ def steady_state(model: SteadyModel, predicted=None, rows: int | None = None) ->
     chol_R = small.cholesky(R)
     gain = small.cho_solve(chol_R, PCt.T).T
     IKC = jnp.eye(P.shape[0]) - mm(gain, model.C)
-    filtered = symmetrize(mm(mm(IKC, P), IKC.T) + mm(mm(gain, model.noise), gain.T))  # Joseph form
+    if filtered:
+        filtered = symmetrize(mm(mm(IKC, P), IKC.T) + mm(mm(gain, model.noise), gain.T))  # Joseph form
+    else:
+        filtered = None
     whitening = small.solve_lower(chol_R, jnp.eye(R.shape[0]))
     F = mm(IKC, model.disc.transition)
     powers = recursion(F) if rows is None or rows > SHORT_REST else None
@@ -174,9 +178,9 @@ def at_steady_state(cov, form: str, steady: SteadyState, tolerance: float = TOLE
     return jnp.max(difference) <= tolerance  # False where anything is NaN
 
 
-def settled_state(model: SteadyModel, cov, rows: int):
+def settled_state(model: SteadyModel, cov, rows: int, filtered: bool = True):
     """``(SteadyState, settled)`` from the filtered covariance a shorter series carries out of its first rows
-    (``rows`` more to come).
+    (``rows`` more to come; ``filtered`` as for [`steady_state()`][greyid.filters.steady.steady_state]).
 
     ``settled`` says whether the filter's next prediction P = ΦP_{k|k}Φᵀ + Λ is
     P∞ to SETTLED_TOLERANCE, tested against one Newton step (Hewer's iteration)
@@ -194,7 +198,7 @@ def settled_state(model: SteadyModel, cov, rows: int):
     X = jnp.where(settled, X, P)
     disc = model.disc
     return steady_state(model, steady_prediction(X, disc.transition, disc.noise_covariance, model.C, model.noise),
-                        rows), settled
+                        rows, filtered), settled
 
 
 def newton_test(model: SteadyModel, cov):
@@ -208,9 +212,7 @@ def newton_test(model: SteadyModel, cov):
     gain, F = closed_loop(P, T, C, S)
     TK = small.mm(T, gain)
     X = symmetrize(small.mm(small.mm(TK, S), TK.T) + noise)
-    for _ in range(SMITH_DOUBLINGS):
-        X = symmetrize(X + small.mm(small.mm(F, X), F.T))
-        F = small.mm(F, F)
+    X, F = smith_sum(X, F)
     scale = jnp.sqrt(jnp.diag(X))
     difference = jnp.max(jnp.abs(P - X) / jnp.outer(scale, scale))
     # False where anything is not finite (a growing F overflows).
@@ -222,6 +224,24 @@ def closed_loop(P, transition, C, S):
     PCt = small.mm(P, C.T)
     gain = small.cho_solve(small.cholesky(symmetrize(small.mm(C, PCt) + S)), PCt.T).T
     return gain, small.mm(transition, jnp.eye(P.shape[0]) - small.mm(gain, C))
+
+
+def smith_sum(X, F, symmetric: bool = True):
+    """``(Σ_{k<2^d} F^k X (F^k)ᵀ, F^(2^d))`` with d = SMITH_DOUBLINGS, by doubling (Smith's method): the
+    solution of the Stein equation Y = F Y Fᵀ + X where F's powers have vanished.
+
+    Each doubling adds F Y Fᵀ to the sum and squares F.  A loop rather than unrolled products: the
+    programs that differentiate the steady state twice then trace one doubling instead of eight
+    (as [`discretize()`][greyid.filters.discretize.discretize] does with its Taylor terms).
+    ``symmetric``: symmetrize the sum after each doubling (a covariance; a tangent is symmetrized
+    by the caller once).
+    """
+    def double(_, sum_and_power):
+        Y, power = sum_and_power
+        Y = Y + small.mm(small.mm(power, Y), power.T)
+        return (symmetrize(Y) if symmetric else Y), small.mm(power, power)
+
+    return jax.lax.fori_loop(0, SMITH_DOUBLINGS, double, (X, F))
 
 
 def riccati_step(P, transition, noise, C, S):
@@ -254,9 +274,7 @@ def _steady_prediction_jvp(primals, tangents):
     P = steady_prediction(X, transition, noise, C, S)  # carries its own derivatives at the next order
     _, dP = jax.jvp(lambda *a: riccati_step(P, *a), (transition, noise, C, S), (d_transition, d_noise, dC, dS))
     _, F = closed_loop(P, transition, C, S)
-    for _ in range(SMITH_DOUBLINGS):
-        dP = dP + small.mm(small.mm(F, dP), F.T)
-        F = small.mm(F, F)
+    dP, _ = smith_sum(dP, F, symmetric=False)
     return P, symmetrize(dP)
 
 
@@ -375,15 +393,17 @@ def doubling_recursion(F, v, start):
     and gradient (forward mode, a few right-hand sides) keep the solves, which
     are no slower there (``benchmarks/likelihood.py``).
     """
-    rows, n = v.shape
+    rows = v.shape[0]
     x = v.at[0].add(small.mm(F, start))
-    power, shift = F, 1
-    while shift < rows:
-        x = x + applied(jnp.concatenate([jnp.zeros((shift, n), x.dtype), x[:-shift]]), power)
-        shift *= 2
-        if shift < rows:
-            power = small.mm(power, power)
-    return x
+
+    # A loop over the levels, each traced and differentiated once (as smith_sum's doublings): the rows
+    # 2^k before each, zeros before the first, are a slice of the rows behind as many zeros.
+    def level(k, x_and_power):
+        x, power = x_and_power
+        shifted = jax.lax.dynamic_slice_in_dim(jnp.concatenate([jnp.zeros_like(x), x]), rows - 2 ** k, rows)
+        return x + applied(shifted, power), small.mm(power, power)
+
+    return jax.lax.fori_loop(0, (rows - 1).bit_length(), level, (x, F))[0]
 
 
 def _same_recursion(recursion):
@@ -423,21 +443,15 @@ def usable_rows(model: SteadyModel, rows):
     return ((rows.dt_index == model.regular_index) & jnp.all(rows.mask > 0, axis=-1)) | padding_rows(rows)
 
 
-def steady_rows(model: SteadyModel, steady: SteadyState, x_start, rows, padding,
-                short: Callable = short_recursion):
-    """The filter over a chunk of rows in the steady state, all at once.
-
-    Returns per-row ``(x_pred, cov_pred, transition, Update, y_pred)`` — what a
-    step of the ordinary filter gives — and the carried ``(x, cov)`` at the end.
-    Rows marked ``padding`` (only after the series' last row) count nothing in
-    the criterion; the means carried through them are never used.  ``short``:
-    the mean's recursion over a shorter series' rest ([`short_recursion()`][greyid.filters.steady.short_recursion] or
-    [`doubling_recursion()`][greyid.filters.steady.doubling_recursion]).
-    """
+def steady_means(model: SteadyModel, steady: SteadyState, x_start, rows, padding,
+                 short: Callable = short_recursion):
+    """The means of the filter over a chunk of rows in the steady state, all at once, and each row's
+    terms of the criterion: ``(filtered, predicted, y_pred, innovation, StepTerms)`` per row (see
+    [`steady_rows()`][greyid.filters.steady.steady_rows], which adds the constant covariances)."""
     disc, C = model.disc, model.C
-    n_rows = rows.t.shape[0]
-    b_prev = jax.vmap(model.affine_drift)(rows.u_prev, rows.t_prev)
-    b_cur = jax.vmap(model.affine_drift)(rows.u_cur, rows.t)
+    # The drift's affine part at both ends of every interval, in one call (one trace of the model's drift).
+    b_prev, b_cur = jnp.split(jax.vmap(model.affine_drift)(jnp.concatenate([rows.u_prev, rows.u_cur]),
+                                                           jnp.concatenate([rows.t_prev, rows.t])), 2)
     inputs = applied(b_prev, disc.input_gain) + model.foh * applied(b_cur - b_prev, disc.ramp_gain)  # Γb + Υ(b' − b)
     offsets = jax.vmap(model.affine_output)(rows.u_cur, rows.t)  # h(0, u, t)
     IKC = jnp.eye(C.shape[1]) - steady.gain @ C
@@ -453,16 +467,33 @@ def steady_rows(model: SteadyModel, steady: SteadyState, x_start, rows, padding,
     innovation = rows.y - y_pred
     whitened = applied(innovation, steady.whitening)
     logdet = 2.0 * jnp.sum(jnp.log(jnp.diag(steady.chol_R)))
+    counted = jnp.where(padding, 0.0, 1.0)
+    terms = StepTerms(whitened * counted[:, None], counted * logdet, counted * C.shape[0])
+    return filtered, predicted, y_pred, innovation, terms
+
+
+def steady_rows(model: SteadyModel, steady: SteadyState, x_start, rows, padding,
+                short: Callable = short_recursion):
+    """The filter over a chunk of rows in the steady state, all at once.
+
+    Returns per-row ``(x_pred, cov_pred, transition, Update, y_pred)`` — what a
+    step of the ordinary filter gives — and the carried ``(x, cov)`` at the end.
+    Rows marked ``padding`` (only after the series' last row) count nothing in
+    the criterion; the means carried through them are never used.  ``short``:
+    the mean's recursion over a shorter series' rest ([`short_recursion()`][greyid.filters.steady.short_recursion] or
+    [`doubling_recursion()`][greyid.filters.steady.doubling_recursion]).
+    """
+    filtered, predicted, y_pred, innovation, terms = steady_means(model, steady, x_start, rows, padding, short)
+    n_rows = rows.t.shape[0]
 
     def each(a):
         return jnp.broadcast_to(a, (n_rows, *jnp.shape(a)))
 
     cov_pred, cov_filt = from_matrix(steady.predicted, model.form), from_matrix(steady.filtered, model.form)
-    counted = jnp.where(padding, 0.0, 1.0)
-    terms = StepTerms(whitened * counted[:, None], counted * logdet, counted * C.shape[0])
     update = Update(filtered, each(cov_filt), innovation, each(steady.innovation_cov), terms,
                     jnp.zeros(innovation.shape[:-1]))
-    return (predicted, each(cov_pred), each(disc.transition), update, y_pred), GaussianState(filtered[-1], cov_filt)
+    return (predicted, each(cov_pred), each(model.disc.transition), update, y_pred), GaussianState(filtered[-1],
+                                                                                                   cov_filt)
 
 
 class RestRows(NamedTuple):
@@ -497,9 +528,9 @@ def _rest_sum(static, diff, data):
     theta, disc, C, noise, foh, x_start, cov = diff
     rows, counted = data
     model = SteadyModel(disc, None, C, noise, foh, form, theta, drift_at, output_at)
-    steady, _ = settled_state(model, cov, rows.t.shape[0])
-    outputs, _ = steady_rows(model, steady, x_start, rows, counted == 0, short=doubling_recursion)
-    return jnp.sum(jax.vmap(accumulate)(outputs[3].terms))
+    steady, _ = settled_state(model, cov, rows.t.shape[0], filtered=False)
+    terms = steady_means(model, steady, x_start, rows, counted == 0, short=doubling_recursion)[-1]
+    return jnp.sum(jax.vmap(accumulate)(terms))
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
