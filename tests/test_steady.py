@@ -86,6 +86,31 @@ def test_riccati_solution_is_the_recursion_s_limit():
     np.testing.assert_allclose(solution, P, rtol=1e-11, atol=1e-14)
 
 
+def test_riccati_step_tangent_is_the_step_s_derivative():
+    """The written-out derivative of the Riccati step in Φ, Λ, C and S (P held) equals JAX's derivative of
+    the step written with a solve, and F is the closed loop Φ(I − KC)."""
+    rng = np.random.default_rng(4)
+    n, m = 3, 2
+
+    def spd(k, scale):
+        G = rng.normal(size=(k, k))
+        return jnp.asarray(G @ G.T * scale + 0.01 * np.eye(k))
+
+    P, Lam, S = spd(n, 1.0), spd(n, 0.1), spd(m, 0.05)
+    Phi, C = jnp.asarray(rng.normal(size=(n, n)) * 0.5), jnp.asarray(rng.normal(size=(m, n)))
+    tangents = (jnp.asarray(rng.normal(size=(n, n))), spd(n, 0.3), jnp.asarray(rng.normal(size=(m, n))),
+                spd(m, 0.2))
+
+    def step(Phi, Lam, C, S):
+        return Phi @ P @ Phi.T - Phi @ P @ C.T @ jnp.linalg.solve(C @ P @ C.T + S, C @ P @ Phi.T) + Lam
+
+    _, expected = jax.jvp(step, (Phi, Lam, C, S), tangents)
+    tangent, F = steady.riccati_step_tangent(P, Phi, C, S, *tangents)
+    np.testing.assert_allclose(np.asarray(tangent), np.asarray(expected), rtol=1e-11, atol=1e-12)
+    K = P @ C.T @ np.linalg.inv(C @ P @ C.T + S)
+    np.testing.assert_allclose(np.asarray(F), np.asarray(Phi @ (np.eye(n) - K @ C)), rtol=1e-12, atol=1e-13)
+
+
 def test_smith_sum_solves_the_stein_equation():
     """The doubling sum Σ F^k X (F^k)ᵀ over 2^SMITH_DOUBLINGS terms (a loop of doublings) is the solution of
     Y = F Y Fᵀ + X by the Kronecker form where F's powers vanish, with F^(2^d) beside it; and its derivatives of

@@ -282,15 +282,16 @@ def scan_settling(parts: FilterSteps, n_rows: int, step_by_step: Callable, colle
     first = jax.tree_util.tree_map(lambda a: a[:head], parts.rows)
     rest = jax.tree_util.tree_map(lambda a: a[head:], parts.rows)
     state, total, collected = step_by_step(parts.initial, first, head)
-    steady, settled = steady_form.settled_state(model, state.covariance, n_rows - head)
+    steady, settled = steady_form.settled_state(model, state.covariance, n_rows - head, filtered=accumulate is None)
     padding = steady_form.padding_rows(rest)
 
     # One decision: a second chance further on (a cond within the cond) cost as much as
     # the rows it would save.
     def in_steady_state(_):
+        if accumulate is not None:  # the criterion alone: the means and their terms, no per-row covariances
+            terms = steady_form.steady_means(model, steady, state.mean, rest, padding)[-1]
+            return jnp.sum(jax.vmap(accumulate)(terms)), None
         outputs, _ = steady_form.steady_rows(model, steady, state.mean, rest, padding)
-        if accumulate is not None:
-            return jnp.sum(jax.vmap(accumulate)(outputs[3].terms)), None
         return jnp.zeros(()), collected_steady(collect, outputs)
 
     def ordinary(_):
