@@ -289,8 +289,7 @@ def steady_prediction(X, transition, noise, C, S, written: bool = False):
     derivative by JAX, or with ``written`` the one written out
     ([`riccati_step_tangent()`][greyid.filters.steady.riccati_step_tangent]): fewer operations to compile
     where the rule is differentiated again and transposed (a fit's Hessian), slower to run in a
-    forward-mode gradient (the public likelihood's: 0.27–0.33 against 0.25 ms per Armadillo
-    value and gradient).
+    forward-mode gradient (the public likelihood's; docs/performance.md).
     """
     return X
 
