@@ -87,6 +87,45 @@ def test_profile_intervals_sit_on_the_chi2_threshold(ou_fit):
         fit.conf_int(method="bootstrap")
 
 
+def test_the_threshold_is_scipy_s_chi2_quantile():
+    """The profile's χ²₁ quantile without importing scipy.stats: the same number to the last bit."""
+    import sys
+
+    module = sys.modules["greyid.uncertainty.profile"]
+    for level in (0.5, 0.683, 0.8, 0.9, 0.95, 0.99, 0.999, 1 - 1e-9):
+        assert module.chi2_quantile(level) == stats.chi2.ppf(level, 1)
+
+
+def test_newton_ends_agree_with_the_secant_search_and_sit_on_the_threshold(ou_fit, monkeypatch):
+    """The ends by Newton's method on the end's equations (Venzon and Moolgavkar) against the secant search
+    along the profile (forced by a Newton solver that gives up) and against fits with the parameter fixed:
+    on the threshold to 1e-7 where the search stops within 4e-5, and each of the ten ends found by Newton."""
+    import sys
+
+    module = sys.modules["greyid.uncertainty.profile"]
+    m, df, fit = ou_fit
+    solved = []
+    newton_end = module._newton_end
+
+    def counted(*args):
+        end = newton_end(*args)
+        solved.append(end is not None)
+        return end
+
+    monkeypatch.setattr(module, "_newton_end", counted)
+    newton = uncertainty.profile_intervals(fit)
+    assert solved == [True] * 10
+    monkeypatch.setattr(module, "_newton_end", lambda *args: None)
+    secant = uncertainty.profile_intervals(fit)
+    se = fit.params["std_error"]
+    for end in ("lower", "upper"):
+        assert np.all(np.abs(newton[end] - secant[end]) < 1e-4 * se), end
+    for name in ("a", "r"):
+        for end in ("lower", "upper"):
+            deviance = 2 * (fit.loglik - fixed_fit(df, name, newton.loc[name, end]).loglik)
+            assert deviance == pytest.approx(THRESHOLD, abs=1e-7)
+
+
 def test_profile_of_a_derived_quantity_equals_the_reparametrised_fit(ou_fit):
     """The static gain g = b/a profiled under the constraint equals a model written in (a, g) with g fixed."""
     m, df, fit = ou_fit

@@ -406,8 +406,8 @@ def html_report(fit, level: float = 0.05, steps: int = 4, n_paths: int = 100, se
     if fit.attach_stored_data() is None:
         raise ModelError("this fit carries no data (it was loaded from a file); attach it with fit.with_data(data)")
 
-    # The profile intervals are refits, mostly compiled code that leaves the interpreter free:
-    # they run in a thread of their own while the figures are drawn.
+    # The profile intervals are Newton steps on the fit's compiled Hessian program (refits where
+    # those fail), code that leaves the interpreter free: they run in a thread while the figures are drawn.
     with ThreadPoolExecutor(max_workers=1) as pool:
         intervals = pool.submit(_profile_intervals, fit) if profile else None
         validation = validate(fit, level=level)
