@@ -93,7 +93,7 @@ def test_the_threshold_is_scipy_s_chi2_quantile():
 
     module = sys.modules["greyid.uncertainty.profile"]
     for level in (0.5, 0.683, 0.8, 0.9, 0.95, 0.99, 0.999, 1 - 1e-9):
-        assert module.chi2_quantile(level) == stats.chi2.ppf(level, 1)
+        assert module._chi2_quantile(level) == stats.chi2.ppf(level, 1)
 
 
 def test_newton_ends_agree_with_the_secant_search_and_sit_on_the_threshold(ou_fit, monkeypatch):
@@ -115,6 +115,13 @@ def test_newton_ends_agree_with_the_secant_search_and_sit_on_the_threshold(ou_fi
     monkeypatch.setattr(module, "_newton_end", counted)
     newton = uncertainty.profile_intervals(fit)
     assert solved == [True] * 10
+    # Newton's method where the fit's Hessian is the Kalman filter's forward over forward, refits elsewhere.
+    from types import SimpleNamespace as Problem
+    for method, free, long_series, pays in (("kalman", 10, False, True), ("kalman", 11, False, False),
+                                            ("kalman", 5, True, False), ("ekf", 5, False, False),
+                                            ("laplace", 5, False, False)):
+        problem = Problem(options=Problem(method=method), free=tuple(range(free)), long_series=long_series)
+        assert module._newton_pays(problem) is pays
     monkeypatch.setattr(module, "_newton_end", lambda *args: None)
     secant = uncertainty.profile_intervals(fit)
     se = fit.params["std_error"]

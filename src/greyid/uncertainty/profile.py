@@ -19,10 +19,12 @@ import pandas as pd
 from scipy import special
 
 from ..errors import ModelError, warn
+from ..estimate.objective import forward_hessian
 from ..estimate.optimize import EXACT
 from ..estimate.refit import Refit
 from ..estimate.results import FitWarning
 from ..estimate.transforms import Transform
+from ..filters.protocol import KALMAN
 
 #: Secant steps outwards looking for the end of a profile interval before giving up.
 MAX_STEPS = 40
@@ -30,7 +32,7 @@ MAX_STEPS = 40
 NEWTON_STEPS = 30
 MIN_STEP = 1.0 / 64
 #: An end by Newton's method: |f − f̂ − χ²/2| and the others' Newton decrement relative to max(1, |f|)
-#: (the deviance then lies within 2e-10 of its threshold where the secant search stops within 4e-5;
+#: (the deviance then lies within 2e-10·max(1, |f|) of its threshold, the secant search's within 4e-5;
 #: the decrement is the fit's own test of an optimum, trust_region.DECREMENT_TOLERANCE).
 ROOT_TOLERANCE = 1e-10
 DECREMENT_TOLERANCE = 1e-12
@@ -38,7 +40,7 @@ DECREMENT_TOLERANCE = 1e-12
 SIDES = ((-1.0, "lower"), (1.0, "upper"))
 
 
-def chi2_quantile(level: float) -> float:
+def _chi2_quantile(level: float) -> float:
     """The χ²₁ quantile at ``level``, as ``scipy.stats.chi2.ppf(level, 1)`` computes it (2·P⁻¹(½, level),
     the inverse regularised incomplete gamma function): scipy.stats takes a second to import."""
     return float(2.0 * special.gammaincinv(0.5, level))
@@ -174,7 +176,7 @@ def _table(fit, name, rows, estimate) -> pd.DataFrame:
     table = table.rename(columns={"criterion": label})
     table["deviance"] = 2.0 * (fit.criterion_value - table[label])
     table.attrs.update(estimate=float(estimate), maximum=float(fit.criterion_value), quantity=name,
-                       threshold=chi2_quantile(0.95), criterion=label)
+                       threshold=_chi2_quantile(0.95), criterion=label)
     return table
 
 
@@ -265,8 +267,9 @@ def profile_interval(fit, name: str, level: float = 0.95, notes: list | None = N
 
     On each side, the point where the other parameters maximise the criterion and
     2(ℓ̂ − ℓ) = χ²₁(level): Newton's method on those equations from the Wald end
-    (Venzon and Moolgavkar, 1988), one exact Hessian of the fit's program per step.
-    Where it does not converge to a profile maximum on the right side (a skewed or
+    (Venzon and Moolgavkar, 1988), one exact Hessian of the fit's program per step,
+    where that pays (the exact Kalman filter, see ``_newton_pays``).
+    Otherwise, or where it does not converge to a profile maximum on the right side (a skewed or
     flat profile, a bound), the root of √(2(ℓ̂ − ℓ_p)) = √χ²₁(level) along the
     optimiser's coordinate of the parameter (log or logistic where it is bounded):
     that signed root deviance is nearly linear there, so secant steps from the
@@ -295,13 +298,13 @@ def profile_interval(fit, name: str, level: float = 0.95, notes: list | None = N
         with a ``FitWarning`` naming it; NaN where the profile stays below the
         threshold.
     """
-    threshold = chi2_quantile(level)
+    threshold = _chi2_quantile(level)
     transform = _parameter_transform(fit, name)
     with ExitStack() as stack:
         if whole is None:
             whole = stack.enter_context(Refit(fit))
         ends = {side: _newton_end(whole, name, transform, direction, threshold, -fit.criterion_value)
-                for direction, side in SIDES}
+                if _newton_pays(whole.problem) else None for direction, side in SIDES}
         if any(end is None for end in ends.values()):
             points = stack.enter_context(_ParameterProfile(fit, name))
             estimate = float(fit.params.loc[name, "estimate"])
@@ -314,6 +317,16 @@ def profile_interval(fit, name: str, level: float = 0.95, notes: list | None = N
                     ends[side] = _interval_end(fit, name, points, transform, z_hat, direction * step, threshold,
                                                side, level, notes)
         return ends["lower"], ends["upper"]
+
+
+def _newton_pays(problem) -> bool:
+    """Whether the ends are sought by Newton's method first: where the fit's Hessian is the exact Kalman
+    filter's forward over forward (FORWARD_HESSIAN_MAX free parameters at most, a series short of
+    LONG_SERIES rows), four or five Hessians cost less than an end's refits and compile nothing.  Through the
+    other filters' derivatives a Hessian costs dozens of gradients, and a long series' refits take scoring
+    steps with the fit's programs: there the refits alone (the user guide's Uncertainty page has the figures)."""
+    return (problem.options.method == KALMAN and not problem.long_series
+            and forward_hessian(KALMAN, len(problem.free)))
 
 
 def _newton_end(whole: Refit, name: str, transform: Transform, direction: float, threshold: float,
