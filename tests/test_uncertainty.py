@@ -133,6 +133,28 @@ def test_newton_ends_agree_with_the_secant_search_and_sit_on_the_threshold(ou_fi
             assert deviance == pytest.approx(THRESHOLD, abs=1e-7)
 
 
+def test_an_unbounded_parameter_far_from_zero_has_its_interval(ou_fit, monkeypatch):
+    """An unbounded parameter is its own optimiser coordinate: an end beyond 35 is no bound (the input in
+    hundredths puts the gain b near 100), by Newton's method and by the secant search alike."""
+    import sys
+
+    module = sys.modules["greyid.uncertainty.profile"]
+    _, df, _ = ou_fit
+    scaled = df.assign(u=df["u"] / 100.0)
+    fit = ou_model().fit(scaled)
+    b = fit.params.loc["b", "estimate"]
+    assert b > 50
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", greyid.FitWarning)
+        newton = uncertainty.profile_interval(fit, "b")
+        monkeypatch.setattr(module, "_newton_end", lambda *args: None)
+        secant = uncertainty.profile_interval(fit, "b")
+    assert newton[0] < b < newton[1] and newton[0] > 35
+    np.testing.assert_allclose(newton, secant, rtol=0, atol=1e-4 * fit.params.loc["b", "std_error"])
+    for end in newton:
+        assert 2 * (fit.loglik - fixed_fit(scaled, "b", end).loglik) == pytest.approx(THRESHOLD, abs=1e-6)
+
+
 def test_profile_of_a_derived_quantity_equals_the_reparametrised_fit(ou_fit):
     """The static gain g = b/a profiled under the constraint equals a model written in (a, g) with g fixed."""
     m, df, fit = ou_fit

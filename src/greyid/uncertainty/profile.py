@@ -23,7 +23,7 @@ from ..estimate.objective import forward_hessian
 from ..estimate.optimize import EXACT
 from ..estimate.refit import Refit
 from ..estimate.results import FitWarning
-from ..estimate.transforms import Transform
+from ..estimate.transforms import NONE, Transform
 from ..filters.protocol import KALMAN
 
 #: Secant steps outwards looking for the end of a profile interval before giving up.
@@ -42,7 +42,7 @@ SIDES = ((-1.0, "lower"), (1.0, "upper"))
 
 def _chi2_quantile(level: float) -> float:
     """The χ²₁ quantile at ``level``, as ``scipy.stats.chi2.ppf(level, 1)`` computes it (2·P⁻¹(½, level),
-    the inverse regularised incomplete gamma function): scipy.stats takes a second to import."""
+    the inverse regularised incomplete gamma function), without importing scipy.stats, a large import."""
     return float(2.0 * special.gammaincinv(0.5, level))
 
 
@@ -217,7 +217,7 @@ class _DerivedProfile:
             f, grad = self.value_and_grad(z)
             return float(f), np.asarray(grad, dtype=np.float64)
 
-        from scipy import optimize  # here: SciPy's optimize and its statistics take a second to import
+        from scipy import optimize  # here only: SciPy's optimize imports its statistics, a large import
 
         result = optimize.minimize(
             objective, z0, jac=True, method="SLSQP",
@@ -393,12 +393,19 @@ def _newton_end(whole: Refit, name: str, transform: Transform, direction: float,
     else:
         return None
     z_i = z[i]
-    if direction * (z_i - z_hat[i]) <= 0 or abs(z_i) > 35:
-        return None
-    if transform.at_bound(np.array([z_i]), np.zeros(1), np.ones(1))[0]:
+    if direction * (z_i - z_hat[i]) <= 0 or _past_bound(transform, z_i):
         return None
     theta = whole.theta(z, [])
     return float(theta[whole.names.index(name)])
+
+
+def _past_bound(transform: Transform, z: float) -> bool:
+    """Whether the optimiser's coordinate z of a bounded parameter has reached its bound: at it to working
+    precision, or |z| > 35 (a log or logistic coordinate e^±35 away).  An unbounded parameter's z is the
+    parameter itself, which may lie anywhere."""
+    if transform.kind[0] == NONE:
+        return False
+    return bool(transform.at_bound(np.array([z]), np.zeros(1), np.ones(1))[0]) or abs(z) > 35
 
 
 def _regula_falsi(fun, a, fa, b, fb, tolerance: float = 1e-5, iterations: int = 60) -> float:
@@ -447,7 +454,7 @@ def _interval_end(fit, name, points, transform, z_hat, step, threshold, side, le
     o = target  # the Wald guess
     for _ in range(MAX_STEPS):
         z = z_hat + o * step
-        if transform.at_bound(np.array([z]), np.zeros(1), np.ones(1))[0] or abs(z) > 35:
+        if _past_bound(transform, z):
             end = float(fit.params.loc[name, f"{side}_bound"])
             _say(f"{fit.model.name}: the {side} end of the profile interval of '{name}' runs into "
                  f"its bound {end:.6g} (the likelihood stays within the threshold up to there)", notes)
