@@ -24,6 +24,7 @@ from ..estimate.optimize import EXACT
 from ..estimate.refit import Refit
 from ..estimate.results import FitWarning
 from ..estimate.transforms import NONE, Transform
+from ..estimate.trust_region import DECREMENT_TOLERANCE
 from ..filters.protocol import KALMAN
 
 #: Secant steps outwards looking for the end of a profile interval before giving up.
@@ -31,11 +32,10 @@ MAX_STEPS = 40
 #: Newton steps on an end's equations before the secant search takes over; shortest step's fraction.
 NEWTON_STEPS = 30
 MIN_STEP = 1.0 / 64
-#: An end by Newton's method: |f − f̂ − χ²/2| and the others' Newton decrement relative to max(1, |f|)
-#: (the deviance then lies within 2e-10·max(1, |f|) of its threshold, the secant search's within 4e-5;
-#: the decrement is the fit's own test of an optimum, trust_region.DECREMENT_TOLERANCE).
+#: An end by Newton's method: |f − f̂ − χ²/2| relative to max(1, |f|) (the deviance then lies within
+#: 2e-10·max(1, |f|) of its threshold, the secant search's within 4e-5); the others' Newton decrement
+#: meets the fit's own test of an optimum (trust_region.DECREMENT_TOLERANCE).
 ROOT_TOLERANCE = 1e-10
-DECREMENT_TOLERANCE = 1e-12
 #: The two ends: direction along the parameter's coordinate, and name.
 SIDES = ((-1.0, "lower"), (1.0, "upper"))
 
